@@ -1,0 +1,545 @@
+"""Fast MPC: log barrier + infeasible-start Newton method for the linear OCP.
+
+Paper 000 Sec. III (after Wang & Boyd, "Fast model predictive control using online
+optimization"): the inequalities are replaced by a log barrier weighted by kappa (Eq. 17) and
+the equality-constrained barrier problem is solved by the infeasible-start Newton method
+(Eqs. 18-23, Algorithm 1) with the structured step of :mod:`rvdjax.kkt` (Eqs. 24-26).
+
+Two modes (DESIGN §3):
+
+* ``paper``: fixed kappa (0.05), at most 10 Newton iterations, alpha = 0.01, beta = 0.95 —
+  the algorithm as published. It returns the barrier-problem iterate, not the QP optimum.
+* ``accurate``: barrier continuation. kappa starts at a scale-aware value and drops by
+  ``kappa_factor`` whenever the iterate is centred (Newton decrement^2 / 2 <= centring *
+  m * kappa), until the duality-gap bound m * kappa and the centring error are both below
+  ``tol`` relative to the objective. Its answer matches Clarabel.
+
+Soft state rows (exact L1 penalty rho, see :mod:`rvdjax.ocp`) are handled without slack
+variables: for one row with violation g = F x - f, the barrier problem's slack
+min_s rho s - kappa log s - kappa log(s - g) has the closed form
+s = (rho g + 2 kappa + sqrt(rho^2 g^2 + 4 kappa^2)) / (2 rho), so eliminating it leaves a
+smooth convex penalty phi(g) of the state alone (partial minimisation preserves convexity and
+leaves the Newton system's structure untouched). phi(g) -> rho max(0, g) as kappa -> 0, and it
+is defined for every g: the start never needs to satisfy the state constraints. Only the hard
+input rows need a strictly feasible start; u = 0 is one (``validate_ocp`` checks fu > 0),
+and a warm start is pulled towards 0 until it is one.
+
+Stopping tests are relative to the problem's scale (the RVD costs are ~1e7 with Riccati
+velocity weights ~1e6, so absolute tolerances never trigger): the primal residual relative to
+1 + max|x|, the dual residual relative to 1 + max|gradient|.
+
+Every loop has a fixed iteration cap and a per-problem "done" mask, so ``jax.vmap`` of
+:func:`solve` runs one program for a whole batch; finished or failed problems are frozen and
+every branch is NaN-safe, so one bad problem cannot poison a batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from rvdjax.kkt import KKT_SOLVERS
+from rvdjax.ocp import OCP
+
+__all__ = [
+    "SolverSettings",
+    "Solution",
+    "Status",
+    "solve",
+    "shift_solution",
+    "objective",
+    "max_violation",
+]
+
+
+class Status:
+    """Integer status codes of a solve (``Solution.status``)."""
+
+    CONVERGED = 0  # stopping test met
+    MAX_ITER = 1  # iteration cap reached; the last iterate is returned
+    INFEASIBLE = 2  # state constraints cannot be met (soft penalty active at the optimum),
+    #                 or no strictly feasible input exists
+    NONFINITE = 3  # the step became non-finite; the last finite iterate is returned
+
+    names = ("converged", "max_iter", "infeasible", "nonfinite")
+
+    @classmethod
+    def name(cls, code: int) -> str:
+        return cls.names[int(code)]
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverSettings:
+    """Static solver configuration (hashable: a change recompiles).
+
+    Attributes:
+        mode: "paper" (fixed kappa, Algorithm 1 of paper 000) or "accurate" (continuation).
+        method: "riccati" (structured step) or "dense" (ISNM, dense KKT solve).
+        kappa: barrier weight in paper mode (paper 000 Sec. IV.A: 0.05).
+        max_iter: Newton iteration cap.
+        alpha, beta: backtracking line-search parameters (paper 000: 0.01, 0.95).
+        tol: relative tolerance: residual (paper mode), or gap and centring (accurate mode).
+        max_line_search: cap on backtracking steps per iteration.
+        kappa0_rel: accurate mode: first kappa = kappa0_rel * (1 + |J(start)|) / m.
+        kappa_factor: accurate mode: kappa is divided by this when the iterate is centred.
+        centring: accurate mode: centred when decrement^2 / 2 <= centring * m * kappa.
+        violation_tol: a soft state row counts as violated above this distance (row-normalised
+            units of the state, e.g. metres).
+    """
+
+    mode: str = "accurate"
+    method: str = "riccati"
+    kappa: float = 0.05
+    max_iter: int = 60
+    alpha: float = 0.01
+    beta: float = 0.5
+    tol: float = 1e-9
+    max_line_search: int = 40
+    kappa0_rel: float = 1e-2
+    kappa_factor: float = 10.0
+    centring: float = 1.0
+    violation_tol: float = 1e-6
+
+    def __post_init__(self):
+        if self.mode not in ("paper", "accurate"):
+            raise ValueError(f"mode must be 'paper' or 'accurate', got {self.mode!r}")
+        if self.method not in KKT_SOLVERS:
+            raise ValueError(f"method must be one of {sorted(KKT_SOLVERS)}, got {self.method!r}")
+        if not self.kappa > 0:
+            raise ValueError(f"kappa must be > 0, got {self.kappa}")
+        if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
+            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        if not 0 < self.alpha < 0.5:
+            raise ValueError(f"alpha must be in (0, 0.5), got {self.alpha}")
+        if not 0 < self.beta < 1:
+            raise ValueError(f"beta must be in (0, 1), got {self.beta}")
+        if not self.tol > 0:
+            raise ValueError(f"tol must be > 0, got {self.tol}")
+        if not self.kappa_factor > 1:
+            raise ValueError(f"kappa_factor must be > 1, got {self.kappa_factor}")
+
+    @classmethod
+    def paper(cls, **overrides) -> SolverSettings:
+        """Paper 000 Sec. IV.A: kappa = 0.05, <= 10 iterations, alpha = 0.01, beta = 0.95."""
+        base = dict(mode="paper", kappa=0.05, max_iter=10, alpha=0.01, beta=0.95, tol=1e-9)
+        base.update(overrides)
+        return cls(**base)
+
+    @classmethod
+    def accurate(cls, **overrides) -> SolverSettings:
+        return cls(**overrides)
+
+
+class Solution(NamedTuple):
+    """Result of one solve. Batched solves carry a leading batch axis on every field.
+
+    Attributes:
+        u: (N, nu) planned inputs u_k .. u_{k+N-1}.
+        x: (N, nx) planned states x_{k+1} .. x_{k+N}.
+        nu: (N, nx) multipliers of the dynamics (see :mod:`rvdjax.kkt` for the sign).
+        objective: QP objective at (u, x), soft rows as rho * max(0, g) (no barrier term).
+        kappa: barrier weight of the returned iterate.
+        iterations: Newton iterations taken.
+        residual: relative KKT residual of the barrier problem at the returned iterate.
+        status: :class:`Status` code.
+    """
+
+    u: jnp.ndarray
+    x: jnp.ndarray
+    nu: jnp.ndarray
+    objective: jnp.ndarray
+    kappa: jnp.ndarray
+    iterations: jnp.ndarray
+    residual: jnp.ndarray
+    status: jnp.ndarray
+
+
+# --------------------------------------------------------------------------------------------
+# Cost, barrier and residuals (pure functions of one problem's arrays)
+
+
+class _Rows(NamedTuple):
+    """Inequality data with masked rows neutralised (zero row, offset 1, weight 0)."""
+
+    Fu: jnp.ndarray
+    fu: jnp.ndarray
+    wu: jnp.ndarray
+    Fx: jnp.ndarray
+    fx: jnp.ndarray
+    wx: jnp.ndarray
+    rho: jnp.ndarray
+
+
+def _rows(ocp: OCP) -> _Rows:
+    on_u = ocp.u_mask > 0
+    on_x = ocp.x_mask > 0
+    return _Rows(
+        Fu=jnp.where(on_u[..., None], ocp.Fu, 0.0),
+        fu=jnp.where(on_u, ocp.fu, 1.0),
+        wu=ocp.u_mask,
+        Fx=jnp.where(on_x[..., None], ocp.Fx, 0.0),
+        fx=jnp.where(on_x, ocp.fx, 1.0),
+        wx=ocp.x_mask,
+        rho=jnp.where(on_x, ocp.rho, 1.0),
+    )
+
+
+def _soft_penalty(g, rho, kappa):
+    """phi(g), phi'(g), phi''(g) of the slack-eliminated soft barrier (module docstring).
+
+    Written with cancellation-free forms of rho g + sqrt(.) and sqrt(.) - rho g.
+    """
+    rg = rho * g
+    root = jnp.sqrt(rg * rg + 4.0 * kappa * kappa)
+    four_k2 = 4.0 * kappa * kappa
+    a = jnp.where(rg >= 0, rg + root, four_k2 / (root - jnp.minimum(rg, 0.0)))  # rho g + root
+    b = jnp.where(rg <= 0, root - rg, four_k2 / (root + jnp.maximum(rg, 0.0)))  # root - rho g
+    s = (a + 2.0 * kappa) / (2.0 * rho)
+    s_minus_g = (b + 2.0 * kappa) / (2.0 * rho)
+    phi = rho * s - kappa * jnp.log(s) - kappa * jnp.log(s_minus_g)
+    d1 = kappa / s_minus_g
+    d2 = kappa / (s_minus_g * s_minus_g) * (0.5 * b / root)
+    return phi, d1, d2
+
+
+def _u_slack(rows: _Rows, u):
+    return rows.fu - jnp.einsum("tij,tj->ti", rows.Fu, u)
+
+
+def _x_violation(rows: _Rows, x):
+    return jnp.einsum("tij,tj->ti", rows.Fx, x) - rows.fx
+
+
+def objective(ocp: OCP, u, x):
+    """QP objective (paper 000 Eq. 1a, plus the exact penalty of the soft state rows)."""
+    e = x - ocp.x_ref
+    quad = jnp.einsum("ti,tij,tj->", e, ocp.Q, e) + jnp.einsum("ti,tij,tj->", u, ocp.R, u)
+    lin = jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u)
+    rows = _rows(ocp)
+    pen = jnp.sum(rows.wx * rows.rho * jnp.maximum(_x_violation(rows, x), 0.0))
+    return quad + lin + pen
+
+
+def max_violation(ocp: OCP, u, x):
+    """Largest row-normalised violation of the (soft) state rows and the input rows."""
+    rows = _rows(ocp)
+    gx = _x_violation(rows, x) / jnp.maximum(jnp.linalg.norm(rows.Fx, axis=-1), 1e-300)
+    gu = -_u_slack(rows, u) / jnp.maximum(jnp.linalg.norm(rows.Fu, axis=-1), 1e-300)
+    vx = jnp.max(jnp.where(rows.wx > 0, gx, -jnp.inf), initial=0.0)
+    vu = jnp.max(jnp.where(rows.wu > 0, gu, -jnp.inf), initial=0.0)
+    return jnp.maximum(jnp.maximum(vx, vu), 0.0)
+
+
+def _gradient(ocp: OCP, rows: _Rows, u, x, kappa):
+    """Gradient blocks of cost + barrier (requires strictly feasible input rows)."""
+    su = _u_slack(rows, u)
+    du = rows.wu / su
+    _, d1, _ = _soft_penalty(_x_violation(rows, x), rows.rho, kappa)
+    g_u = (
+        2.0 * jnp.einsum("tij,tj->ti", ocp.R, u)
+        + ocp.r
+        + kappa * jnp.einsum("tij,ti->tj", rows.Fu, du)
+    )
+    g_x = (
+        2.0 * jnp.einsum("tij,tj->ti", ocp.Q, x - ocp.x_ref)
+        + ocp.q
+        + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * d1)
+    )
+    return g_u, g_x
+
+
+def _hessian(ocp: OCP, rows: _Rows, u, x, kappa):
+    """Hessian blocks Phi_u (N, nu, nu), Phi_x (N, nx, nx) (paper 000 Eq. 21: 2H + barrier)."""
+    su = _u_slack(rows, u)
+    wu2 = kappa * rows.wu / (su * su)
+    _, _, d2 = _soft_penalty(_x_violation(rows, x), rows.rho, kappa)
+    Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, wu2, rows.Fu)
+    Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * d2, rows.Fx)
+    return Phi_u, Phi_x
+
+
+def _barrier_objective(ocp: OCP, rows: _Rows, u, x, kappa):
+    """f_kappa = cost - kappa sum log(fu - Fu u) + sum phi(Fx x - fx) (paper 000 Eq. 17).
+
+    +inf where an input row is not strictly satisfied.
+    """
+    e = x - ocp.x_ref
+    quad = jnp.einsum("ti,tij,tj->", e, ocp.Q, e) + jnp.einsum("ti,tij,tj->", u, ocp.R, u)
+    lin = jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u)
+    su = _u_slack(rows, u)
+    inside = jnp.all((su > 0) | (rows.wu == 0))
+    log_su = jnp.log(jnp.where(su > 0, su, 1.0))
+    phi, _, _ = _soft_penalty(_x_violation(rows, x), rows.rho, kappa)
+    f = quad + lin - kappa * jnp.sum(rows.wu * log_su) + jnp.sum(rows.wx * phi)
+    return jnp.where(inside, f, jnp.inf)
+
+
+def _dyn_residual(ocp: OCP, u, x):
+    """r_p: x_{t+1} - A_t x_t - B_t u_t - c_t, shape (N, nx)."""
+    x_prev = jnp.concatenate([ocp.x0[None], x[:-1]])
+    return x - jnp.einsum("tij,tj->ti", ocp.A, x_prev) - jnp.einsum("tij,tj->ti", ocp.B, u) - ocp.c
+
+
+def _dual_residual(ocp: OCP, g_u, g_x, nu):
+    """r_d = grad f + C^T nu, split into the u and x blocks."""
+    r_u = g_u - jnp.einsum("tij,ti->tj", ocp.B, nu)
+    At_nu_next = jnp.einsum("tij,ti->tj", ocp.A[1:], nu[1:])
+    r_x = g_x + nu - jnp.concatenate([At_nu_next, jnp.zeros_like(nu[:1])])
+    return r_u, r_x
+
+
+def _residual_norms(ocp, rows, u, x, nu, kappa):
+    """(||r||_2 for the line search, relative inf-norm residual for stopping)."""
+    g_u, g_x = _gradient(ocp, rows, u, x, kappa)
+    r_u, r_x = _dual_residual(ocp, g_u, g_x, nu)
+    r_p = _dyn_residual(ocp, u, x)
+    norm2 = jnp.sqrt(jnp.sum(r_u**2) + jnp.sum(r_x**2) + jnp.sum(r_p**2))
+    d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(g_u)), jnp.max(jnp.abs(g_x)))
+    p_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(x)), jnp.max(jnp.abs(ocp.x0)))
+    rel_d = jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale
+    rel_p = jnp.max(jnp.abs(r_p)) / p_scale
+    return norm2, rel_d, rel_p
+
+
+# --------------------------------------------------------------------------------------------
+# Starting point
+
+
+def _pull_inside(rows: _Rows, u, margin=0.99):
+    """Scale each stage's u towards 0 (strictly feasible) until strictly feasible."""
+    Fu_u = jnp.einsum("tij,tj->ti", rows.Fu, u)
+    ratio = jnp.where((rows.wu > 0) & (Fu_u > 0), rows.fu / jnp.where(Fu_u > 0, Fu_u, 1.0), 2.0)
+    theta = jnp.minimum(1.0, margin * jnp.min(ratio, axis=-1))
+    return u * theta[:, None]
+
+
+def _drift(ocp: OCP, u):
+    """States from propagating x0 with inputs u (a primal-feasible x for the start)."""
+
+    def step(x, stage):
+        A_t, B_t, c_t, u_t = stage
+        x_next = A_t @ x + B_t @ u_t + c_t
+        return x_next, x_next
+
+    _, x = lax.scan(step, ocp.x0, (ocp.A, ocp.B, ocp.c, u))
+    return x
+
+
+class Plan(NamedTuple):
+    """A warm start: u (N, nu), x (N, nx), nu (N, nx) — e.g. :func:`shift_solution`."""
+
+    u: jnp.ndarray
+    x: jnp.ndarray
+    nu: jnp.ndarray
+
+
+def shift_solution(sol: Solution | Plan) -> Plan:
+    """Shift a plan one stage forward for the next MPC step, repeating the last stage."""
+
+    def shift(a):
+        return jnp.concatenate([a[1:], a[-1:]], axis=0)
+
+    return Plan(shift(sol.u), shift(sol.x), shift(sol.nu))
+
+
+# --------------------------------------------------------------------------------------------
+# Newton iterations
+
+
+class _State(NamedTuple):
+    """Carry of the Newton loop (one problem)."""
+
+    u: jnp.ndarray  # (N, nu)
+    x: jnp.ndarray  # (N, nx)
+    nu: jnp.ndarray  # (N, nx)
+    kappa: jnp.ndarray  # ()
+    it: jnp.ndarray  # () iterations taken
+    done: jnp.ndarray  # () bool: converged or failed
+    status: jnp.ndarray  # () int
+    rel_res: jnp.ndarray  # () relative residual at (u, x, nu) for kappa
+    gap_ok: jnp.ndarray  # () bool: accurate mode's gap and centring tests met
+
+
+def _m_eff(rows: _Rows):
+    """Number of barrier terms: one per input row, two (s >= 0, s >= g) per soft row."""
+    return jnp.sum(rows.wu) + 2.0 * jnp.sum(rows.wx)
+
+
+def _line_search(ocp, rows, s: _State, du, dx, nu_new, dec2, settings: SolverSettings):
+    """Algorithm 1 step 2: backtrack to strict feasibility, then on the residual norm."""
+    beta = settings.beta
+    # Largest feasible step by the ratio test, then the paper's t = beta^k just inside it.
+    su = _u_slack(rows, s.u)
+    dsu = -jnp.einsum("tij,tj->ti", rows.Fu, du)
+    shrinking = (rows.wu > 0) & (dsu < 0)
+    t_max = jnp.min(jnp.where(shrinking, su / jnp.where(shrinking, -dsu, 1.0), jnp.inf))
+    k = jnp.floor(jnp.log(jnp.minimum(t_max, 1.0)) / jnp.log(beta)) + 1.0
+    t0 = jnp.where(t_max > 1.0, 1.0, beta ** jnp.where(jnp.isfinite(k), k, 0.0))
+
+    if settings.mode == "paper":
+        # Algorithm 1: ||r(z + t dz, nu + t dnu)||_2 <= (1 - alpha t) ||r(z, nu)||_2.
+        dnu = nu_new - s.nu
+        r0, _, _ = _residual_norms(ocp, rows, s.u, s.x, s.nu, s.kappa)
+
+        def trial(t):
+            z = (s.u + t * du, s.x + t * dx, s.nu + t * dnu)
+            return _residual_norms(ocp, rows, *z, s.kappa)[0]
+
+        def accept(t, r):
+            return r <= (1.0 - settings.alpha * t) * r0
+    else:
+        # Armijo on the barrier objective f_kappa (Boyd & Vandenberghe Alg. 9.2 / 10.2): the
+        # iterate stays primal feasible, so f_kappa is the natural merit function, and unlike
+        # the residual norm it does not mix units of cost gradient and of state.
+        f0 = _barrier_objective(ocp, rows, s.u, s.x, s.kappa)
+
+        def trial(t):
+            return _barrier_objective(ocp, rows, s.u + t * du, s.x + t * dx, s.kappa)
+
+        def accept(t, f):
+            return f <= f0 - settings.alpha * t * dec2
+
+    def cond(c):
+        t, r, n = c
+        return (~accept(t, r)) & (n < settings.max_line_search)
+
+    def body(c):
+        t, _, n = c
+        t = beta * t
+        return t, trial(t), n + 1
+
+    t, _, _ = lax.while_loop(cond, body, (t0, trial(t0), 0))
+    return t
+
+
+def _newton_iteration(ocp, rows, m_eff, s: _State, settings: SolverSettings) -> _State:
+    Phi_u, Phi_x = _hessian(ocp, rows, s.u, s.x, s.kappa)
+    g_u, g_x = _gradient(ocp, rows, s.u, s.x, s.kappa)
+    r_p = _dyn_residual(ocp, s.u, s.x)
+    step = KKT_SOLVERS[settings.method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, r_p)
+    finite = (
+        jnp.all(jnp.isfinite(step.du))
+        & jnp.all(jnp.isfinite(step.dx))
+        & jnp.all(jnp.isfinite(step.nu))
+    )
+    du = jnp.where(finite, step.du, 0.0)
+    dx = jnp.where(finite, step.dx, 0.0)
+    nu_new = jnp.where(finite, step.nu, s.nu)
+
+    # Newton decrement lambda^2 = dz^T Phi dz (Boyd & Vandenberghe Sec. 10.2): lambda^2 / 2
+    # estimates the suboptimality of the pre-step point for the barrier problem.
+    dec2 = jnp.einsum("ti,tij,tj->", du, Phi_u, du) + jnp.einsum("ti,tij,tj->", dx, Phi_x, dx)
+    t = _line_search(ocp, rows, s, du, dx, nu_new, dec2, settings)
+    u = s.u + t * du
+    x = s.x + t * dx
+    # Paper mode moves the multipliers with the step (Algorithm 1); the accurate mode's
+    # feasible Newton method takes the multiplier estimate of the step's KKT solve.
+    nu = s.nu + t * (nu_new - s.nu) if settings.mode == "paper" else nu_new
+    _, rel_d, rel_p = _residual_norms(ocp, rows, u, x, nu, s.kappa)
+    rel_res = jnp.maximum(rel_d, rel_p)
+
+    if settings.mode == "paper":
+        kappa = s.kappa
+        converged = rel_res <= settings.tol
+        gap_ok = converged
+    else:
+        J = objective(ocp, u, x)
+        scale = 1.0 + jnp.abs(J)
+        centred = (0.5 * dec2 <= settings.centring * m_eff * s.kappa) & (rel_p <= 1e-6)
+        gap_ok = (
+            (m_eff * s.kappa <= settings.tol * scale)
+            & (0.5 * dec2 <= settings.tol * scale)
+            & (rel_p <= settings.tol)
+        )
+        converged = gap_ok
+        kappa = jnp.where(centred & ~gap_ok, s.kappa / settings.kappa_factor, s.kappa)
+
+    it = s.it + 1
+    status = jnp.where(
+        ~finite, Status.NONFINITE, jnp.where(converged, Status.CONVERGED, Status.MAX_ITER)
+    )
+    new = _State(u, x, nu, kappa, it, converged | ~finite, status, rel_res, gap_ok)
+    # A failed step keeps the last finite iterate.
+    new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, s._replace(it=it))
+    return new._replace(done=converged | ~finite, status=status)
+
+
+def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
+    rows = _rows(ocp)
+    m_eff = _m_eff(rows)
+    dtype = ocp.B.dtype
+    if init is None:
+        u0 = jnp.zeros((ocp.N, ocp.nu), dtype)
+        nu0 = jnp.zeros((ocp.N, ocp.nx), dtype)
+        x_start = None
+    else:
+        u0, nu0, x_start = init.u, init.nu, init.x
+    u0 = _pull_inside(rows, u0)
+    # The accurate mode is a feasible-start method: x follows from u through the dynamics.
+    # Paper mode keeps the warm start's states (an infeasible start, as in Algorithm 1).
+    x0s = x_start if (x_start is not None and settings.mode == "paper") else _drift(ocp, u0)
+    start_ok = jnp.all(jnp.where(rows.wu > 0, _u_slack(rows, u0) > 0, True))
+
+    if settings.mode == "paper":
+        kappa0 = jnp.asarray(settings.kappa, dtype)
+    else:
+        J0 = objective(ocp, u0, x0s)
+        kappa0 = settings.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(m_eff, 1.0)
+    _, rel_d, rel_p = _residual_norms(ocp, rows, u0, x0s, nu0, kappa0)
+    s = _State(
+        u=u0,
+        x=x0s,
+        nu=nu0,
+        kappa=kappa0,
+        it=jnp.asarray(0),
+        done=~start_ok,
+        status=jnp.where(start_ok, Status.MAX_ITER, Status.INFEASIBLE),
+        rel_res=jnp.maximum(rel_d, rel_p),
+        gap_ok=jnp.asarray(False),
+    )
+
+    def cond(s):
+        return (~s.done) & (s.it < settings.max_iter)
+
+    def body(s):
+        return _newton_iteration(ocp, rows, m_eff, s, settings)
+
+    s = lax.while_loop(cond, body, s)
+
+    # Converged, but the soft state rows are violated: the hard problem is infeasible.
+    violated = max_violation(ocp, s.u, s.x) > settings.violation_tol
+    status = jnp.where((s.status == Status.CONVERGED) & violated, Status.INFEASIBLE, s.status)
+    return Solution(
+        u=s.u,
+        x=s.x,
+        nu=s.nu,
+        objective=objective(ocp, s.u, s.x),
+        kappa=s.kappa,
+        iterations=s.it,
+        residual=s.rel_res,
+        status=status,
+    )
+
+
+def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | None = None):
+    """Solve one OCP by the barrier / infeasible-start Newton method.
+
+    Args:
+        ocp: the problem (one, unbatched; batch with ``jax.vmap``).
+        settings: static :class:`SolverSettings` (``SolverSettings.paper()`` for paper 000's
+            algorithm, the default for the accurate mode).
+        init: optional warm start (e.g. :func:`shift_solution` of the previous step's
+            solution). Its inputs are pulled strictly inside the input rows if needed.
+
+    Returns:
+        :class:`Solution` (plan, multipliers, objective, iterations, residual, status). Never
+        raises on a numerical failure and never returns NaN: see :class:`Status`.
+    """
+    return _solve_jit(ocp, settings, init)
+
+
+_solve_jit = jax.jit(_solve, static_argnums=(1,))
