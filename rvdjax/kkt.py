@@ -25,11 +25,18 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["NewtonStep", "riccati_solve", "dense_solve", "KKT_SOLVERS"]
+__all__ = [
+    "NewtonStep",
+    "RiccatiFactor",
+    "riccati_factor",
+    "riccati_apply",
+    "riccati_solve",
+    "dense_solve",
+    "KKT_SOLVERS",
+]
 
 
 class NewtonStep(NamedTuple):
@@ -50,54 +57,126 @@ def _sym(M):
     return 0.5 * (M + jnp.swapaxes(M, -1, -2))
 
 
-def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
-    """Solve the stage-structured KKT system by a backward Riccati sweep and a forward pass.
+class RiccatiFactor(NamedTuple):
+    """Stage-wise factorisation of the KKT matrix (independent of the right-hand side).
+
+    Attributes:
+        M: (N, nx, nu + nx) the stage dynamics [B_t, A_t].
+        L: (N, nu, nu) Cholesky factor of the reduced Hessian Phi_u + B^T P_{t+1} B.
+        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t.
+        BPA: (N, nu, nx) B_t^T P_{t+1} A_t.
+        P: (N, nx, nx) cost-to-go Hessian P_{t+1} of x_{t+1}.
+    """
+
+    M: jnp.ndarray
+    L: jnp.ndarray
+    K: jnp.ndarray
+    BPA: jnp.ndarray
+    P: jnp.ndarray
+
+
+def _small_chol(H):
+    """Cholesky of a small SPD matrix written out element by element.
+
+    Under ``vmap`` each entry becomes one vector operation over the batch; XLA's batched
+    LAPACK call costs more than the arithmetic at these sizes. NaN if H is not SPD.
+    """
+    n = H.shape[-1]
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = jnp.sqrt(H[j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            L[i][j] = (H[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
+    zero = jnp.zeros_like(H[0, 0])
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def _chol_solve(L, b):
+    """Solve (L L^T) X = b for small lower-triangular L; b of shape (n,) or (n, k)."""
+    n = L.shape[-1]
+    y = []
+    for i in range(n):
+        y.append((b[i] - sum(L[i, k] * y[k] for k in range(i))) / L[i, i])
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(L[k, i] * x[k] for k in range(i + 1, n))) / L[i, i]
+    return jnp.stack(x)
+
+
+def riccati_factor(A, B, Phi_u, Phi_x) -> RiccatiFactor:
+    """Backward Riccati sweep over the KKT matrix (paper 000 Eqs. 24-26 by stage elimination).
+
+    The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx with P_N = Phi_x[N-1] and
+    P_t = Phi_x[t-1] + A^T P A - A^T P B (Phi_u + B^T P B)^-1 B^T P A. The three products
+    B^T P B, B^T P A, A^T P A come from one product [B A]^T P [B A] (fewer, larger matmuls:
+    at 6x6 a CPU pays per call, not per flop).
 
     Args:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
+    """
+    nu = B.shape[-1]
+    M = jnp.concatenate([B, A], axis=-1)
+    Phi_x_prev = jnp.concatenate([jnp.zeros_like(Phi_x[:1]), Phi_x[:-1]])  # blocks of x_t
+
+    def backward(P, stage):
+        M_t, Phu, Phx = stage
+        G = M_t.T @ (P @ M_t)  # [[B'PB, B'PA], [A'PB, A'PA]]
+        L = _small_chol(Phu + _sym(G[:nu, :nu]))
+        BPA = G[:nu, nu:]
+        K = -_chol_solve(L, BPA)
+        P_new = Phx + _sym(G[nu:, nu:]) + _sym(BPA.T @ K)
+        return P_new, (L, K, BPA, P)
+
+    _, (L, K, BPA, P) = lax.scan(backward, Phi_x[-1], (M, Phi_u, Phi_x_prev), reverse=True)
+    return RiccatiFactor(M, L, K, BPA, P)
+
+
+def riccati_apply(f: RiccatiFactor, g_u, g_x, rp) -> NewtonStep:
+    """Solve the factorised KKT system for one right-hand side (g_u, g_x, rp).
+
+    A backward sweep for the affine terms (p_t, k_t) and a forward sweep for the step:
+    du_t = K_t dx_t + k_t, dx_{t+1} = A dx_t + B du_t - rp_t, nu+_t = -(P_{t+1} dx_{t+1} +
+    p_{t+1}).
+    """
+    nu = f.L.shape[-1]
+    g_x_prev = jnp.concatenate([jnp.zeros_like(g_x[:1]), g_x[:-1]])
+
+    def backward(p, stage):
+        M_t, L, BPA, P, gu, r, gx = stage
+        p_shift = p - P @ r
+        Mp = M_t.T @ p_shift
+        k = -_chol_solve(L, gu + Mp[:nu])
+        return gx + Mp[nu:] + BPA.T @ k, (k, p)
+
+    stages = (f.M, f.L, f.BPA, f.P, g_u, rp, g_x_prev)
+    _, (k, p_next) = lax.scan(backward, g_x[-1], stages, reverse=True)
+
+    def forward(dx_t, stage):
+        M_t, K_t, k_t, r, P, p = stage
+        du = K_t @ dx_t + k_t
+        dx_next = M_t @ jnp.concatenate([du, dx_t]) - r
+        return dx_next, (du, dx_next, -(P @ dx_next + p))
+
+    _, (du, dx, nu_new) = lax.scan(forward, jnp.zeros_like(rp[0]), (f.M, f.K, k, rp, f.P, p_next))
+    return NewtonStep(du, dx, nu_new)
+
+
+def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
+    """Solve the stage-structured KKT system: :func:`riccati_factor` then :func:`riccati_apply`.
+
+    Args:
+        A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
+        Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks.
         g_u: (N, nu), g_x: (N, nx) gradient blocks.
         rp: (N, nx) dynamics residual x_{t+1} - A_t x_t - B_t u_t - c_t.
 
     Returns:
         The :class:`NewtonStep`. Non-finite entries signal a failed factorisation.
     """
-    # The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx; P_N = Phi_x[N-1], p_N = g_x[N-1].
-    Phi_x_prev = jnp.concatenate([jnp.zeros_like(Phi_x[:1]), Phi_x[:-1]])  # blocks of x_t
-    g_x_prev = jnp.concatenate([jnp.zeros_like(g_x[:1]), g_x[:-1]])
-
-    def backward(carry, stage):
-        P, p = carry  # cost-to-go of x_{t+1}
-        A_t, B_t, Phu, gu, r, Phx, gx = stage
-        PB = P @ B_t
-        H = _sym(Phu + B_t.T @ PB)  # (nu, nu) reduced Hessian of u_t
-        L = jnp.linalg.cholesky(H)
-        BPA = PB.T @ A_t
-        p_shift = p - P @ r
-        rhs = jnp.concatenate([BPA, (gu + B_t.T @ p_shift)[:, None]], axis=1)
-        W = jax.scipy.linalg.solve_triangular(L, rhs, lower=True)
-        sol = jax.scipy.linalg.solve_triangular(L.T, W, lower=False)
-        K, k = -sol[:, :-1], -sol[:, -1]
-        Wk = W[:, :-1]
-        P_new = _sym(Phx + A_t.T @ P @ A_t - Wk.T @ Wk)
-        p_new = gx + A_t.T @ p_shift + BPA.T @ k
-        return (P_new, p_new), (K, k, P, p)
-
-    init = (Phi_x[-1], g_x[-1])
-    stages = (A, B, Phi_u, g_u, rp, Phi_x_prev, g_x_prev)
-    _, (K, k, P_next, p_next) = lax.scan(backward, init, stages, reverse=True)
-
-    def forward(dx_t, stage):
-        A_t, B_t, K_t, k_t, r, P, p = stage
-        du = K_t @ dx_t + k_t
-        dx_next = A_t @ dx_t + B_t @ du - r
-        nu_t = -(P @ dx_next + p)
-        return dx_next, (du, dx_next, nu_t)
-
-    dx0 = jnp.zeros_like(rp[0])
-    _, (du, dx, nu) = lax.scan(forward, dx0, (A, B, K, k, rp, P_next, p_next))
-    return NewtonStep(du, dx, nu)
+    return riccati_apply(riccati_factor(A, B, Phi_u, Phi_x), g_u, g_x, rp)
 
 
 def dense_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:

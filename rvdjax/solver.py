@@ -36,13 +36,14 @@ every branch is NaN-safe, so one bad problem cannot poison a batch.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from rvdjax.kkt import KKT_SOLVERS
+from rvdjax.kkt import KKT_SOLVERS, riccati_apply, riccati_factor
 from rvdjax.ocp import OCP
 
 __all__ = [
@@ -94,7 +95,7 @@ class SolverSettings:
     mode: str = "accurate"
     method: str = "riccati"
     kappa: float = 0.05
-    max_iter: int = 60
+    max_iter: int = 100
     alpha: float = 0.01
     beta: float = 0.5
     tol: float = 1e-9
@@ -262,22 +263,6 @@ def _hessian(ocp: OCP, rows: _Rows, u, x, kappa):
     return Phi_u, Phi_x
 
 
-def _barrier_objective(ocp: OCP, rows: _Rows, u, x, kappa):
-    """f_kappa = cost - kappa sum log(fu - Fu u) + sum phi(Fx x - fx) (paper 000 Eq. 17).
-
-    +inf where an input row is not strictly satisfied.
-    """
-    e = x - ocp.x_ref
-    quad = jnp.einsum("ti,tij,tj->", e, ocp.Q, e) + jnp.einsum("ti,tij,tj->", u, ocp.R, u)
-    lin = jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u)
-    su = _u_slack(rows, u)
-    inside = jnp.all((su > 0) | (rows.wu == 0))
-    log_su = jnp.log(jnp.where(su > 0, su, 1.0))
-    phi, _, _ = _soft_penalty(_x_violation(rows, x), rows.rho, kappa)
-    f = quad + lin - kappa * jnp.sum(rows.wu * log_su) + jnp.sum(rows.wx * phi)
-    return jnp.where(inside, f, jnp.inf)
-
-
 def _dyn_residual(ocp: OCP, u, x):
     """r_p: x_{t+1} - A_t x_t - B_t u_t - c_t, shape (N, nx)."""
     x_prev = jnp.concatenate([ocp.x0[None], x[:-1]])
@@ -361,7 +346,6 @@ class _State(NamedTuple):
     done: jnp.ndarray  # () bool: converged or failed
     status: jnp.ndarray  # () int
     rel_res: jnp.ndarray  # () relative residual at (u, x, nu) for kappa
-    gap_ok: jnp.ndarray  # () bool: accurate mode's gap and centring tests met
 
 
 def _m_eff(rows: _Rows):
@@ -369,54 +353,111 @@ def _m_eff(rows: _Rows):
     return jnp.sum(rows.wu) + 2.0 * jnp.sum(rows.wx)
 
 
-def _line_search(ocp, rows, s: _State, du, dx, nu_new, dec2, settings: SolverSettings):
-    """Algorithm 1 step 2: backtrack to strict feasibility, then on the residual norm."""
-    beta = settings.beta
-    # Largest feasible step by the ratio test, then the paper's t = beta^k just inside it.
-    su = _u_slack(rows, s.u)
-    dsu = -jnp.einsum("tij,tj->ti", rows.Fu, du)
-    shrinking = (rows.wu > 0) & (dsu < 0)
-    t_max = jnp.min(jnp.where(shrinking, su / jnp.where(shrinking, -dsu, 1.0), jnp.inf))
+class _Ray(NamedTuple):
+    """What the line search needs along z + t dz, precomputed once per iteration so that a
+    trial step costs elementwise work and two small row products, not a residual rebuild."""
+
+    su: jnp.ndarray  # (N, mu) input-row slack at t = 0
+    dsu: jnp.ndarray  # (N, mu) its rate of change
+    g: jnp.ndarray  # (N, mx) soft-row violation at t = 0
+    dg: jnp.ndarray  # (N, mx)
+    quad: jnp.ndarray  # () quadratic + linear cost at t = 0
+    dquad: jnp.ndarray  # () its slope
+    ddquad: jnp.ndarray  # () its curvature term (cost(t) = quad + t dquad + t^2 ddquad)
+    ru0: jnp.ndarray  # (N, nu) dual residual without barrier terms at t = 0
+    ru1: jnp.ndarray  # (N, nu) its rate of change
+    rx0: jnp.ndarray  # (N, nx)
+    rx1: jnp.ndarray  # (N, nx)
+    rp: jnp.ndarray  # (N, nx) dynamics residual at t = 0 (it scales with 1 - t)
+    g_scale: jnp.ndarray  # () largest entry of the cost gradient at t = 0
+
+
+def _ray(ocp, rows, s, du, dx, dnu) -> _Ray:
+    e = s.x - ocp.x_ref
+    Qe = jnp.einsum("tij,tj->ti", ocp.Q, e)
+    Ru = jnp.einsum("tij,tj->ti", ocp.R, s.u)
+    Qdx = jnp.einsum("tij,tj->ti", ocp.Q, dx)
+    Rdu = jnp.einsum("tij,tj->ti", ocp.R, du)
+    grad_u = 2.0 * Ru + ocp.r
+    grad_x = 2.0 * Qe + ocp.q
+    ru0, rx0 = _dual_residual(ocp, grad_u, grad_x, s.nu)
+    ru1, rx1 = _dual_residual(ocp, 2.0 * Rdu, 2.0 * Qdx, dnu)
+    return _Ray(
+        su=_u_slack(rows, s.u),
+        dsu=-jnp.einsum("tij,tj->ti", rows.Fu, du),
+        g=_x_violation(rows, s.x),
+        dg=jnp.einsum("tij,tj->ti", rows.Fx, dx),
+        quad=jnp.sum(e * Qe) + jnp.sum(s.u * Ru) + jnp.sum(ocp.q * s.x) + jnp.sum(ocp.r * s.u),
+        dquad=jnp.sum(grad_u * du) + jnp.sum(grad_x * dx),
+        ddquad=jnp.sum(dx * Qdx) + jnp.sum(du * Rdu),
+        ru0=ru0,
+        ru1=ru1,
+        rx0=rx0,
+        rx1=rx1,
+        rp=_dyn_residual(ocp, s.u, s.x),
+        g_scale=jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x))),
+    )
+
+
+def _ray_barrier_objective(rows, ray: _Ray, t, kappa):
+    """f_kappa(z + t dz) (paper 000 Eq. 17 with the soft rows' phi); +inf outside."""
+    su = ray.su + t * ray.dsu
+    inside = jnp.all((su > 0) | (rows.wu == 0))
+    log_su = jnp.log(jnp.where(su > 0, su, 1.0))
+    phi, _, _ = _soft_penalty(ray.g + t * ray.dg, rows.rho, kappa)
+    f = ray.quad + t * ray.dquad + t * t * ray.ddquad
+    f = f - kappa * jnp.sum(rows.wu * log_su) + jnp.sum(rows.wx * phi)
+    return jnp.where(inside, f, jnp.inf)
+
+
+def _ray_residual(ocp, rows, ray: _Ray, t, kappa, x_scale):
+    """(||r||_2, relative inf-norm residual) at (z, nu) + t (dz, dnu)."""
+    su = ray.su + t * ray.dsu
+    _, d1, _ = _soft_penalty(ray.g + t * ray.dg, rows.rho, kappa)
+    gb_u = kappa * jnp.einsum("tij,ti->tj", rows.Fu, rows.wu / jnp.where(su > 0, su, 1.0))
+    gb_x = jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * d1)
+    r_u = ray.ru0 + t * ray.ru1 + gb_u
+    r_x = ray.rx0 + t * ray.rx1 + gb_x
+    r_p = (1.0 - t) * ray.rp
+    norm2 = jnp.sqrt(jnp.sum(r_u**2) + jnp.sum(r_x**2) + jnp.sum(r_p**2))
+    # Scale of the dual residual: the size of the gradient terms it balances.
+    gb_scale = jnp.maximum(jnp.max(jnp.abs(gb_u)), jnp.max(jnp.abs(gb_x)))
+    d_scale = 1.0 + jnp.maximum(ray.g_scale, gb_scale)
+    rel = jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
+        jnp.max(jnp.abs(r_p)) / x_scale,
+    )
+    return norm2, rel
+
+
+def _step_length(rows, ray: _Ray, beta):
+    """Algorithm 1, first loop: t = beta^k, the first such step strictly inside the input rows.
+
+    Computed from the ratio test rather than by trial: the same t, without the loop.
+    """
+    shrinking = (rows.wu > 0) & (ray.dsu < 0)
+    t_max = jnp.min(jnp.where(shrinking, ray.su / jnp.where(shrinking, -ray.dsu, 1.0), jnp.inf))
     k = jnp.floor(jnp.log(jnp.minimum(t_max, 1.0)) / jnp.log(beta)) + 1.0
-    t0 = jnp.where(t_max > 1.0, 1.0, beta ** jnp.where(jnp.isfinite(k), k, 0.0))
+    return jnp.where(t_max > 1.0, 1.0, beta ** jnp.where(jnp.isfinite(k), k, 0.0))
 
-    if settings.mode == "paper":
-        # Algorithm 1: ||r(z + t dz, nu + t dnu)||_2 <= (1 - alpha t) ||r(z, nu)||_2.
-        dnu = nu_new - s.nu
-        r0, _, _ = _residual_norms(ocp, rows, s.u, s.x, s.nu, s.kappa)
 
-        def trial(t):
-            z = (s.u + t * du, s.x + t * dx, s.nu + t * dnu)
-            return _residual_norms(ocp, rows, *z, s.kappa)[0]
-
-        def accept(t, r):
-            return r <= (1.0 - settings.alpha * t) * r0
-    else:
-        # Armijo on the barrier objective f_kappa (Boyd & Vandenberghe Alg. 9.2 / 10.2): the
-        # iterate stays primal feasible, so f_kappa is the natural merit function, and unlike
-        # the residual norm it does not mix units of cost gradient and of state.
-        f0 = _barrier_objective(ocp, rows, s.u, s.x, s.kappa)
-
-        def trial(t):
-            return _barrier_objective(ocp, rows, s.u + t * du, s.x + t * dx, s.kappa)
-
-        def accept(t, f):
-            return f <= f0 - settings.alpha * t * dec2
+def _backtrack(accept, t0, beta, max_steps):
+    """Shrink t by beta until ``accept(t)`` holds (bounded; returns the last t tried)."""
 
     def cond(c):
-        t, r, n = c
-        return (~accept(t, r)) & (n < settings.max_line_search)
+        t, ok, n = c
+        return (~ok) & (n < max_steps)
 
     def body(c):
         t, _, n = c
         t = beta * t
-        return t, trial(t), n + 1
+        return t, accept(t), n + 1
 
-    t, _, _ = lax.while_loop(cond, body, (t0, trial(t0), 0))
+    t, _, _ = lax.while_loop(cond, body, (t0, accept(t0), 0))
     return t
 
 
-def _newton_iteration(ocp, rows, m_eff, s: _State, settings: SolverSettings) -> _State:
+def _newton_iteration(ocp, rows, m_eff, x_scale, s: _State, settings: SolverSettings):
     Phi_u, Phi_x = _hessian(ocp, rows, s.u, s.x, s.kappa)
     g_u, g_x = _gradient(ocp, rows, s.u, s.x, s.kappa)
     r_p = _dyn_residual(ocp, s.u, s.x)
@@ -428,55 +469,129 @@ def _newton_iteration(ocp, rows, m_eff, s: _State, settings: SolverSettings) -> 
     )
     du = jnp.where(finite, step.du, 0.0)
     dx = jnp.where(finite, step.dx, 0.0)
-    nu_new = jnp.where(finite, step.nu, s.nu)
-
+    dnu = jnp.where(finite, step.nu, s.nu) - s.nu
     # Newton decrement lambda^2 = dz^T Phi dz (Boyd & Vandenberghe Sec. 10.2): lambda^2 / 2
     # estimates the suboptimality of the pre-step point for the barrier problem.
     dec2 = jnp.einsum("ti,tij,tj->", du, Phi_u, du) + jnp.einsum("ti,tij,tj->", dx, Phi_x, dx)
-    t = _line_search(ocp, rows, s, du, dx, nu_new, dec2, settings)
+
+    ray = _ray(ocp, rows, s, du, dx, dnu)
+    t0 = _step_length(rows, ray, settings.beta)
+    if settings.mode == "paper":
+        # Algorithm 1, second loop: ||r(z + t dz, nu + t dnu)|| <= (1 - alpha t) ||r(z, nu)||.
+        r0, _ = _ray_residual(ocp, rows, ray, 0.0, s.kappa, x_scale)
+
+        def accept(t):
+            return (
+                _ray_residual(ocp, rows, ray, t, s.kappa, x_scale)[0]
+                <= (1.0 - settings.alpha * t) * r0
+            )
+    else:
+        # Armijo on the barrier objective f_kappa (Boyd & Vandenberghe Alg. 9.2 / 10.2): the
+        # iterate stays primal feasible, so f_kappa is the natural merit function, and unlike
+        # the residual norm it does not mix units of cost gradient and of state.
+        f0 = _ray_barrier_objective(rows, ray, 0.0, s.kappa)
+
+        def accept(t):
+            return _ray_barrier_objective(rows, ray, t, s.kappa) <= f0 - settings.alpha * t * dec2
+
+    t = _backtrack(accept, t0, settings.beta, settings.max_line_search)
     u = s.u + t * du
     x = s.x + t * dx
-    # Paper mode moves the multipliers with the step (Algorithm 1); the accurate mode's
-    # feasible Newton method takes the multiplier estimate of the step's KKT solve.
-    nu = s.nu + t * (nu_new - s.nu) if settings.mode == "paper" else nu_new
-    _, rel_d, rel_p = _residual_norms(ocp, rows, u, x, nu, s.kappa)
-    rel_res = jnp.maximum(rel_d, rel_p)
 
     if settings.mode == "paper":
+        nu = s.nu + t * dnu
+        _, rel_res = _ray_residual(ocp, rows, ray, t, s.kappa, x_scale)
         kappa = s.kappa
         converged = rel_res <= settings.tol
-        gap_ok = converged
     else:
-        J = objective(ocp, u, x)
+        # The feasible Newton method takes the KKT solve's multiplier estimate.
+        nu = s.nu + dnu
+        rel_p = jnp.max(jnp.abs((1.0 - t) * ray.rp)) / x_scale
+        rel_res = jnp.maximum(0.5 * dec2, m_eff * s.kappa)  # gap bound, refined after the loop
+        J = ray.quad + t * ray.dquad + t * t * ray.ddquad
+        J = J + jnp.sum(rows.wx * rows.rho * jnp.maximum(ray.g + t * ray.dg, 0.0))
         scale = 1.0 + jnp.abs(J)
         centred = (0.5 * dec2 <= settings.centring * m_eff * s.kappa) & (rel_p <= 1e-6)
-        gap_ok = (
+        converged = (
             (m_eff * s.kappa <= settings.tol * scale)
             & (0.5 * dec2 <= settings.tol * scale)
             & (rel_p <= settings.tol)
         )
-        converged = gap_ok
-        kappa = jnp.where(centred & ~gap_ok, s.kappa / settings.kappa_factor, s.kappa)
+        kappa = jnp.where(centred & ~converged, s.kappa / settings.kappa_factor, s.kappa)
 
     it = s.it + 1
     status = jnp.where(
         ~finite, Status.NONFINITE, jnp.where(converged, Status.CONVERGED, Status.MAX_ITER)
     )
-    new = _State(u, x, nu, kappa, it, converged | ~finite, status, rel_res, gap_ok)
+    done = converged | ~finite
     # A failed step keeps the last finite iterate.
-    new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, s._replace(it=it))
-    return new._replace(done=converged | ~finite, status=status)
+    keep = lambda new, old: jnp.where(finite, new, old)  # noqa: E731
+    return _State(
+        u=keep(u, s.u),
+        x=keep(x, s.x),
+        nu=keep(nu, s.nu),
+        kappa=keep(kappa, s.kappa),
+        it=it,
+        done=done,
+        status=status,
+        rel_res=keep(rel_res, s.rel_res),
+    )
 
 
-def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
+def _kkt_residual(ocp: OCP, u, x, nu, kappa):
+    """Optimality residual of the barrier problem: (r_u, r_x, r_p) (paper 000 Eqs. 19-20).
+
+    One definition serves the stopping test, the tests and the implicit derivative.
+    """
+    rows = _rows(ocp)
+    g_u, g_x = _gradient(ocp, rows, u, x, kappa)
+    r_u, r_x = _dual_residual(ocp, g_u, g_x, nu)
+    return r_u, r_x, _dyn_residual(ocp, u, x)
+
+
+def _kkt_at(ocp: OCP, u, x, kappa, settings: SolverSettings):
+    """Hessian blocks and the factorisation (Riccati method) at a point."""
+    rows = _rows(ocp)
+    Phi_u, Phi_x = _hessian(ocp, rows, u, x, kappa)
+    factor = riccati_factor(ocp.A, ocp.B, Phi_u, Phi_x) if settings.method == "riccati" else None
+    return Phi_u, Phi_x, factor
+
+
+def _kkt_solve(ocp, Phi_u, Phi_x, factor, g_u, g_x, rp, settings: SolverSettings):
+    if factor is not None:
+        return riccati_apply(factor, g_u, g_x, rp)
+    return KKT_SOLVERS[settings.method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp)
+
+
+def _all_finite(tree):
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(tree)]))
+
+
+def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
+    """The Newton loop; returns (Solution without objective, final factorisation data)."""
     rows = _rows(ocp)
     m_eff = _m_eff(rows)
     dtype = ocp.B.dtype
+    # Tolerances below ~1e3 machine epsilon are unreachable (float32: 1.2e-4).
+    tol = max(settings.tol, 1e3 * float(jnp.finfo(dtype).eps))
+    settings = dataclasses.replace(settings, tol=tol)
+    inputs_ok = _all_finite(ocp) & (True if init is None else _all_finite(init))
+    # Non-finite data would poison every iterate: solve a neutral copy and report the status.
+    ocp_safe = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), ocp)
+    ocp_safe = ocp_safe._replace(
+        R=jnp.where(inputs_ok, ocp.R, jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)),
+        fu=jnp.where(inputs_ok, ocp.fu, 1.0),
+        fx=jnp.where(inputs_ok, ocp.fx, 1.0),
+        rho=jnp.where(inputs_ok, ocp.rho, 1.0),
+    )
+    ocp = ocp_safe
+    rows = _rows(ocp)
     if init is None:
         u0 = jnp.zeros((ocp.N, ocp.nu), dtype)
         nu0 = jnp.zeros((ocp.N, ocp.nx), dtype)
         x_start = None
     else:
+        init = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), init)
         u0, nu0, x_start = init.u, init.nu, init.x
     u0 = _pull_inside(rows, u0)
     # The accurate mode is a feasible-start method: x follows from u through the dynamics.
@@ -489,40 +604,102 @@ def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
     else:
         J0 = objective(ocp, u0, x0s)
         kappa0 = settings.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(m_eff, 1.0)
-    _, rel_d, rel_p = _residual_norms(ocp, rows, u0, x0s, nu0, kappa0)
+    start_status = jnp.where(
+        ~inputs_ok, Status.NONFINITE, jnp.where(start_ok, Status.MAX_ITER, Status.INFEASIBLE)
+    )
     s = _State(
         u=u0,
         x=x0s,
         nu=nu0,
         kappa=kappa0,
         it=jnp.asarray(0),
-        done=~start_ok,
-        status=jnp.where(start_ok, Status.MAX_ITER, Status.INFEASIBLE),
-        rel_res=jnp.maximum(rel_d, rel_p),
-        gap_ok=jnp.asarray(False),
+        done=~(start_ok & inputs_ok),
+        status=start_status,
+        rel_res=jnp.asarray(jnp.inf, dtype),
     )
+    x_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(x0s)), jnp.max(jnp.abs(ocp.x0)))
 
     def cond(s):
         return (~s.done) & (s.it < settings.max_iter)
 
     def body(s):
-        return _newton_iteration(ocp, rows, m_eff, s, settings)
+        return _newton_iteration(ocp, rows, m_eff, x_scale, s, settings)
 
     s = lax.while_loop(cond, body, s)
+
+    # The factorisation at the returned point: it gives the accurate mode's final multipliers
+    # (the KKT solve's estimate at this point) and is reused by the implicit derivative.
+    Phi_u, Phi_x, factor = _kkt_at(ocp, s.u, s.x, s.kappa, settings)
+    nu = s.nu
+    if settings.mode == "accurate":
+        g_u, g_x = _gradient(ocp, rows, s.u, s.x, s.kappa)
+        step = _kkt_solve(
+            ocp, Phi_u, Phi_x, factor, g_u, g_x, _dyn_residual(ocp, s.u, s.x), settings
+        )
+        nu = jnp.where(jnp.all(jnp.isfinite(step.nu)), step.nu, s.nu)
+    _, rel_d, rel_p = _residual_norms(ocp, rows, s.u, s.x, nu, s.kappa)
+    residual = jnp.maximum(rel_d, rel_p)
 
     # Converged, but the soft state rows are violated: the hard problem is infeasible.
     violated = max_violation(ocp, s.u, s.x) > settings.violation_tol
     status = jnp.where((s.status == Status.CONVERGED) & violated, Status.INFEASIBLE, s.status)
-    return Solution(
-        u=s.u,
-        x=s.x,
-        nu=s.nu,
-        objective=objective(ocp, s.u, s.x),
+
+    def clean(a):
+        return jnp.where(jnp.isfinite(a), a, jnp.zeros_like(a))
+
+    sol = Solution(
+        u=clean(s.u),
+        x=clean(s.x),
+        nu=clean(nu),
+        objective=jnp.zeros((), dtype),  # filled in by solve(), outside the custom VJP
         kappa=s.kappa,
         iterations=s.it,
-        residual=s.rel_res,
+        residual=jnp.where(jnp.isfinite(residual), residual, jnp.inf),
         status=status,
     )
+    return sol, (Phi_u, Phi_x, factor)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def _solve_core(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
+    return _solve_forward(ocp, settings, init)[0]
+
+
+def _solve_core_fwd(ocp, settings, init):
+    sol, kkt = _solve_forward(ocp, settings, init)
+    return sol, (ocp, init, sol, kkt)
+
+
+def _solve_core_bwd(settings, res, sol_bar):
+    """Implicit derivative (DESIGN §3): the solution satisfies F(z, nu; theta) = 0 with
+    F = (grad f_kappa + C^T nu, C z - b). With J = dF/d(z, nu) (the symmetric KKT matrix, already
+    factorised), theta_bar = -(dF/dtheta)^T J^-1 (z_bar, nu_bar): one structured solve, no
+    backpropagation through the Newton iterations. kappa is held at its final value.
+    """
+    ocp, init, sol, (Phi_u, Phi_x, factor) = res
+    # J w = (u_bar, x_bar, nu_bar): the Newton system with g = -z_bar, r_p = -nu_bar.
+    w = _kkt_solve(ocp, Phi_u, Phi_x, factor, -sol_bar.u, -sol_bar.x, -sol_bar.nu, settings)
+    w_u, w_x, w_nu = w.du, w.dx, w.nu
+
+    def F(o):
+        return _kkt_residual(o, sol.u, sol.x, sol.nu, sol.kappa)
+
+    _, vjp = jax.vjp(F, ocp)
+    (ocp_bar,) = vjp((-w_u, -w_x, -w_nu))
+    ok = (sol.status != Status.NONFINITE) & _all_finite((w_u, w_x, w_nu))
+    ocp_bar = jax.tree.map(lambda a: jnp.where(ok & jnp.isfinite(a), a, 0.0), ocp_bar)
+    init_bar = None if init is None else jax.tree.map(jnp.zeros_like, init)
+    return ocp_bar, init_bar
+
+
+_solve_core.defvjp(_solve_core_fwd, _solve_core_bwd)
+
+
+def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
+    sol = _solve_core(ocp, settings, init)
+    J = objective(ocp, sol.u, sol.x)
+    # A failed solve (non-finite data) reports +inf, never NaN.
+    return sol._replace(objective=jnp.where(jnp.isfinite(J), J, jnp.inf))
 
 
 def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | None = None):
@@ -537,7 +714,15 @@ def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | No
 
     Returns:
         :class:`Solution` (plan, multipliers, objective, iterations, residual, status). Never
-        raises on a numerical failure and never returns NaN: see :class:`Status`.
+        raises on a numerical failure and never returns NaN: see :class:`Status`. With
+        non-finite data the plan is zero, the objective +inf and the status NONFINITE.
+
+    Differentiation: reverse mode (``jax.grad``/``jax.vjp``) w.r.t. every float field of the
+    OCP by the implicit function theorem at the returned barrier point (kappa fixed at its
+    final value); ``u``, ``x`` and ``nu`` carry derivatives, ``objective`` too (computed
+    from them). The custom VJP blocks forward mode (``jax.jvp``/``jacfwd``). In paper mode the
+    derivative is that of the barrier solution, evaluated at the returned iterate, so it is
+    approximate when the 10 iterations have not converged.
     """
     return _solve_jit(ocp, settings, init)
 
