@@ -85,7 +85,7 @@ class SolverSettings:
         alpha, beta: backtracking line-search parameters (paper 000: 0.01, 0.95).
         tol: relative tolerance: residual (paper mode), or gap and centring (accurate mode).
         max_line_search: cap on backtracking steps per iteration.
-        kappa0_rel: accurate mode: first kappa = kappa0_rel * (1 + |J(start)|) / m.
+        kappa0_rel: accurate/barrier modes: first kappa = kappa0_rel * (1 + |J(start)|) / m.
         kappa_factor: accurate mode: kappa is divided by this when the iterate is centred.
         centring: accurate mode: centred when decrement^2 / 2 <= centring * m * kappa.
         violation_tol: a soft state row counts as violated above this distance (row-normalised
@@ -100,14 +100,14 @@ class SolverSettings:
     beta: float = 0.5
     tol: float = 1e-9
     max_line_search: int = 40
-    kappa0_rel: float = 1e-2
+    kappa0_rel: float = 1.0
     kappa_factor: float = 10.0
     centring: float = 1.0
     violation_tol: float = 1e-6
 
     def __post_init__(self):
-        if self.mode not in ("paper", "accurate"):
-            raise ValueError(f"mode must be 'paper' or 'accurate', got {self.mode!r}")
+        if self.mode not in ("paper", "accurate", "barrier"):
+            raise ValueError(f"mode must be 'paper', 'accurate' or 'barrier', got {self.mode!r}")
         if self.method not in KKT_SOLVERS:
             raise ValueError(f"method must be one of {sorted(KKT_SOLVERS)}, got {self.method!r}")
         if not self.kappa > 0:
@@ -189,8 +189,8 @@ def _rows(ocp: OCP) -> _Rows:
     )
 
 
-def _soft_penalty(g, rho, kappa):
-    """phi(g), phi'(g), phi''(g) of the slack-eliminated soft barrier (module docstring).
+def _soft_slack_parts(g, rho, kappa):
+    """(s, s - g, b, root) of the optimal slack of one soft row (module docstring).
 
     Written with cancellation-free forms of rho g + sqrt(.) and sqrt(.) - rho g.
     """
@@ -199,8 +199,18 @@ def _soft_penalty(g, rho, kappa):
     four_k2 = 4.0 * kappa * kappa
     a = jnp.where(rg >= 0, rg + root, four_k2 / (root - jnp.minimum(rg, 0.0)))  # rho g + root
     b = jnp.where(rg <= 0, root - rg, four_k2 / (root + jnp.maximum(rg, 0.0)))  # root - rho g
-    s = (a + 2.0 * kappa) / (2.0 * rho)
-    s_minus_g = (b + 2.0 * kappa) / (2.0 * rho)
+    return (a + 2.0 * kappa) / (2.0 * rho), (b + 2.0 * kappa) / (2.0 * rho), b, root
+
+
+def _soft_slack(g, rho, kappa):
+    """Optimal slack s of a soft row and s - g, both > 0."""
+    s, s_minus_g, _, _ = _soft_slack_parts(g, rho, kappa)
+    return s, s_minus_g
+
+
+def _soft_penalty(g, rho, kappa):
+    """phi(g), phi'(g), phi''(g) of the slack-eliminated soft barrier (module docstring)."""
+    s, s_minus_g, b, root = _soft_slack_parts(g, rho, kappa)
     phi = rho * s - kappa * jnp.log(s) - kappa * jnp.log(s_minus_g)
     d1 = kappa / s_minus_g
     d2 = kappa / (s_minus_g * s_minus_g) * (0.5 * b / root)
@@ -538,6 +548,189 @@ def _newton_iteration(ocp, rows, m_eff, x_scale, s: _State, settings: SolverSett
     )
 
 
+class _PDState(NamedTuple):
+    """Carry of the primal-dual loop (one problem). Row arrays: (N, mu) or (N, mx)."""
+
+    u: jnp.ndarray
+    x: jnp.ndarray
+    nu: jnp.ndarray
+    s: jnp.ndarray  # explicit slack of the soft state rows, s >= 0
+    lam: jnp.ndarray  # multiplier of the input rows Fu u <= fu
+    mu: jnp.ndarray  # multiplier of the soft rows Fx x - s <= fx
+    pi: jnp.ndarray  # multiplier of s >= 0 (mu + pi = rho at the optimum)
+    it: jnp.ndarray
+    done: jnp.ndarray
+    status: jnp.ndarray
+    gap: jnp.ndarray  # complementarity sum (the duality gap of a dual-feasible point)
+    res: jnp.ndarray  # relative dual residual
+
+
+def _pd_step(ocp, rows, st: _PDState, kkt, su, sx, tau_u, tau_x, tau_s, settings):
+    """One solve of the primal-dual Newton system for complementarity targets tau.
+
+    Linearising lam su = tau_u, mu sx = tau_x, pi s = tau_s and rho = mu + pi, then eliminating
+    the row variables leaves the stage-structured system of :mod:`rvdjax.kkt` with input-row
+    weight lam/su and soft-row weight a c / (a + c) (a = mu/sx, c = pi/s). Returns the full
+    steps of every variable.
+    """
+    Du = rows.wu * st.lam / su
+    a = st.mu / sx
+    c = st.pi / st.s
+    h = tau_x / sx + tau_s / st.s - rows.rho
+    g_u = (
+        2.0 * jnp.einsum("tij,tj->ti", ocp.R, st.u)
+        + ocp.r
+        + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * tau_u / su)
+    )
+    g_x = (
+        2.0 * jnp.einsum("tij,tj->ti", ocp.Q, st.x - ocp.x_ref)
+        + ocp.q
+        + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
+    )
+    step = _kkt_solve(ocp, *kkt, g_u, g_x, _dyn_residual(ocp, st.u, st.x), settings)
+    Fdu = jnp.einsum("tij,tj->ti", rows.Fu, step.du)
+    Fdx = jnp.einsum("tij,tj->ti", rows.Fx, step.dx)
+    ds = (a * Fdx + h) / (a + c)
+    dlam = tau_u / su - st.lam + Du * Fdu
+    dmu = tau_x / sx - st.mu + a * (Fdx - ds)
+    dpi = tau_s / st.s - st.pi - c * ds
+    dsu = -Fdu
+    dsx = -Fdx + ds
+    return step, ds, dlam, dmu, dpi, dsu, dsx
+
+
+def _max_step(pairs, wmask):
+    """Largest alpha in (0, 1] keeping every (value + alpha * step) >= 0 on active rows."""
+    alpha = jnp.asarray(1.0)
+    for v, dv, w in zip(*pairs, wmask, strict=True):
+        shrink = (w > 0) & (dv < 0)
+        ratio = jnp.where(shrink, -v / jnp.where(shrink, dv, -1.0), jnp.inf)
+        alpha = jnp.minimum(alpha, jnp.min(ratio))
+    return alpha
+
+
+def _pd_iteration(ocp, rows, m_eff, x_scale, st: _PDState, settings: SolverSettings):
+    """Mehrotra predictor-corrector step (Nocedal & Wright Alg. 16.4; Wright 1997, Ch. 10).
+
+    The barrier weight follows kappa = sigma * gap / m with sigma = (gap_affine / gap)^3: the
+    barrier continuation with the schedule chosen by the iterate. Both solves reuse one
+    Riccati factorisation.
+    """
+    su = _u_slack(rows, st.u)
+    sx = rows.fx - jnp.einsum("tij,tj->ti", rows.Fx, st.x) + st.s
+    Du = rows.wu * st.lam / su
+    a = st.mu / sx
+    c = st.pi / st.s
+    Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, Du, rows.Fu)
+    Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * a * c / (a + c), rows.Fx)
+    factor = riccati_factor(ocp.A, ocp.B, Phi_u, Phi_x) if settings.method == "riccati" else None
+    kkt = (Phi_u, Phi_x, factor)
+    wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
+
+    # Predictor: the affine-scaling direction (tau = 0).
+    zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
+    aff = _pd_step(ocp, rows, st, kkt, su, sx, zero_u, zero_x, zero_x, settings)
+    _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a = aff
+    alpha_a = _max_step(
+        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
+    )
+    gap = st.gap
+    gap_a = jnp.sum(rows.wu * (su + alpha_a * dsu_a) * (st.lam + alpha_a * dlam_a)) + jnp.sum(
+        rows.wx
+        * (
+            (sx + alpha_a * dsx_a) * (st.mu + alpha_a * dmu_a)
+            + (st.s + alpha_a * ds_a) * (st.pi + alpha_a * dpi_a)
+        )
+    )
+    sigma = jnp.clip(gap_a / jnp.maximum(gap, 1e-300), 0.0, 1.0) ** 3
+    kappa = sigma * gap / jnp.maximum(m_eff, 1.0)
+
+    # Corrector: centring plus Mehrotra's second-order term.
+    step, ds, dlam, dmu, dpi, dsu, dsx = _pd_step(
+        ocp,
+        rows,
+        st,
+        kkt,
+        su,
+        sx,
+        kappa - dsu_a * dlam_a,
+        kappa - dsx_a * dmu_a,
+        kappa - ds_a * dpi_a,
+        settings,
+    )
+    finite = _all_finite((step, ds, dlam, dmu, dpi))
+    alpha = _max_step(((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask)
+    alpha = jnp.minimum(1.0, 0.99 * alpha)
+    alpha = jnp.where(finite, alpha, 0.0)
+
+    def upd(v, dv, w=1.0):
+        return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
+
+    u, x, s_new = upd(st.u, step.du), upd(st.x, step.dx), upd(st.s, ds, rows.wx)
+    lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
+    pi = upd(st.pi, dpi, rows.wx)
+    nu = upd(st.nu, step.nu - st.nu)
+    su_n = _u_slack(rows, u)
+    sx_n = rows.fx - jnp.einsum("tij,tj->ti", rows.Fx, x) + s_new
+    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
+
+    # Stopping: gap and dual residual relative to the objective / gradient scale.
+    e = x - ocp.x_ref
+    grad_u = 2.0 * jnp.einsum("tij,tj->ti", ocp.R, u) + ocp.r
+    grad_x = 2.0 * jnp.einsum("tij,tj->ti", ocp.Q, e) + ocp.q
+    r_u, r_x = _dual_residual(
+        ocp,
+        grad_u + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * lam),
+        grad_x + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * mu),
+        nu,
+    )
+    r_s = rows.wx * (rows.rho - mu - pi)
+    d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
+    rel_d = jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
+        jnp.max(jnp.abs(r_s)) / (1.0 + jnp.max(rows.wx * rows.rho)),
+    )
+    J = objective(ocp, u, x)
+    scale = 1.0 + jnp.abs(J)
+    # The dual residual bounds the objective error through ||r_d|| ||z - z*||: 100x the gap
+    # tolerance keeps that error below ~tol relative while staying reachable in float64 on
+    # long, ill-conditioned horizons.
+    converged = (gap_n <= settings.tol * scale) & (rel_d <= 1e2 * settings.tol)
+    # Close to the solution the ratios lam/s overflow first: a failed step from an iterate
+    # that already meets 10x the tolerances ends the solve as converged at that iterate.
+    nearly = (st.gap <= 10.0 * settings.tol * scale) & (st.res <= 1e3 * settings.tol)
+    status = jnp.where(
+        ~finite,
+        jnp.where(nearly, Status.CONVERGED, Status.NONFINITE),
+        jnp.where(converged, Status.CONVERGED, Status.MAX_ITER),
+    )
+    done = converged | ~finite
+    return _PDState(u, x, nu, s_new, lam, mu, pi, st.it + 1, done, status, gap_n, rel_d)
+
+
+def _pd_loop(ocp, rows, m_eff, x_scale, u0, x0s, nu0, kappa0, start_ok, start_status, settings):
+    """Run the primal-dual loop from a centred start at kappa0; returns the final state."""
+    su = _u_slack(rows, u0)
+    # Start on the central path of the soft rows: s minimises rho s - kappa0 log s -
+    # kappa0 log(s - g) (closed form, see _soft_slack), so mu s_x = pi s = kappa0 and
+    # mu + pi = rho hold from the first iterate, whatever the scale of rho.
+    s0, sx = _soft_slack(_x_violation(rows, x0s), rows.rho, kappa0)
+    lam = jnp.where(rows.wu > 0, kappa0 / jnp.where(su > 0, su, 1.0), 1.0)
+    mu = kappa0 / sx
+    pi = kappa0 / s0
+    gap = jnp.sum(rows.wu * su * lam) + jnp.sum(rows.wx * (sx * mu + s0 * pi))
+    inf = jnp.asarray(jnp.inf, gap.dtype)
+    st = _PDState(u0, x0s, nu0, s0, lam, mu, pi, jnp.asarray(0), ~start_ok, start_status, gap, inf)
+
+    def cond(st):
+        return (~st.done) & (st.it < settings.max_iter)
+
+    def body(st):
+        return _pd_iteration(ocp, rows, m_eff, x_scale, st, settings)
+
+    return lax.while_loop(cond, body, st)
+
+
 def _kkt_residual(ocp: OCP, u, x, nu, kappa):
     """Optimality residual of the barrier problem: (r_u, r_x, r_p) (paper 000 Eqs. 19-20).
 
@@ -619,26 +812,56 @@ def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
     )
     x_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(x0s)), jnp.max(jnp.abs(ocp.x0)))
 
-    def cond(s):
-        return (~s.done) & (s.it < settings.max_iter)
+    if settings.mode == "accurate":
+        st = _pd_loop(
+            ocp,
+            rows,
+            m_eff,
+            x_scale,
+            u0,
+            x0s,
+            nu0,
+            kappa0,
+            start_ok & inputs_ok,
+            start_status,
+            settings,
+        )
+        # kappa of the returned point: its mean complementarity (the barrier weight of the
+        # central-path point it approximates; used by the implicit derivative).
+        s = s._replace(
+            u=st.u,
+            x=st.x,
+            nu=st.nu,
+            it=st.it,
+            status=st.status,
+            kappa=st.gap / jnp.maximum(m_eff, 1.0),
+            rel_res=st.res,
+        )
+    else:
 
-    def body(s):
-        return _newton_iteration(ocp, rows, m_eff, x_scale, s, settings)
+        def cond(s):
+            return (~s.done) & (s.it < settings.max_iter)
 
-    s = lax.while_loop(cond, body, s)
+        def body(s):
+            return _newton_iteration(ocp, rows, m_eff, x_scale, s, settings)
+
+        s = lax.while_loop(cond, body, s)
 
     # The factorisation at the returned point: it gives the accurate mode's final multipliers
     # (the KKT solve's estimate at this point) and is reused by the implicit derivative.
     Phi_u, Phi_x, factor = _kkt_at(ocp, s.u, s.x, s.kappa, settings)
     nu = s.nu
-    if settings.mode == "accurate":
+    if settings.mode != "paper":
         g_u, g_x = _gradient(ocp, rows, s.u, s.x, s.kappa)
         step = _kkt_solve(
             ocp, Phi_u, Phi_x, factor, g_u, g_x, _dyn_residual(ocp, s.u, s.x), settings
         )
         nu = jnp.where(jnp.all(jnp.isfinite(step.nu)), step.nu, s.nu)
-    _, rel_d, rel_p = _residual_norms(ocp, rows, s.u, s.x, nu, s.kappa)
-    residual = jnp.maximum(rel_d, rel_p)
+    if settings.mode == "accurate":
+        residual = s.rel_res  # the primal-dual loop's relative dual residual
+    else:
+        _, rel_d, rel_p = _residual_norms(ocp, rows, s.u, s.x, nu, s.kappa)
+        residual = jnp.maximum(rel_d, rel_p)
 
     # Converged, but the soft state rows are violated: the hard problem is infeasible.
     violated = max_violation(ocp, s.u, s.x) > settings.violation_tol
