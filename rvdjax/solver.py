@@ -921,8 +921,9 @@ _solve_core.defvjp(_solve_core_fwd, _solve_core_bwd)
 def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
     sol = _solve_core(ocp, settings, init)
     J = objective(ocp, sol.u, sol.x)
-    # A failed solve (non-finite data) reports +inf, never NaN.
-    return sol._replace(objective=jnp.where(jnp.isfinite(J), J, jnp.inf))
+    # A failed solve (non-finite data or step) reports +inf, never NaN.
+    failed = (sol.status == Status.NONFINITE) | ~jnp.isfinite(J)
+    return sol._replace(objective=jnp.where(failed, jnp.inf, J))
 
 
 def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | None = None):

@@ -41,6 +41,7 @@ from rvdjax.solver import (
 
 ACCURATE = SolverSettings()
 PAPER = SolverSettings.paper()
+BARRIER = SolverSettings(mode="barrier")
 
 # Problems per shape class (>= 200 in total) and their seeds. Each class is solved in two
 # equal chunks of new data through the same jitted function (see test_jit_traces_once).
@@ -261,6 +262,19 @@ def test_fastmpc3d_accurate_matches_clarabel(fastmpc_pair, fastmpc_accurate, cla
     assert not failures, "\n".join(failures)
 
 
+def test_fastmpc3d_barrier_matches_clarabel(fastmpc_pair, clarabel_solve):
+    """The primal barrier continuation (mode="barrier") reaches the same optimum."""
+    ocps, batch = fastmpc_pair
+    sols = jax.jit(jax.vmap(lambda o: solve(o, BARRIER)))(batch)
+    failures = []
+    for i, (ocp, label) in enumerate(zip(ocps, ("obstacles", "no obstacles"), strict=True)):
+        ref = _reference(ocp, clarabel_solve)
+        m, f = _check(ocp, _index(sols, i), ref, f"fastmpc-3d {label} barrier")
+        print(f"\n[fastmpc-3d {label}] barrier: {m}")
+        failures += f
+    assert not failures, "\n".join(failures)
+
+
 def test_fastmpc3d_paper_mode_gap(fastmpc_pair, clarabel_solve):
     """Paper mode (kappa = 0.05, 10 iterations) returns a feasible barrier iterate.
 
@@ -284,7 +298,9 @@ def test_fastmpc3d_paper_mode_gap(fastmpc_pair, clarabel_solve):
         assert np.all(np.isfinite(sol.u)) and np.all(np.isfinite(sol.x))
 
 
-@pytest.mark.parametrize("settings", [ACCURATE, PAPER], ids=["accurate", "paper"])
+@pytest.mark.parametrize(
+    "settings", [ACCURATE, PAPER, BARRIER], ids=["accurate", "paper", "barrier"]
+)
 def test_dense_isnm_matches_riccati(settings):
     """The dense KKT solve gives the same iterates as the Riccati recursion."""
     ocp = random_ocp(1, SHAPE_CLASSES["small"], time_varying=True)
@@ -382,16 +398,19 @@ def test_no_strictly_feasible_input_status(fu0):
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_nonfinite_x0_status(bad):
-    """NaN / inf in x0 (OCP(...) without validation): status nonfinite or infeasible, u finite.
+    """NaN / inf in x0 (OCP(...) without validation): status nonfinite, no NaN anywhere.
 
-    Observed: status NONFINITE after 1 iteration with u = 0; x and the objective are NaN
-    (x propagates the NaN of x0 through the dynamics).
+    The plan is zero and the objective +inf (documented in ``solve``).
     """
     base = _small_like()
     ocp = base._replace(x0=base.x0.at[0].set(bad))
-    sol = solve(ocp, ACCURATE)
-    assert int(sol.status) in (Status.NONFINITE, Status.INFEASIBLE)
-    assert np.all(np.isfinite(np.asarray(sol.u)))
+    for settings in (ACCURATE, PAPER):
+        sol = solve(ocp, settings)
+        assert int(sol.status) == Status.NONFINITE
+        for field in ("u", "x", "nu", "kappa", "residual"):
+            assert not np.any(np.isnan(np.asarray(getattr(sol, field)))), field
+        assert np.all(np.isfinite(np.asarray(sol.u))) and np.all(np.isfinite(np.asarray(sol.x)))
+        assert float(sol.objective) == np.inf
 
 
 # --------------------------------------------------------------------------------------------
