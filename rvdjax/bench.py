@@ -55,14 +55,17 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _jax_mem_mb(fn, *args) -> float:
-    """Memory XLA plans for one call: arguments + outputs + temporaries [MB]."""
+def _compile(fn, *args):
+    """(compiled executable, compile seconds, planned memory [MB]: args + outputs + temps)."""
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    seconds = time.perf_counter() - t0
     try:
-        m = jax.jit(fn).lower(*args).compile().memory_analysis()
-        total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
-        return total / 2**20
+        m = compiled.memory_analysis()
+        mem = (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes) / 2**20
     except Exception:  # memory analysis is backend dependent
-        return float("nan")
+        mem = float("nan")
+    return compiled, seconds, mem
 
 
 def _time(call: Callable[[], object], repeats: int) -> tuple[float, float]:
@@ -125,8 +128,8 @@ def _rvdjax_rows(ocps, J_ref, settings_by_mode, batches, repeats, N, clarabel_ms
     for mode, settings in settings_by_mode.items():
         # One jitted call on one problem (no vmap).
         one = jax.tree.map(lambda a: a[0], ocps)
-        f1 = jax.jit(lambda o, s=settings: solve(o, s))
-        first, med = _time(lambda f1=f1, one=one: f1(one), repeats=max(repeats, 10))
+        f1, compile_s, mem = _compile(lambda o, s=settings: solve(o, s), one)
+        _, med = _time(lambda f1=f1, one=one: f1(one), repeats=max(repeats, 10))
         sol = f1(one)
         gap = (float(sol.objective) - J_ref[0]) / abs(J_ref[0])
         viol = float(max_violation(one, sol.u, sol.x))
@@ -141,16 +144,16 @@ def _rvdjax_rows(ocps, J_ref, settings_by_mode, batches, repeats, N, clarabel_ms
                 [gap],
                 viol,
                 [int(sol.iterations)],
-                first - med,
-                _jax_mem_mb(f1, one),
+                compile_s,
+                mem,
                 note="single jitted call",
             )
         )
         progress(f"rvdjax {mode} N={N} batch=1: {1e3 * med:.3f} ms")
         for B in batches:
             b = jax.tree.map(lambda a, B=B: a[:B], ocps)
-            fb = jax.jit(jax.vmap(lambda o, s=settings: solve(o, s)))
-            first, med = _time(lambda fb=fb, b=b: fb(b), repeats)
+            fb, compile_s, mem = _compile(jax.vmap(lambda o, s=settings: solve(o, s)), b)
+            _, med = _time(lambda fb=fb, b=b: fb(b), repeats)
             sol = fb(b)
             gaps = (np.asarray(sol.objective) - J_ref[:B]) / np.abs(J_ref[:B])
             viol = float(np.max(jax.vmap(max_violation)(b, sol.u, sol.x)))
@@ -167,8 +170,8 @@ def _rvdjax_rows(ocps, J_ref, settings_by_mode, batches, repeats, N, clarabel_ms
                     gaps,
                     viol,
                     np.asarray(sol.iterations),
-                    first - med,
-                    _jax_mem_mb(fb, b),
+                    compile_s,
+                    mem,
                     note=note,
                 )
             )

@@ -79,7 +79,7 @@ def cmd_demo(args) -> int:
             "status": ref.status,
             "solve_ms": ref.solve_ms,
             "compile_s": 0.0,
-            "max_violation": float("nan"),
+            "max_violation": None,  # not computed for the reference
         }
     )
     if args.json:

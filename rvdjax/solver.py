@@ -761,7 +761,7 @@ def _all_finite(tree):
 
 
 def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
-    """The Newton loop; returns (Solution without objective, final factorisation data)."""
+    """The Newton loop; returns the Solution without its objective."""
     rows = _rows(ocp)
     m_eff = _m_eff(rows)
     dtype = ocp.B.dtype
@@ -847,11 +847,11 @@ def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
 
         s = lax.while_loop(cond, body, s)
 
-    # The factorisation at the returned point: it gives the accurate mode's final multipliers
-    # (the KKT solve's estimate at this point) and is reused by the implicit derivative.
-    Phi_u, Phi_x, factor = _kkt_at(ocp, s.u, s.x, s.kappa, settings)
     nu = s.nu
-    if settings.mode != "paper":
+    if settings.mode == "barrier":
+        # The multipliers of the KKT solve at the returned point (the loop's last estimate
+        # belongs to the pre-step point).
+        Phi_u, Phi_x, factor = _kkt_at(ocp, s.u, s.x, s.kappa, settings)
         g_u, g_x = _gradient(ocp, rows, s.u, s.x, s.kappa)
         step = _kkt_solve(
             ocp, Phi_u, Phi_x, factor, g_u, g_x, _dyn_residual(ocp, s.u, s.x), settings
@@ -880,16 +880,18 @@ def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
         residual=jnp.where(jnp.isfinite(residual), residual, jnp.inf),
         status=status,
     )
-    return sol, (Phi_u, Phi_x, factor)
+    return sol
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
 def _solve_core(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
-    return _solve_forward(ocp, settings, init)[0]
+    return _solve_forward(ocp, settings, init)
 
 
 def _solve_core_fwd(ocp, settings, init):
-    sol, kkt = _solve_forward(ocp, settings, init)
+    sol = _solve_forward(ocp, settings, init)
+    # Factorised once here, only when differentiating; the backward pass reuses it.
+    kkt = _kkt_at(ocp, sol.u, sol.x, sol.kappa, settings)
     return sol, (ocp, init, sol, kkt)
 
 
