@@ -5,14 +5,23 @@ optimization"): the inequalities are replaced by a log barrier weighted by kappa
 the equality-constrained barrier problem is solved by the infeasible-start Newton method
 (Eqs. 18-23, Algorithm 1) with the structured step of :mod:`rvdjax.kkt` (Eqs. 24-26).
 
-Two modes (DESIGN §3):
+Three modes (DESIGN §3):
 
-* ``paper``: fixed kappa (0.05), at most 10 Newton iterations, alpha = 0.01, beta = 0.95 —
-  the algorithm as published. It returns the barrier-problem iterate, not the QP optimum.
-* ``accurate``: barrier continuation. kappa starts at a scale-aware value and drops by
-  ``kappa_factor`` whenever the iterate is centred (Newton decrement^2 / 2 <= centring *
-  m * kappa), until the duality-gap bound m * kappa and the centring error are both below
-  ``tol`` relative to the objective. Its answer matches Clarabel.
+* ``paper``: fixed kappa (0.05), at most 10 Newton iterations, alpha = 0.01, beta = 0.95,
+  backtracking on the residual norm — Algorithm 1 as published. It returns the barrier
+  problem's iterate, not the QP optimum (on a cold start its plan costs 15-35 % more).
+* ``accurate`` (default): barrier continuation with *primal-dual* Newton steps. The barrier
+  weight follows Mehrotra's rule kappa = sigma * gap / m, sigma = (gap_affine / gap)^3, with a
+  predictor and a corrector solve sharing one Riccati factorisation; it stops when the
+  complementarity gap (the duality-gap bound) is below ``tol`` relative to the objective and
+  the dual residual below 100 ``tol`` relative to the gradient. 9-25 iterations; its answer
+  matches Clarabel. Primal-dual rather than primal Newton steps because after each kappa cut
+  the primal barrier Hessian kappa / s^2 is the curvature of the *old* centre: the step
+  overshoots the active rows and backtracks for several iterations, whereas the dual
+  estimate lam / s gives the new centre of each row in one step.
+* ``barrier``: the primal barrier continuation of the paper's method run to convergence
+  (kappa / 10 once the Newton decrement shows the iterate is centred, Armijo on the barrier
+  objective); ~35 iterations. Kept for comparison and as the literal method.
 
 Soft state rows (exact L1 penalty rho, see :mod:`rvdjax.ocp`) are handled without slack
 variables: for one row with violation g = F x - f, the barrier problem's slack
@@ -51,6 +60,7 @@ __all__ = [
     "Solution",
     "Status",
     "solve",
+    "solve_batch",
     "shift_solution",
     "objective",
     "max_violation",
@@ -78,16 +88,17 @@ class SolverSettings:
     """Static solver configuration (hashable: a change recompiles).
 
     Attributes:
-        mode: "paper" (fixed kappa, Algorithm 1 of paper 000) or "accurate" (continuation).
+        mode: "paper" (fixed kappa, Algorithm 1 of paper 000), "accurate" (primal-dual
+            barrier continuation, the default) or "barrier" (primal barrier continuation).
         method: "riccati" (structured step) or "dense" (ISNM, dense KKT solve).
         kappa: barrier weight in paper mode (paper 000 Sec. IV.A: 0.05).
         max_iter: Newton iteration cap.
         alpha, beta: backtracking line-search parameters (paper 000: 0.01, 0.95).
-        tol: relative tolerance: residual (paper mode), or gap and centring (accurate mode).
+        tol: relative tolerance: residual (paper mode), gap (accurate, barrier modes).
         max_line_search: cap on backtracking steps per iteration.
         kappa0_rel: accurate/barrier modes: first kappa = kappa0_rel * (1 + |J(start)|) / m.
-        kappa_factor: accurate mode: kappa is divided by this when the iterate is centred.
-        centring: accurate mode: centred when decrement^2 / 2 <= centring * m * kappa.
+        kappa_factor: barrier mode: kappa is divided by this when the iterate is centred.
+        centring: barrier mode: centred when decrement^2 / 2 <= centring * m * kappa.
         violation_tol: a soft state row counts as violated above this distance (row-normalised
             units of the state, e.g. metres).
     """
@@ -954,3 +965,19 @@ def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | No
 
 
 _solve_jit = jax.jit(_solve, static_argnums=(1,))
+
+
+def solve_batch(
+    ocps: OCP, settings: SolverSettings = SolverSettings(), init: Plan | None = None, chunk=32
+):
+    """Solve a batch of OCPs (leading axis on every field) in vmapped chunks of ``chunk``.
+
+    ``jax.lax.map(..., batch_size=chunk)``: one ``vmap`` over thousands of problems streams
+    every intermediate through memory, while chunks of ~32 keep a chunk's working set in cache
+    (measured on a 2-core AMD EPYC: 1024 fastmpc-3d problems 0.61 ms -> 0.44 ms per problem).
+    Results equal ``jax.vmap(solve)``. Jit the caller, e.g.
+    ``jax.jit(solve_batch, static_argnames=("settings", "chunk"))``.
+    """
+    if init is None:
+        return lax.map(lambda o: solve(o, settings), ocps, batch_size=chunk)
+    return lax.map(lambda a: solve(a[0], settings, a[1]), (ocps, init), batch_size=chunk)

@@ -37,6 +37,7 @@ from rvdjax.solver import (
     max_violation,
     shift_solution,
     solve,
+    solve_batch,
 )
 
 ACCURATE = SolverSettings()
@@ -327,6 +328,23 @@ def test_vmap_equals_loop(class_runs):
         for field in ("u", "x", "nu", "objective"):
             fa, fb = np.asarray(getattr(single, field)), np.asarray(getattr(batched, field))
             np.testing.assert_allclose(fb, fa, rtol=0, atol=1e-10 * max(1.0, np.max(np.abs(fa))))
+
+
+def test_solve_batch_equals_vmap(class_runs):
+    """Chunked lax.map of vmap (solve_batch) returns what one vmap returns."""
+    ocps, sols = class_runs("small")
+    half = len(ocps) // 2
+    chunked = jax.jit(solve_batch, static_argnames=("settings", "chunk"))(
+        stack_ocps(ocps[:half]), ACCURATE, chunk=16
+    )
+    for field in ("u", "x", "objective", "status", "iterations"):
+        a = np.asarray(getattr(sols, field))[:half]
+        np.testing.assert_allclose(
+            np.asarray(getattr(chunked, field)),
+            a,
+            rtol=0,
+            atol=1e-10 * max(1.0, float(np.max(np.abs(a)))),
+        )
 
 
 def test_float32_inputs(class_runs):
