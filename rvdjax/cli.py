@@ -1,4 +1,4 @@
-"""Command line: ``rvdjax demo`` (solve the default problem), ``rvdjax bench`` (peer benchmark)."""
+"""Command line: ``rvdjax run`` (closed-loop scenario), ``list``, ``demo`` (one QP), ``bench``."""
 
 from __future__ import annotations
 
@@ -117,6 +117,115 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_list(args) -> int:
+    from rvdjax.scenarios import DEFAULT_SCENARIO, SCENARIOS
+
+    for name, sc in SCENARIOS.items():
+        mark = " (default)" if name == DEFAULT_SCENARIO else ""
+        print(f"{name:<18}{sc.description}  [{sc.source}]{mark}")
+    return 0
+
+
+def _settings_for(mode: str):
+    from rvdjax.solver import SolverSettings
+
+    return SolverSettings.paper() if mode == "paper" else SolverSettings(mode=mode)
+
+
+def run_scenario(name: str, mode: str = "accurate"):
+    """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step)."""
+    import dataclasses
+    import time
+
+    import jax
+
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.sim import run_closed_loop
+
+    sc = get_scenario(name)
+    params, x0 = sc.build()
+    config = dataclasses.replace(sc.config, settings=_settings_for(mode))
+    fly = jax.jit(lambda p, x: run_closed_loop(p, x, config))
+    compiled = fly.lower(params, x0).compile()
+    t0 = time.perf_counter()
+    infos, metrics = jax.block_until_ready(compiled(params, x0))
+    wall = time.perf_counter() - t0
+    steps = max(int(infos.active.sum()), 1)
+    return sc, params, infos, metrics, 1e3 * wall / steps
+
+
+def cmd_run(args) -> int:
+    import numpy as np
+
+    from rvdjax.solver import Status
+
+    sc, params, infos, m, ms_per_step = run_scenario(args.scenario, args.mode)
+    result = {
+        "scenario": sc.name,
+        "source": sc.source,
+        "solver_mode": args.mode,
+        "docked": bool(m.docked),
+        "delta_v_m_s": float(m.delta_v_m_s),
+        "delta_v_norm": "sum_k ||u_k||_2 Ts / m",
+        "total_impulse_N_s": float(m.total_impulse_N_s),
+        "effort_l1_N_s": float(m.effort_l1_N_s),
+        "time_to_dock_s": float(m.time_to_dock_s) if bool(m.docked) else None,
+        "max_violation_m": float(m.max_violation_m),
+        "solver_status_counts": {
+            Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
+        },
+        "mean_iterations": float(m.mean_iterations),
+        "mean_solve_ms": ms_per_step,
+        "mean_solve_ms_note": "wall time of the jitted closed loop per MPC step, after compile",
+        "published": sc.published,
+        "assumptions": list(sc.assumptions),
+    }
+    comparisons = []
+    for key, refs in sc.published.items():
+        if key == "total_impulse_kN_s":
+            ours = result["effort_l1_N_s"] / 1e3
+            for label, value in refs.items():
+                comparisons.append((f"total impulse [kN s] vs {label}", ours, value))
+    result["comparison"] = [
+        {"figure": f, "rvdjax": ours, "paper": ref, "rel_diff": (ours - ref) / ref}
+        for f, ours, ref in comparisons
+    ]
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"{sc.name}: {sc.description} [{sc.source}], solver mode {args.mode}")
+        rows = [
+            ("docked", result["docked"], ""),
+            ("time to holding distance", result["time_to_dock_s"], "s"),
+            ("total impulse, L1 (sum |u_i| Ts)", result["effort_l1_N_s"], "N s"),
+            ("total impulse, L2 (sum ||u|| Ts)", result["total_impulse_N_s"], "N s"),
+            ("delta-v (L2)", result["delta_v_m_s"], "m/s"),
+            ("largest keep-out penetration", result["max_violation_m"], "m"),
+            ("solver statuses", result["solver_status_counts"], ""),
+            ("mean Newton iterations / step", result["mean_iterations"], ""),
+            ("wall time / MPC step", ms_per_step, "ms"),
+        ]
+        for label, value, unit in rows:
+            text = f"{value:.4g}" if isinstance(value, float) else str(value)
+            print(f"  {label:<36}{text} {unit}")
+        if comparisons:
+            print("  compared with the paper:")
+            for f, ours, ref in comparisons:
+                print(
+                    f"    {f:<44}rvdjax {ours:8.3f}  paper {ref:8.3f}  "
+                    f"({100 * (ours - ref) / ref:+.1f} %)"
+                )
+        print("  assumptions:")
+        for a in sc.assumptions:
+            print(f"    - {a}")
+    if args.plot:
+        from rvdjax.plots import plot_run
+
+        plot_run(args.plot, sc, params, infos)
+        print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
 def cmd_bench(args) -> int:
     from rvdjax.bench import BenchConfig, format_table, machine_info, run_benchmark
 
@@ -157,7 +266,22 @@ def main(argv=None) -> int:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("demo", help="solve the default problem (fastmpc-3d first MPC step)")
+    p = sub.add_parser("list", help="list the named scenarios")
+    p.set_defaults(func=cmd_list)
+
+    p = sub.add_parser("run", help="fly a named scenario in closed loop (default fastmpc-3d)")
+    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
+    p.add_argument(
+        "--mode",
+        choices=("accurate", "paper", "barrier"),
+        default="accurate",
+        help="solver mode (default accurate)",
+    )
+    p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="solve one QP: the fastmpc-3d first MPC step")
     p.add_argument("--plot", metavar="FILE", help="write the planned trajectories to FILE (png)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--no-obstacles", action="store_true", help="drop the keep-out zones")
@@ -180,7 +304,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "threads", 1) == 1:
         _one_thread()
-    return args.func(args)
+    try:
+        return args.func(args)
+    except ValueError as err:  # bad user input: say what and stop, no traceback
+        print(f"rvdjax {args.command}: error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

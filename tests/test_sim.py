@@ -1,0 +1,137 @@
+"""Closed loop (rvdjax.sim) on the fastmpc-3d scenario of paper 000 Sec. IV.A."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rvdjax.cli import main
+from rvdjax.scenarios import SCENARIOS, get_scenario
+from rvdjax.sim import run_closed_loop, run_reference_loop
+from rvdjax.solver import SolverSettings, Status
+
+SC = get_scenario("fastmpc-3d")
+PARAMS, X0 = SC.build()
+# One compiled program per solver mode, shared by every test (and by both scenarios: the
+# obstacle-free case only changes the traced obstacle mask).
+CONFIGS = {
+    "accurate": dataclasses.replace(SC.config, settings=SolverSettings()),
+    "paper": dataclasses.replace(SC.config, settings=SolverSettings.paper()),
+}
+FLY = {
+    mode: jax.jit(lambda p, x, c=config: run_closed_loop(p, x, c))
+    for mode, config in CONFIGS.items()
+}
+PAPER_IMPULSE_KN_S = SC.published["total_impulse_kN_s"]["Fast MPC"]
+
+
+@pytest.fixture(scope="module")
+def accurate_run():
+    return FLY["accurate"](PARAMS, X0)
+
+
+def test_fastmpc3d_docks_without_violation(accurate_run):
+    infos, m = accurate_run
+    assert bool(m.docked)
+    final = np.asarray(infos.x)[int(np.sum(infos.active)) - 1]
+    assert np.linalg.norm(final[:3]) > float(PARAMS.stop_radius)  # last active step: outside
+    assert float(m.max_violation_m) <= 1e-6
+    counts = np.asarray(m.status_counts)
+    assert counts[Status.CONVERGED] == int(np.sum(infos.active)) and counts[1:].sum() == 0
+    # no NaN anywhere in the record
+    for field in infos:
+        assert not np.any(np.isnan(np.asarray(field, dtype=float)))
+
+
+def test_fastmpc3d_total_impulse_matches_paper(accurate_run):
+    """Paper 000: Fast MPC 33.98 kN s (ISNM 33.80, IPOPT NMPC 32.93, fmincon 34.33).
+
+    Measured: 33.46 kN s (L1 sum), -1.5 %. The issue asks for 15 %.
+    """
+    _, m = accurate_run
+    ours = float(m.effort_l1_N_s) / 1e3
+    assert abs(ours - PAPER_IMPULSE_KN_S) / PAPER_IMPULSE_KN_S < 0.15
+    # L2 <= L1 <= sqrt(3) L2 (three axes)
+    l2 = float(m.total_impulse_N_s) / 1e3
+    assert l2 <= ours <= np.sqrt(3) * l2 + 1e-9
+
+
+def test_same_trajectory_as_clarabel_in_the_loop(accurate_run):
+    """rvdjax (accurate) and Clarabel solve the same QPs each step: same trajectory."""
+    infos, m = accurate_run
+    ref_infos, ref_m, _ = run_reference_loop(PARAMS, X0, SC.config)
+    n = int(np.sum(ref_infos.active))
+    assert n == int(np.sum(infos.active))
+    dx = np.max(np.abs(np.asarray(infos.x)[:n, :3] - ref_infos.x[:n, :3]))
+    du = np.max(np.abs(np.asarray(infos.u)[:n] - ref_infos.u[:n]))
+    assert dx <= 1e-3  # metres, over a 1 km approach (measured 5e-5)
+    assert du <= 1e-3 * float(PARAMS.u_max[0])  # measured 2e-4 N of 20 N
+    assert abs(float(m.effort_l1_N_s) - float(ref_m.effort_l1_N_s)) <= 1e-6 * float(
+        ref_m.effort_l1_N_s
+    )
+
+
+def test_paper_mode_closed_loop():
+    """Paper mode docks too, with only converged / max-iteration statuses."""
+    infos, m = FLY["paper"](PARAMS, X0)
+    assert bool(m.docked)
+    assert float(m.max_violation_m) <= 1e-6
+    counts = np.asarray(m.status_counts)
+    assert counts[Status.INFEASIBLE] == 0 and counts[Status.NONFINITE] == 0
+    ours = float(m.effort_l1_N_s) / 1e3
+    assert abs(ours - PAPER_IMPULSE_KN_S) / PAPER_IMPULSE_KN_S < 0.15
+
+
+def test_obstacle_free_variant_and_batch():
+    """vmap over initial conditions (one program), obstacle-free variant via the mask."""
+    free, x0 = SCENARIOS["fastmpc-3d-free"].build()
+    assert float(free.obstacle_mask.sum()) == 0.0
+    x0s = jnp.stack([X0, X0 + jnp.array([10.0, -20.0, 5.0, 0.0, 0.0, 0.0])])
+    batched = jax.jit(jax.vmap(FLY["accurate"], in_axes=(None, 0)))
+    infos, m = batched(free, x0s)
+    assert np.all(np.asarray(m.docked))
+    single_infos, single_m = FLY["accurate"](free, x0s[1])
+    np.testing.assert_allclose(np.asarray(infos.x[1]), np.asarray(single_infos.x), atol=1e-8)
+    assert float(m.effort_l1_N_s[1]) == pytest.approx(float(single_m.effort_l1_N_s), rel=1e-10)
+
+
+def test_unknown_scenario_is_a_clear_error(capsys):
+    assert main(["run", "no-such-scenario"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scenario" in err and "fastmpc-3d" in err
+
+
+def test_list_names_every_scenario(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for name in SCENARIOS:
+        assert name in out
+
+
+def test_run_command_json_and_plot(capsys, tmp_path):
+    plot = tmp_path / "run.png"
+    assert main(["run", "fastmpc-3d", "--json", "--plot", str(plot)]) == 0
+    import json
+
+    out = json.loads(capsys.readouterr().out)
+    for key in (
+        "scenario",
+        "docked",
+        "delta_v_m_s",
+        "total_impulse_N_s",
+        "effort_l1_N_s",
+        "time_to_dock_s",
+        "max_violation_m",
+        "solver_status_counts",
+        "mean_solve_ms",
+        "published",
+        "assumptions",
+    ):
+        assert key in out, key
+    assert out["scenario"] == "fastmpc-3d" and out["docked"] is True
+    assert all(abs(c["rel_diff"]) < 0.15 for c in out["comparison"])
+    assert plot.stat().st_size > 10_000 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
