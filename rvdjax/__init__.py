@@ -6,5 +6,35 @@ import jax as _jax
 _jax.config.update("jax_enable_x64", True)
 
 from rvdjax.ocp import OCP, make_ocp, validate_ocp  # noqa: E402
+from rvdjax.scenarios import SCENARIOS, Scenario, get_scenario  # noqa: E402
+from rvdjax.sim import LoopConfig, LoopParams, Metrics, StepInfo, run_closed_loop  # noqa: E402
+from rvdjax.solver import (  # noqa: E402
+    Plan,
+    Solution,
+    SolverSettings,
+    Status,
+    shift_solution,
+    solve,
+    solve_batch,
+)
 
-__all__ = ["OCP", "make_ocp", "validate_ocp"]
+__all__ = [
+    "OCP",
+    "make_ocp",
+    "validate_ocp",
+    "Plan",
+    "Solution",
+    "SolverSettings",
+    "Status",
+    "solve",
+    "solve_batch",
+    "shift_solution",
+    "LoopConfig",
+    "LoopParams",
+    "Metrics",
+    "StepInfo",
+    "run_closed_loop",
+    "SCENARIOS",
+    "Scenario",
+    "get_scenario",
+]

@@ -321,7 +321,7 @@ def format_table(rows: list[dict]) -> str:
     """Render benchmark rows as a fixed-width text table."""
     cols = [
         ("solver", "{:<9}"),
-        ("mode", "{:<9}"),
+        ("mode", "{:<12}"),
         ("N", "{:>3}"),
         ("batch", "{:>5}"),
         ("ms_per_problem", "{:>9.4f}"),
@@ -387,3 +387,43 @@ def machine_info() -> str:
         f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"jax {jax.__version__}, {jax.devices()[0].platform}"
     )
+
+
+def closed_loop_benchmark(names: Sequence[str] | None = None, repeats: int = 3, progress=print):
+    """Wall time of one whole closed-loop maneuver per scenario: the jitted rvdjax loop (after
+    compile) against the same loop driven step by step from Python through Clarabel.
+
+    Returns rows with ``scenario``, ``steps``, ``rvdjax_s``, ``clarabel_loop_s`` (whole Python
+    loop: OCP assembly + solves), ``clarabel_solve_s`` (solver calls only) and the ratios.
+    """
+    from rvdjax.scenarios import SCENARIOS
+    from rvdjax.sim import run_closed_loop, run_reference_loop
+
+    rows = []
+    for name in names or list(SCENARIOS):
+        sc = SCENARIOS[name]
+        params, x0 = sc.build()
+        fly, compile_s, _ = _compile(lambda p, x, c=sc.config: run_closed_loop(p, x, c), params, x0)
+        _, med = _time(lambda fly=fly, p=params, x=x0: fly(p, x), repeats)
+        infos, _ = fly(params, x0)
+        t0 = time.perf_counter()
+        _, _, solve_s = run_reference_loop(params, x0, sc.config)
+        loop_s = time.perf_counter() - t0
+        steps = int(np.sum(np.asarray(infos.active)))
+        rows.append(
+            {
+                "scenario": name,
+                "steps": steps,
+                "rvdjax_s": med,
+                "rvdjax_compile_s": compile_s,
+                "clarabel_loop_s": loop_s,
+                "clarabel_solve_s": solve_s,
+                "speedup_vs_loop": loop_s / med,
+                "speedup_vs_solves": solve_s / med,
+            }
+        )
+        progress(
+            f"{name}: rvdjax {med:.3f} s, Clarabel loop {loop_s:.2f} s "
+            f"(solves {solve_s:.2f} s), {steps} steps"
+        )
+    return rows

@@ -250,6 +250,25 @@ def cmd_bench(args) -> int:
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
 
+    if args.closed_loop:
+        from rvdjax.bench import closed_loop_benchmark
+
+        rows = closed_loop_benchmark(progress=progress)
+        if args.json:
+            print(json.dumps(rows, indent=1))
+        else:
+            print(f"machine: {machine_info()}")
+            print(
+                f"{'scenario':<18}{'steps':>6}{'rvdjax s':>10}{'Clarabel loop s':>17}"
+                f"{'(solves s)':>12}{'x loop':>8}{'x solves':>10}"
+            )
+            for r in rows:
+                print(
+                    f"{r['scenario']:<18}{r['steps']:>6}{r['rvdjax_s']:>10.3f}"
+                    f"{r['clarabel_loop_s']:>17.2f}{r['clarabel_solve_s']:>12.2f}"
+                    f"{r['speedup_vs_loop']:>8.1f}{r['speedup_vs_solves']:>10.1f}"
+                )
+        return 0
     rows = run_benchmark(config, progress=progress)
     if args.json:
         print(json.dumps(rows, indent=1))
@@ -290,6 +309,11 @@ def main(argv=None) -> int:
     p = sub.add_parser("bench", help="benchmark rvdjax against Clarabel, PIQP, DAQP, OSQP, qpax")
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
     p.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
+    p.add_argument(
+        "--closed-loop",
+        action="store_true",
+        help="time whole closed-loop maneuvers against Clarabel in a Python loop",
+    )
     p.add_argument("--batches", type=_ints, help="vmapped batch sizes, e.g. 64,1024,4096")
     p.add_argument("--horizons", type=_ints, help="horizons for the scaling rows, e.g. 15,30")
     p.add_argument("--peers", help="comma-separated peers (default: all installed)")

@@ -147,7 +147,9 @@ def plot_run(path, scenario, params, infos, title: str | None = None):
     ax_r.semilogy(t, np.linalg.norm(x[:, :d], axis=1), color="k", label="range to target")
     margins = np.asarray(infos.keepout_margin)[: len(x)]
     for j in np.flatnonzero(mask):
-        ax_r.semilogy(t, np.maximum(margins[:, j], 1e-3), label=f"keep-out margin {j + 1}")
+        ax_r.semilogy(
+            t, np.maximum(margins[:, j], 1e-3), label=f"keep-out margin {j + 1} (floored at 1 mm)"
+        )
     ax_r.axhline(float(params.stop_radius), color="gray", ls="--", lw=1, label="holding distance")
     ax_r.set_xlabel("time [s]")
     ax_r.set_ylabel("[m]")

@@ -176,7 +176,16 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
 
     def step(c: _Carry, _):
         ocp = build_ocp(p, c.x, c.t, c.plan.x[:, :d], N)
-        sol = solve(ocp, config.settings, init=c.plan)
+
+        def fly(ocp):
+            return solve(ocp, config.settings, init=c.plan)
+
+        def idle(ocp):  # a finished run needs no solve (a vmapped batch runs both branches)
+            shapes = jax.eval_shape(fly, ocp)
+            sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+            return sol._replace(u=c.plan.u, x=c.plan.x, nu=c.plan.nu)
+
+        sol = lax.cond(c.active, fly, idle, ocp)
         u = jnp.where(c.active, sol.u[0], 0.0)
         x_next = p.A @ c.x + p.B @ u
         centres = p.obstacles[:, :d] + c.t * p.obstacles[:, d:]
