@@ -132,7 +132,7 @@ def _settings_for(mode: str):
     return SolverSettings.paper() if mode == "paper" else SolverSettings(mode=mode)
 
 
-def run_scenario(name: str, mode: str = "accurate"):
+def run_scenario(name: str, mode: str = "accurate", truth: str = "linear"):
     """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step)."""
     import dataclasses
     import time
@@ -140,11 +140,12 @@ def run_scenario(name: str, mode: str = "accurate"):
     import jax
 
     from rvdjax.scenarios import get_scenario
-    from rvdjax.sim import run_closed_loop
+    from rvdjax.sim import run_closed_loop, validate_loop
 
     sc = get_scenario(name)
     params, x0 = sc.build()
-    config = dataclasses.replace(sc.config, settings=_settings_for(mode))
+    config = dataclasses.replace(sc.config, settings=_settings_for(mode), truth=truth)
+    validate_loop(params, x0, config)
     fly = jax.jit(lambda p, x: run_closed_loop(p, x, config))
     compiled = fly.lower(params, x0).compile()
     t0 = time.perf_counter()
@@ -159,11 +160,12 @@ def cmd_run(args) -> int:
 
     from rvdjax.solver import Status
 
-    sc, params, infos, m, ms_per_step = run_scenario(args.scenario, args.mode)
+    sc, params, infos, m, ms_per_step = run_scenario(args.scenario, args.mode, args.truth)
     result = {
         "scenario": sc.name,
         "source": sc.source,
         "solver_mode": args.mode,
+        "truth": args.truth,
         "docked": bool(m.docked),
         "delta_v_m_s": float(m.delta_v_m_s),
         "delta_v_norm": "sum_k ||u_k||_2 Ts / m",
@@ -193,7 +195,10 @@ def cmd_run(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        print(f"{sc.name}: {sc.description} [{sc.source}], solver mode {args.mode}")
+        print(
+            f"{sc.name}: {sc.description} [{sc.source}], solver mode {args.mode}, "
+            f"truth {args.truth}"
+        )
         rows = [
             ("docked", result["docked"], ""),
             ("time to holding distance", result["time_to_dock_s"], "s"),
@@ -295,6 +300,12 @@ def main(argv=None) -> int:
         choices=("accurate", "paper", "barrier"),
         default="accurate",
         help="solver mode (default accurate)",
+    )
+    p.add_argument(
+        "--truth",
+        choices=("linear", "two-body", "two-body-j2"),
+        default="linear",
+        help="truth propagation: the CW model (default) or nonlinear (model mismatch)",
     )
     p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png)")
     p.add_argument("--json", action="store_true", help="print one JSON object")

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax.problems import DEFAULT_RHO, FASTMPC3D, fastmpc3d_model
+from rvdjax.propagate import circular_orbit
 from rvdjax.sim import LoopConfig, LoopParams
 from rvdjax.solver import SolverSettings
 
@@ -63,6 +64,7 @@ def _fastmpc3d(obstacles: bool):
             ts=jnp.asarray(p["ts"]),
             mass=jnp.asarray(p["mass"]),
             stop_radius=jnp.asarray(p["hold_radius"]),
+            orbit=circular_orbit(p["altitude_m"]),  # used by the nonlinear truth options
         )
         return params, np.asarray(p["x0"], dtype=float)
 
@@ -76,7 +78,8 @@ _FASTMPC_ASSUMPTIONS = (
     "keep-out rows are soft with exact L1 penalty rho = 1e8 (~100x the largest multiplier)",
     "'total impulse' compared as sum_k ||u_k||_1 Ts (per-axis thrusters); the L2 sum is also "
     "reported",
-    "Earth mu = 3.986004418e14 m^3/s^2, radius 6378.137 km; the model is also the truth",
+    "Earth mu = 3.986004418e14 m^3/s^2, radius 6378.137 km; the truth is the CW model itself "
+    "unless --truth two-body / two-body-j2 (equatorial circular target orbit at 705 km)",
 )
 
 SCENARIOS: dict[str, Scenario] = {

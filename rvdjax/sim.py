@@ -22,9 +22,11 @@ from jax import lax
 
 from rvdjax.ocp import OCP
 from rvdjax.problems import obstacle_rows
+from rvdjax.propagate import Orbit, propagate_step
 from rvdjax.solver import Plan, SolverSettings, Status, shift_solution, solve
 
 __all__ = [
+    "validate_loop",
     "LoopParams",
     "LoopConfig",
     "StepInfo",
@@ -48,6 +50,8 @@ class LoopParams(NamedTuple):
         ts: () sample time [s].
         mass: () chaser mass [kg] (for delta-v).
         stop_radius: () the run ends when |r| <= stop_radius [m] (paper 000: 2.3 m).
+        orbit: the target's inertial state (:class:`rvdjax.propagate.Orbit`) for a nonlinear
+            truth (``LoopConfig.truth``); None for the linear truth.
     """
 
     A: jnp.ndarray
@@ -64,6 +68,7 @@ class LoopParams(NamedTuple):
     ts: jnp.ndarray
     mass: jnp.ndarray
     stop_radius: jnp.ndarray
+    orbit: Orbit | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,11 +79,25 @@ class LoopConfig:
         N: horizon.
         n_steps: MPC steps simulated (the scan length); finished runs idle.
         settings: solver settings (paper or accurate mode).
+        truth: "linear" (the model itself, exact), "two-body" or "two-body-j2": the chaser and
+            the target integrated in the inertial frame (RK4, ``substeps`` per Ts, thrust held
+            constant in the LVLH frame; :mod:`rvdjax.propagate`) — model mismatch.
+        substeps: RK4 steps per sample time for the nonlinear truth.
     """
 
     N: int = 30
     n_steps: int = 200
     settings: SolverSettings = SolverSettings()
+    truth: str = "linear"
+    substeps: int = 3
+
+    def __post_init__(self):
+        if self.truth not in ("linear", "two-body", "two-body-j2"):
+            raise ValueError(
+                f"truth must be 'linear', 'two-body' or 'two-body-j2', got {self.truth!r}"
+            )
+        if self.N < 1 or self.n_steps < 1 or self.substeps < 1:
+            raise ValueError("N, n_steps and substeps must be >= 1")
 
 
 class StepInfo(NamedTuple):
@@ -104,6 +123,47 @@ class Metrics(NamedTuple):
     max_violation_m: jnp.ndarray  # largest keep-out penetration of the truth at the samples
     status_counts: jnp.ndarray  # (4,) solver statuses over the active steps
     mean_iterations: jnp.ndarray
+
+
+def validate_loop(p: LoopParams, x0, config: LoopConfig | None = None) -> None:
+    """Check a concrete closed-loop set-up before anything runs; ValueError names the field.
+
+    Checks: every field and x0 finite; mass, ts, stop_radius, rho, radii, u_max > 0; R positive
+    definite, Q and Q_f positive semidefinite; x0 outside every active keep-out zone; the
+    horizon and step count >= 1.
+    """
+    import numpy as np
+
+    for name, a in list(zip(LoopParams._fields, p, strict=True)) + [("x0", x0)]:
+        if not np.all(np.isfinite(np.asarray(a, dtype=float))):
+            raise ValueError(f"{name} contains NaN or inf; it must be finite")
+    for name in ("mass", "ts", "stop_radius", "rho"):
+        value = float(getattr(p, name))
+        if value <= 0:
+            unit = {"mass": " kg", "ts": " s", "stop_radius": " m"}.get(name, "")
+            raise ValueError(f"{name} must be > 0{unit}, got {value}")
+    if np.any(np.asarray(p.u_max) <= 0):
+        raise ValueError(f"u_max must be > 0 N on every axis, got {np.asarray(p.u_max)}")
+    if np.any(np.asarray(p.radii) <= 0):
+        raise ValueError(f"radii (keep-out) must be > 0 m, got {np.asarray(p.radii)}")
+    if np.min(np.linalg.eigvalsh(np.asarray(p.R))) <= 0:
+        raise ValueError("R must be positive definite")
+    for name in ("Q", "Q_f"):
+        M = np.asarray(getattr(p, name))
+        if np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) < -1e-10 * max(1.0, np.abs(M).max()):
+            raise ValueError(f"{name} must be positive semidefinite")
+    d = np.asarray(p.obstacles).shape[-1] // 2
+    x0 = np.asarray(x0, dtype=float)
+    gaps = np.linalg.norm(x0[:d][None] - np.asarray(p.obstacles)[:, :d], axis=-1)
+    inside = (gaps <= np.asarray(p.radii)) & (np.asarray(p.obstacle_mask) > 0)
+    if np.any(inside):
+        j = int(np.flatnonzero(inside)[0])
+        raise ValueError(
+            f"x0 starts inside keep-out zone {j + 1} (distance {gaps[j]:.3g} m to its centre, "
+            f"radius {float(np.asarray(p.radii)[j]):.3g} m)"
+        )
+    if config is not None and config.truth != "linear" and p.orbit is None:
+        raise ValueError(f"truth={config.truth!r} needs LoopParams.orbit (the target's orbit)")
 
 
 def _box_rows(u_max, N):
@@ -150,6 +210,7 @@ class _Carry(NamedTuple):
     t: jnp.ndarray
     plan: Plan
     active: jnp.ndarray
+    orbit: Orbit | None = None
 
 
 def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
@@ -172,7 +233,11 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
 
     _, x_drift = lax.scan(drift, x0, None, length=N)
     init = Plan(jnp.zeros((N, nu), dtype), x_drift, jnp.zeros((N, nx), dtype))
-    carry0 = _Carry(x0, jnp.zeros((), dtype), init, jnp.linalg.norm(x0[:d]) > p.stop_radius)
+    if config.truth != "linear" and p.orbit is None:
+        raise ValueError(f"truth={config.truth!r} needs LoopParams.orbit (the target's orbit)")
+    orbit0 = p.orbit if config.truth != "linear" else None
+    active0 = jnp.linalg.norm(x0[:d]) > p.stop_radius
+    carry0 = _Carry(x0, jnp.zeros((), dtype), init, active0, orbit0)
 
     def step(c: _Carry, _):
         ocp = build_ocp(p, c.x, c.t, c.plan.x[:, :d], N)
@@ -187,7 +252,12 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
 
         sol = lax.cond(c.active, fly, idle, ocp)
         u = jnp.where(c.active, sol.u[0], 0.0)
-        x_next = p.A @ c.x + p.B @ u
+        if config.truth == "linear":
+            x_next, orbit_next = p.A @ c.x + p.B @ u, None
+        else:
+            orbit_next, x_next = propagate_step(
+                c.orbit, c.x, u, p.mass, p.ts, config.substeps, config.truth == "two-body-j2"
+            )
         centres = p.obstacles[:, :d] + c.t * p.obstacles[:, d:]
         margin = jnp.linalg.norm(c.x[:d][None] - centres, axis=-1) - p.radii
         margin = jnp.where(p.obstacle_mask > 0, margin, jnp.inf)
@@ -201,7 +271,7 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
             keepout_margin=margin,
         )
         active = c.active & (jnp.linalg.norm(x_next[:d]) > p.stop_radius)
-        nxt = _Carry(x_next, c.t + p.ts, shift_solution(sol), active)
+        nxt = _Carry(x_next, c.t + p.ts, shift_solution(sol), active, orbit_next)
         # A finished run idles: its carry stops changing.
         nxt = jax.tree.map(lambda a, b: jnp.where(c.active, a, b), nxt, c)
         return nxt, info
@@ -249,6 +319,8 @@ def run_reference_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig(), sol
     from rvdjax.qp import split_solution, to_qp
 
     solver = solver or solve_clarabel
+    if config.truth != "linear":
+        raise ValueError("run_reference_loop supports the linear truth only")
     N, n_steps = config.N, config.n_steps
     nx, nu = p.B.shape
     d = p.obstacles.shape[-1] // 2

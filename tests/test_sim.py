@@ -11,7 +11,7 @@ import pytest
 
 from rvdjax.cli import main
 from rvdjax.scenarios import SCENARIOS, get_scenario
-from rvdjax.sim import run_closed_loop, run_reference_loop
+from rvdjax.sim import run_closed_loop, run_reference_loop, validate_loop
 from rvdjax.solver import SolverSettings, Status
 
 SC = get_scenario("fastmpc-3d")
@@ -135,3 +135,52 @@ def test_run_command_json_and_plot(capsys, tmp_path):
     assert out["scenario"] == "fastmpc-3d" and out["docked"] is True
     assert all(abs(c["rel_diff"]) < 0.15 for c in out["comparison"])
     assert plot.stat().st_size > 10_000 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    "change, word",
+    [
+        (dict(mass=-1.0), "mass"),
+        (dict(ts=0.0), "ts"),
+        (dict(stop_radius=-2.3), "stop_radius"),
+        (dict(u_max=jnp.array([20.0, 0.0, 20.0])), "u_max"),
+        (dict(R=-jnp.eye(3)), "R must be positive definite"),
+        (dict(radii=jnp.array([20.0, -1.0])), "radii"),
+    ],
+)
+def test_bad_loop_parameters_raise(change, word):
+    with pytest.raises(ValueError, match=word):
+        validate_loop(PARAMS._replace(**change), X0)
+
+
+def test_start_inside_keepout_raises():
+    inside = np.asarray(PARAMS.obstacles[0, :3]) + np.array([1.0, 0.0, 0.0])
+    x0 = np.concatenate([inside, np.zeros(3)])
+    with pytest.raises(ValueError, match="inside keep-out zone 1"):
+        validate_loop(PARAMS, x0)
+    with pytest.raises(ValueError, match="x0 contains NaN"):
+        validate_loop(PARAMS, np.full(6, np.nan))
+    validate_loop(PARAMS, X0)  # the scenario itself is fine
+
+
+def test_nonlinear_truth_two_body_j2(accurate_run):
+    """Model mismatch: CW plans flown on a two-body + J2 truth still dock, at nearly the same
+    cost; the plans graze the keep-out spheres, so the mismatch pushes the truth inside by
+    micrometres (measured 6e-5 m)."""
+    config = dataclasses.replace(CONFIGS["accurate"], truth="two-body-j2")
+    validate_loop(PARAMS, X0, config)
+    infos, m = jax.jit(lambda p, x: run_closed_loop(p, x, config))(PARAMS, X0)
+    _, m_lin = accurate_run
+    assert bool(m.docked)
+    assert float(m.max_violation_m) <= 1e-3
+    assert abs(float(m.effort_l1_N_s) / float(m_lin.effort_l1_N_s) - 1.0) < 0.01
+    x_lin = np.asarray(accurate_run[0].x)
+    assert np.max(np.abs(np.asarray(infos.x)[:50, :3] - x_lin[:50, :3])) > 1e-6  # truth differs
+
+
+def test_nonlinear_truth_needs_an_orbit():
+    config = dataclasses.replace(CONFIGS["accurate"], truth="two-body")
+    with pytest.raises(ValueError, match="orbit"):
+        validate_loop(PARAMS._replace(orbit=None), X0, config)
+    with pytest.raises(ValueError, match="truth"):
+        dataclasses.replace(CONFIGS["accurate"], truth="n-body")
