@@ -154,42 +154,27 @@ def _rvdjax_rows(
         progress(f"rvdjax {mode} N={N} batch=1: {1e3 * med:.3f} ms")
         for B in batches:
             b = jax.tree.map(lambda a, B=B: a[:B], ocps)
-            fb, compile_s, mem = _compile(jax.vmap(lambda o, s=settings: solve(o, s)), b)
-            _, med = _time(lambda fb=fb, b=b: fb(b), repeats)
-            sol = fb(b)
-            gaps = (np.asarray(sol.objective) - J_ref[:B]) / np.abs(J_ref[:B])
-            viol = float(np.max(jax.vmap(max_violation)(b, sol.u, sol.x)))
-            statuses = np.bincount(np.asarray(sol.status), minlength=4)
-            note = "status counts " + "/".join(str(int(c)) for c in statuses)
-            rows.append(
-                _row(
-                    "rvdjax",
-                    mode,
-                    B,
-                    N,
-                    med / B,
-                    clarabel_ms,
-                    gaps,
-                    viol,
-                    np.asarray(sol.iterations),
-                    compile_s,
-                    mem,
-                    note=note,
-                )
-            )
-            progress(f"rvdjax {mode} N={N} batch={B}: {1e3 * med / B:.3f} ms/problem")
+            variants = [(mode, jax.vmap(lambda o, s=settings: solve(o, s)), None)]
             if B >= 4 * chunk:
-                fc, compile_s, mem = _compile(
-                    lambda o, s=settings: solve_batch(o, s, chunk=chunk), b
+                variants.append(
+                    (
+                        f"{mode}/c{chunk}",
+                        lambda o, s=settings: solve_batch(o, s, chunk=chunk),
+                        f"solve_batch: lax.map of vmap chunks of {chunk}",
+                    )
                 )
-                _, med = _time(lambda fc=fc, b=b: fc(b), repeats)
-                sol = fc(b)
+            for label, fn, note in variants:
+                fb, compile_s, mem = _compile(fn, b)
+                _, med = _time(lambda fb=fb, b=b: fb(b), repeats)
+                sol = fb(b)
                 gaps = (np.asarray(sol.objective) - J_ref[:B]) / np.abs(J_ref[:B])
                 viol = float(np.max(jax.vmap(max_violation)(b, sol.u, sol.x)))
+                statuses = np.bincount(np.asarray(sol.status), minlength=4)
+                note = note or "status counts " + "/".join(str(int(c)) for c in statuses)
                 rows.append(
                     _row(
                         "rvdjax",
-                        f"{mode}/c{chunk}",
+                        label,
                         B,
                         N,
                         med / B,
@@ -199,10 +184,10 @@ def _rvdjax_rows(
                         np.asarray(sol.iterations),
                         compile_s,
                         mem,
-                        note=f"solve_batch: lax.map of vmap chunks of {chunk}",
+                        note=note,
                     )
                 )
-                progress(f"rvdjax {mode} chunked N={N} batch={B}: {1e3 * med / B:.3f} ms/problem")
+                progress(f"rvdjax {label} N={N} batch={B}: {1e3 * med / B:.3f} ms/problem")
     return rows
 
 
