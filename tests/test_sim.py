@@ -26,7 +26,7 @@ FLY = {
     mode: jax.jit(lambda p, x, c=config: run_closed_loop(p, x, c))
     for mode, config in CONFIGS.items()
 }
-PAPER_IMPULSE_KN_S = SC.published["total_impulse_kN_s"]["Fast MPC"]
+PAPER_IMPULSE_KN_S = SC.published["effort_l1_N_s"]["Fast MPC"] / 1e3
 
 
 @pytest.fixture(scope="module")
