@@ -385,7 +385,9 @@ def closed_loop_benchmark(names: Sequence[str] | None = None, repeats: int = 3, 
     from rvdjax.sim import run_closed_loop, run_reference_loop
 
     rows = []
-    for name in names or list(SCENARIOS):
+    # run_reference_loop drives the rendezvous loop (rvdjax.sim) only
+    rendezvous = [n for n, sc in SCENARIOS.items() if sc.kind == "rendezvous"]
+    for name in names or rendezvous:
         sc = SCENARIOS[name]
         params, x0 = sc.build()
         fly, compile_s, _ = _compile(lambda p, x, c=sc.config: run_closed_loop(p, x, c), params, x0)
