@@ -15,6 +15,12 @@ here at every MPC step:
 3. Docked when r_hold has reached r_t and the chaser is within ``dock_tol`` of the holding
    position at the port with the attitude error below c_alpha2.
 
+The same loop flies paper 000's 2-D SPOT cases (``DockingConfig(logic="holding-radius")``):
+the target also translates, two obstacles move on straight lines (circular keep-out zones),
+r_hold shrinks by gamma whenever the position error < eta (``c_pos``) and the attitude error
+< zeta (``c_att``) down to r_hold,min (paper 000 Sec. II.C.3), and the entry cone is active
+whenever the chaser is within r_cone of the docking point (paper 000 Sec. IV.B).
+
 The target's attitude and holding position are predicted over the horizon (paper 002: "the
 holding position is predictable with the given radius ... and the constant angular velocity").
 Paper 002 solves this with NMPC (IPOPT); rvdjax solves the linearised (LQ) problem with its
@@ -57,6 +63,13 @@ class DockingParams(NamedTuple):
         target_rate: () target angular rate [rad/s].
         r_t: () fixed keep-out radius about the target centre [m].
         r_hold0: () initial dynamic keep-out radius [m].
+        r_min: () smallest holding radius (docked) [m].
+        r_port: () distance of the docking point (entry-cone apex) from the target centre [m].
+        target_vel: (2,) target translational velocity [m/s].
+        cone_radius: () "holding-radius" logic: the entry cone is active within this distance
+            of the docking point [m].
+        obstacles: (n_obs, 4) obstacle x, y, vx, vy at t = 0; obstacle_radii: (n_obs,);
+            obstacle_mask: (n_obs,) 1.0 for an obstacle that exists.
         gap: () holding position distance outside the dynamic circle [m].
         gamma: () shrink factor of r_hold per qualifying step, in (0, 1).
         c_pos: () alpha_1 threshold [m]; c_att: () alpha_2 threshold [rad].
@@ -76,6 +89,13 @@ class DockingParams(NamedTuple):
     target_rate: jnp.ndarray
     r_t: jnp.ndarray
     r_hold0: jnp.ndarray
+    r_min: jnp.ndarray
+    r_port: jnp.ndarray
+    target_vel: jnp.ndarray
+    cone_radius: jnp.ndarray
+    obstacles: jnp.ndarray
+    obstacle_radii: jnp.ndarray
+    obstacle_mask: jnp.ndarray
     gap: jnp.ndarray
     gamma: jnp.ndarray
     c_pos: jnp.ndarray
@@ -89,9 +109,21 @@ class DockingParams(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class DockingConfig:
+    """Static configuration.
+
+    Attributes:
+        N: horizon; n_steps: MPC steps simulated; settings: solver settings.
+        logic: "two-phase" (paper 002 Fig. 4) or "holding-radius" (paper 000 Sec. II.C.3).
+    """
+
     N: int = 40
     n_steps: int = 150
     settings: SolverSettings = SolverSettings()
+    logic: str = "two-phase"
+
+    def __post_init__(self):
+        if self.logic not in ("two-phase", "holding-radius"):
+            raise ValueError(f"logic must be 'two-phase' or 'holding-radius', got {self.logic!r}")
 
 
 class DockingInfo(NamedTuple):
@@ -105,6 +137,7 @@ class DockingInfo(NamedTuple):
     iterations: jnp.ndarray
     active: jnp.ndarray
     koz_margin: jnp.ndarray  # |p - c| - r_t of the truth [m]
+    obstacle_margin: jnp.ndarray  # (n_obs,) |p - o_j| - r_j of the truth [m]
     cone_margin: jnp.ndarray  # smallest entry-cone row slack of the truth in phase 1 [m]
 
 
@@ -117,7 +150,7 @@ class DockingMetrics(NamedTuple):
     effort_l1_N_s: jnp.ndarray  # sum_k (|Fx| + |Fy|) Ts (paper 002 Eq. 11, forces only)
     delta_v_m_s: jnp.ndarray  # total impulse / mass
     torque_l1_N_m_s: jnp.ndarray
-    max_violation_m: jnp.ndarray  # fixed keep-out penetration of the truth
+    max_violation_m: jnp.ndarray  # keep-out penetration of the truth (target and obstacles)
     status_counts: jnp.ndarray
     mean_iterations: jnp.ndarray
 
@@ -136,6 +169,12 @@ def docking_params(
     r_hold0: float,
     gap: float,
     gamma: float,
+    r_min: float | None = None,
+    r_port: float | None = None,
+    target_vel=(0.0, 0.0),
+    cone_radius: float = float("inf"),
+    obstacles=None,
+    obstacle_radii=None,
     c_pos: float,
     c_att_deg: float,
     half_angle_deg: float,
@@ -172,8 +211,23 @@ def docking_params(
         raise ValueError(
             f"half_angle_deg (entry cone) must be in (0, 90) deg, got {half_angle_deg}"
         )
-    if r_hold0 <= r_t:
-        raise ValueError(f"r_hold0 ({r_hold0} m) must exceed the keep-out radius r_t ({r_t} m)")
+    r_min = r_t if r_min is None else r_min
+    r_port = r_t if r_port is None else r_port
+    if not r_t <= r_min < r_hold0:
+        raise ValueError(
+            f"radii must satisfy r_t <= r_min < r_hold0, got r_t={r_t}, r_min={r_min}, "
+            f"r_hold0={r_hold0} m"
+        )
+    if not 0 < r_port <= r_min:
+        raise ValueError(f"r_port must be in (0, r_min], got {r_port} m")
+    if obstacles is None:  # one inactive placeholder keeps the shapes fixed
+        obstacles, obstacle_radii, obstacle_mask = np.zeros((1, 4)), np.ones(1), np.zeros(1)
+    else:
+        obstacles = np.asarray(obstacles, dtype=float).reshape(-1, 4)
+        obstacle_radii = np.asarray(obstacle_radii, dtype=float).reshape(-1)
+        obstacle_mask = np.ones(len(obstacle_radii))
+        if np.any(obstacle_radii <= 0):
+            raise ValueError(f"obstacle_radii must be > 0 m, got {obstacle_radii}")
     if gap < 0:
         raise ValueError(f"gap must be >= 0 m, got {gap}")
     R = np.asarray(R, dtype=float)
@@ -191,6 +245,14 @@ def docking_params(
             raise ValueError(
                 f"x0 starts inside the target keep-out zone ({dist:.3g} m from its centre, "
                 f"radius {r_t} m)"
+            )
+        gaps = np.linalg.norm(x0[:2][None] - obstacles[:, :2], axis=1)
+        inside = (gaps <= obstacle_radii) & (obstacle_mask > 0)
+        if np.any(inside):
+            j = int(np.flatnonzero(inside)[0])
+            raise ValueError(
+                f"x0 starts inside obstacle keep-out zone {j + 1} ({gaps[j]:.3g} m from its "
+                f"centre, radius {obstacle_radii[j]} m)"
             )
     Ac, Bc = planar3dof_continuous(mass, inertia)
     A, B = discretize_zoh(Ac, Bc, ts)
@@ -217,6 +279,13 @@ def docking_params(
         ts=f(ts),
         dock_tol=f(dock_tol),
         mass=f(mass),
+        r_min=f(r_min),
+        r_port=f(r_port),
+        target_vel=f(np.asarray(target_vel, dtype=float)),
+        cone_radius=f(cone_radius),
+        obstacles=f(obstacles),
+        obstacle_radii=f(obstacle_radii),
+        obstacle_mask=f(obstacle_mask),
     )
 
 
@@ -224,16 +293,24 @@ def _wrap(a):
     return (a + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
 
 
+def _target_at(p: DockingParams, times):
+    """Target centre (..., 2) and port axis angle (...) at the given times."""
+    centre = p.target[:2] + times[..., None] * p.target_vel
+    return centre, p.target[2] + p.target_rate * times
+
+
 def _geometry(p: DockingParams, t, r_hold, N: int):
-    """Predicted port axis angles, docking points, holding states over the horizon."""
+    """Predicted port axis angles, target centres, docking points, holding points and their
+    velocities over the horizon (stage instants t + (j + 1) Ts)."""
     times = t + p.ts * jnp.arange(1, N + 1, dtype=p.A.dtype)
-    phi = p.target[2] + p.target_rate * times  # port axis angle
+    centre, phi = _target_at(p, times)
     e = jnp.stack([jnp.cos(phi), jnp.sin(phi)], axis=-1)
-    centre = jnp.broadcast_to(p.target[:2], (N, 2))
-    dock = centre + p.r_t * e
+    dock = centre + p.r_port * e
     hold = centre + (r_hold + p.gap) * e
-    # holding point velocity: omega x (hold - centre)
-    v_hold = p.target_rate * (r_hold + p.gap) * jnp.stack([-jnp.sin(phi), jnp.cos(phi)], -1)
+    # holding point velocity: target velocity + omega x (hold - centre)
+    v_hold = p.target_vel + p.target_rate * (r_hold + p.gap) * jnp.stack(
+        [-jnp.sin(phi), jnp.cos(phi)], -1
+    )
     return phi, centre, dock, hold, v_hold
 
 
@@ -247,17 +324,29 @@ def _reference(p, x, phi, hold, v_hold):
     )
 
 
-def _build_ocp(p: DockingParams, x, t, r_hold, phase, p_guess, N: int):
+def _build_ocp(p: DockingParams, x, t, r_hold, cone_on, p_guess, N: int):
+    """Rows: fixed keep-out r_t, dynamic circle r_hold, entry cone (2, masked by ``cone_on``),
+    one per obstacle (masked by ``obstacle_mask``)."""
     phi, centre, dock, hold, v_hold = _geometry(p, t, r_hold, N)
     x_ref = _reference(p, x, phi, hold, v_hold)
     F1, f1 = holding_radius_rows(p_guess, centre, p.r_t, 6, POS)
     F2, f2 = holding_radius_rows(p_guess, centre, r_hold, 6, POS)
     F3, f3 = entry_cone_rows(dock, phi, p.half_angle, 6, POS)
-    Fx = jnp.concatenate([F1, F2, F3], axis=1)
-    fx = jnp.concatenate([f1, f2, f3], axis=1)
-    cone_on = jnp.where(phase > 0, 1.0, 0.0)
-    x_mask = jnp.concatenate([jnp.ones((N, 2)), jnp.broadcast_to(cone_on, (N, 2))], axis=1).astype(
-        x.dtype
+    times = t + p.ts * jnp.arange(1, N + 1, dtype=p.A.dtype)
+    obs_c = p.obstacles[None, :, :2] + times[:, None, None] * p.obstacles[None, :, 2:]
+    Fo, fo = jax.vmap(
+        lambda c, r: holding_radius_rows(p_guess, c, r, 6, POS), in_axes=(1, 0), out_axes=1
+    )(obs_c, p.obstacle_radii)
+    n_obs = p.obstacle_radii.shape[0]
+    Fx = jnp.concatenate([F1, F2, F3, Fo.reshape(N, n_obs, 6)], axis=1)
+    fx = jnp.concatenate([f1, f2, f3, fo.reshape(N, n_obs)], axis=1)
+    x_mask = jnp.concatenate(
+        [
+            jnp.ones((N, 2), x.dtype),
+            jnp.broadcast_to(cone_on.astype(x.dtype), (N, 2)),
+            jnp.broadcast_to(p.obstacle_mask, (N, n_obs)),
+        ],
+        axis=1,
     )
     Fu, fu = thrust_box_rows(p.u_max, N)
     Q = jnp.broadcast_to(p.Q, (N, 6, 6)).at[-1].set(p.Q_f)
@@ -300,6 +389,7 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     N = config.N
     dtype = p.A.dtype
     x0 = jnp.asarray(x0, dtype)
+    two_phase = config.logic == "two-phase"
 
     def drift(x, _):
         x = p.A @ x
@@ -309,8 +399,16 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     init = Plan(jnp.zeros((N, 3), dtype), x_drift, jnp.zeros((N, 6), dtype))
     carry0 = _Carry(x0, jnp.zeros((), dtype), init, p.r_hold0, jnp.asarray(0), jnp.asarray(True))
 
+    def cone_active(c: _Carry):
+        if two_phase:  # paper 002: from the phase switch on
+            return c.phase > 0
+        centre, phi = _target_at(p, c.t)  # paper 000: within r_cone of the docking point
+        dock = centre + p.r_port * jnp.stack([jnp.cos(phi), jnp.sin(phi)])
+        return jnp.linalg.norm(c.x[:2] - dock) < p.cone_radius
+
     def step(c: _Carry, _):
-        ocp = _build_ocp(p, c.x, c.t, c.r_hold, c.phase, c.plan.x[:, :2], N)
+        cone_on = cone_active(c)
+        ocp = _build_ocp(p, c.x, c.t, c.r_hold, cone_on, c.plan.x[:, :2], N)
 
         def fly(ocp):
             return solve(ocp, config.settings, init=c.plan)
@@ -324,37 +422,37 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
         u = jnp.where(c.active, sol.u[0], 0.0)
         x_next = p.A @ c.x + p.B @ u
 
-        # Paper 002 Fig. 4 on the state reached: errors to the current holding state.
+        # Shrink rule on the state reached: errors to the current holding state.
         t_next = c.t + p.ts
-        phi_now = p.target[2] + p.target_rate * t_next
-        e_now = jnp.stack([jnp.cos(phi_now), jnp.sin(phi_now)])
-        hold_now = p.target[:2] + (c.r_hold + p.gap) * e_now
+        centre_n, phi_n = _target_at(p, t_next)
+        hold_now = centre_n + (c.r_hold + p.gap) * jnp.stack([jnp.cos(phi_n), jnp.sin(phi_n)])
         alpha1 = jnp.linalg.norm(x_next[:2] - hold_now)
-        alpha2 = jnp.abs(_wrap(phi_now + jnp.pi - x_next[2]))
+        alpha2 = jnp.abs(_wrap(phi_n + jnp.pi - x_next[2]))
         close = (alpha1 < p.c_pos) & (alpha2 < p.c_att)
         phase = jnp.where(close, 1, c.phase)
-        shrink = close & (c.phase > 0)
-        r_hold = jnp.where(shrink, jnp.maximum(p.gamma * c.r_hold, p.r_t), c.r_hold)
-        at_port = c.r_hold <= p.r_t + 1e-9
+        # paper 002: shrink only in the final phase; paper 000: whenever both errors are small
+        shrink = close & (c.phase > 0) if two_phase else close
+        r_hold = jnp.where(shrink, jnp.maximum(p.gamma * c.r_hold, p.r_min), c.r_hold)
+        at_port = c.r_hold <= p.r_min + 1e-9
         docked = at_port & (alpha1 < p.dock_tol) & (alpha2 < p.c_att)
 
-        dock_now = p.target[:2] + p.r_t * jnp.stack(
-            [jnp.cos(p.target[2] + p.target_rate * c.t), jnp.sin(p.target[2] + p.target_rate * c.t)]
-        )
-        Fc, fc = entry_cone_rows(
-            dock_now[None], (p.target[2] + p.target_rate * c.t)[None], p.half_angle, 6, POS
-        )
+        centre_c, phi_c = _target_at(p, c.t)
+        dock_now = centre_c + p.r_port * jnp.stack([jnp.cos(phi_c), jnp.sin(phi_c)])
+        Fc, fc = entry_cone_rows(dock_now[None], phi_c[None], p.half_angle, 6, POS)
         cone_slack = jnp.min(fc[0] - Fc[0] @ c.x)
+        obs_now = p.obstacles[:, :2] + c.t * p.obstacles[:, 2:]
+        obs_margin = jnp.linalg.norm(c.x[:2][None] - obs_now, axis=-1) - p.obstacle_radii
         info = DockingInfo(
             x=c.x,
             u=u,
             r_hold=c.r_hold,
-            phase=c.phase,
+            phase=jnp.where(two_phase, c.phase, cone_on.astype(c.phase.dtype)),
             status=jnp.where(c.active, sol.status, -1),
             iterations=jnp.where(c.active, sol.iterations, 0),
             active=c.active,
-            koz_margin=jnp.linalg.norm(c.x[:2] - p.target[:2]) - p.r_t,
-            cone_margin=jnp.where(c.phase > 0, cone_slack, jnp.inf),
+            koz_margin=jnp.linalg.norm(c.x[:2] - centre_c) - p.r_t,
+            obstacle_margin=jnp.where(p.obstacle_mask > 0, obs_margin, jnp.inf),
+            cone_margin=jnp.where(cone_on, cone_slack, jnp.inf),
         )
         nxt = _Carry(x_next, t_next, shift_solution(sol), r_hold, phase, c.active & ~docked)
         nxt = jax.tree.map(lambda a, b: jnp.where(c.active, a, b), nxt, c)
@@ -366,16 +464,16 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     counts = jnp.stack(
         [jnp.sum(infos.active & (infos.status == k)) for k in range(len(Status.names))]
     )
+    margin = jnp.minimum(infos.koz_margin, jnp.min(infos.obstacle_margin, axis=-1))
+    impulse = jnp.sum(jnp.linalg.norm(infos.u[:, :2], axis=-1)) * p.ts
     metrics = DockingMetrics(
         docked=docked,
         time_to_dock_s=jnp.where(docked, n_active * p.ts, jnp.inf),
-        total_impulse_N_s=jnp.sum(jnp.linalg.norm(infos.u[:, :2], axis=-1)) * p.ts,
+        total_impulse_N_s=impulse,
         effort_l1_N_s=jnp.sum(jnp.abs(infos.u[:, :2])) * p.ts,
-        delta_v_m_s=jnp.sum(jnp.linalg.norm(infos.u[:, :2], axis=-1)) * p.ts / p.mass,
+        delta_v_m_s=impulse / p.mass,
         torque_l1_N_m_s=jnp.sum(jnp.abs(infos.u[:, 2])) * p.ts,
-        max_violation_m=jnp.maximum(
-            0.0, -jnp.min(jnp.where(infos.active, infos.koz_margin, jnp.inf))
-        ),
+        max_violation_m=jnp.maximum(0.0, -jnp.min(jnp.where(infos.active, margin, jnp.inf))),
         status_counts=counts,
         mean_iterations=jnp.sum(infos.iterations) / jnp.maximum(n_active, 1),
     )

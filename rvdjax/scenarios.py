@@ -185,6 +185,88 @@ for _case, (_rate, _effort, _time) in _ROTATING_PUBLISHED.items():
         validate=_validate_docking,
     )
 
+# Paper 000 Sec. IV.B, Table 2: 2-D SPOT simulations (RED chaser, rotating/translating target,
+# two moving obstacles). The paper shows trajectories only; no figure of merit is tabulated.
+_SPOT = {
+    "a": dict(
+        x0=(3.0, 1.3, 180.0),
+        target=(1.1, 1.3, 270.0, 0.015, -0.008, 4.0),
+        obstacles=((1.0, 2.0, 0.0, -0.005), (1.0, 0.5, 0.01, 0.0)),
+    ),
+    "b": dict(
+        x0=(3.2, 2.2, 90.0),
+        target=(0.2, 0.2, 0.0, 0.02, 0.01, -2.5),
+        obstacles=((1.3, 1.0, 0.01, -0.01), (2.1, 1.0, 0.012, 0.01)),
+    ),
+}
+_SPOT_ASSUMPTIONS = (
+    "chaser = SPOT RED: 16.9478 kg, 0.2709 kg m^2 (the SPOT initialiser); torque limit "
+    "0.025 N m (two 0.15 N thrusters at 83 mm)",
+    "target docking port on the target body x-axis, 0.15 m from its centre (0.3 m platforms); "
+    "docked when r_hold reaches r_hold,min = 0.3 m (centre to centre) with the chaser within "
+    "0.05 m of the holding point and the attitude error < 10 deg",
+    "holding point on the holding circle (no gap), straight in front of the port; the chaser "
+    "must also stay 0.3 m from the target centre",
+    "obstacles move on straight lines at their Table 2 velocities; keep-out, holding and cone "
+    "rows are soft (rho = 1e5)",
+    "paper 000 tabulates no figure of merit for these cases (trajectory figures only)",
+)
+
+
+def _spot(case: str, obstacles: bool):
+    c = _SPOT[case]
+    x0 = np.array([*c["x0"][:2], np.deg2rad(c["x0"][2]), 0.0, 0.0, 0.0])
+    tg = c["target"]
+
+    def build():
+        params = docking_params(
+            mass=16.9478,
+            inertia=0.2709,
+            ts=2.0,
+            Q=np.diag([10.0, 10.0, 10.0, 300.0, 300.0, 500.0]),
+            R=np.diag([10.0, 10.0, 10.0]),
+            u_max=(0.15, 0.15, 0.025),
+            target=(tg[0], tg[1], np.deg2rad(tg[2])),
+            target_vel=(tg[3], tg[4]),
+            target_rate_deg_s=tg[5],
+            r_t=0.3,
+            r_min=0.3,
+            r_port=0.15,
+            r_hold0=1.15,
+            gap=0.0,
+            gamma=0.95,
+            c_pos=float(np.sqrt(0.5)),
+            c_att_deg=10.0,
+            half_angle_deg=20.0,
+            cone_radius=0.75,
+            obstacles=c["obstacles"],
+            obstacle_radii=(0.47, 0.47),
+            x0=x0,
+        )
+        if not obstacles:  # same shapes, obstacles switched off
+            params = params._replace(obstacle_mask=jnp.zeros(2))
+        return params, x0
+
+    return build
+
+
+for _case in ("a", "b"):
+    for _obs in (True, False):
+        _name = f"spot-2d-{_case}" + ("" if _obs else "-free")
+        SCENARIOS[_name] = Scenario(
+            name=_name,
+            source="paper 000 Sec. IV.B, Table 2" + ("" if _obs else " (obstacles absent)"),
+            description=f"SPOT 2-D docking, case {_case.upper()}: rotating and translating target"
+            + (", two moving obstacles" if _obs else ", no obstacles"),
+            build=_spot(_case, _obs),
+            config=DockingConfig(N=15, n_steps=150, logic="holding-radius"),
+            published={},
+            assumptions=_SPOT_ASSUMPTIONS,
+            fly=fly_docking,
+            kind="docking",
+            validate=_validate_docking,
+        )
+
 DEFAULT_SCENARIO = "fastmpc-3d"
 
 
