@@ -1,4 +1,5 @@
-"""Command line: ``rvdjax run`` (closed-loop scenario), ``list``, ``demo`` (one QP), ``bench``."""
+"""Command line: ``rvdjax run`` (closed-loop scenario), ``list``, ``compare``, ``demo`` (one QP),
+``bench``."""
 
 from __future__ import annotations
 
@@ -235,6 +236,27 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from rvdjax.compare import compare_solvers, format_comparison
+    from rvdjax.scenarios import get_scenario
+
+    sc = get_scenario(args.scenario)
+
+    def progress(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    rows = compare_solvers(args.scenario, progress=progress, nmpc=not args.no_nmpc)
+    if args.json:
+        print(json.dumps({"scenario": sc.name, "published": sc.published, "rows": rows}, indent=2))
+    else:
+        print(format_comparison(sc.name, rows, sc.published))
+        print(
+            "ms/step: rvdjax rows = wall time of the jitted closed loop per MPC step; "
+            "Clarabel / NMPC rows = solver calls only"
+        )
+    return 0
+
+
 def cmd_bench(args) -> int:
     from rvdjax.bench import BenchConfig, format_table, machine_info, run_benchmark
 
@@ -314,6 +336,12 @@ def main(argv=None) -> int:
     p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("compare", help="fly a scenario with every solver (paper 000 Sec. IV)")
+    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--no-nmpc", action="store_true", help="skip the CasADi/IPOPT NMPC row")
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("demo", help="solve one QP: the fastmpc-3d first MPC step")
     p.add_argument("--plot", metavar="FILE", help="write the planned trajectories to FILE (png)")

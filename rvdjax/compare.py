@@ -1,0 +1,124 @@
+"""The solver comparison of paper 000 Sec. IV: the same closed loop flown with each solver.
+
+For a named scenario: rvdjax Fast MPC (paper mode, Riccati step), the dense ISNM variant
+(paper mode, dense KKT solve), rvdjax accurate mode, Clarabel in the loop (driven from Python,
+rendezvous scenarios), and — when CasADi is installed (``pip install 'rvdjax[nmpc]'``) — a
+nonlinear MPC solved by IPOPT with the ellipsoidal keep-out constraints kept nonlinear (paper
+000 Eq. 6) for the rendezvous scenarios. Each row: the scenario's figures (total impulse /
+effort, time to dock, violation) and the mean solve time per MPC step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import numpy as np
+
+from rvdjax.scenarios import get_scenario
+from rvdjax.solver import SolverSettings
+
+__all__ = ["compare_solvers", "VARIANTS"]
+
+# label -> (settings, paper-000 name of the same algorithm)
+VARIANTS = {
+    "rvdjax Fast MPC (paper mode)": (SolverSettings.paper(), "Fast MPC"),
+    "rvdjax ISNM (paper mode, dense)": (SolverSettings.paper(method="dense"), "ISNM"),
+    "rvdjax accurate": (SolverSettings(), None),
+}
+
+
+def _row(label, m, ms_per_step, published, paper_name, note=""):
+    effort = float(m.effort_l1_N_s)
+    ref = published.get("effort_l1_N_s", {}).get(paper_name) if paper_name else None
+    return {
+        "solver": label,
+        "docked": bool(m.docked),
+        "effort_l1_N_s": effort,
+        "time_to_dock_s": float(m.time_to_dock_s) if bool(m.docked) else None,
+        "max_violation_m": float(m.max_violation_m),
+        "status_counts": [int(c) for c in np.asarray(m.status_counts)],
+        "ms_per_step": ms_per_step,
+        "paper_effort_l1_N_s": ref,
+        "rel_diff_to_paper": (effort - ref) / ref if ref else None,
+        "note": note,
+    }
+
+
+def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True) -> list[dict]:
+    """Fly scenario ``name`` with every solver; return one row per solver."""
+    sc = get_scenario(name)
+    params, x0 = sc.build()
+    sc.validate(params, x0, sc.config)
+    rows = []
+    for label, (settings, paper_name) in VARIANTS.items():
+        config = dataclasses.replace(sc.config, settings=settings)
+        fly = jax.jit(lambda p, x, c=config: sc.fly(p, x, c)).lower(params, x0).compile()
+        jax.block_until_ready(fly(params, x0))
+        t0 = time.perf_counter()
+        infos, m = jax.block_until_ready(fly(params, x0))
+        steps = max(int(np.sum(np.asarray(infos.active))), 1)
+        ms = 1e3 * (time.perf_counter() - t0) / steps
+        rows.append(
+            _row(
+                label, m, ms, sc.published, paper_name, note="jitted closed loop, wall time / step"
+            )
+        )
+        progress(f"{label}: effort {float(m.effort_l1_N_s):.6g} N s, {ms:.3f} ms/step")
+
+    if sc.kind == "rendezvous":
+        from rvdjax.sim import run_reference_loop
+
+        infos, m, solve_s = run_reference_loop(params, x0, sc.config)
+        steps = max(int(np.sum(infos.active)), 1)
+        rows.append(
+            _row(
+                "Clarabel in the loop",
+                m,
+                1e3 * solve_s / steps,
+                sc.published,
+                None,
+                note="solver calls only, Python loop",
+            )
+        )
+        progress(f"Clarabel: effort {float(m.effort_l1_N_s):.6g} N s")
+        if nmpc:
+            try:
+                from rvdjax.nmpc import run_nmpc_loop
+            except ImportError as err:
+                progress(f"note: NMPC skipped ({err}); pip install 'rvdjax[nmpc]'")
+            else:
+                infos, m, solve_s = run_nmpc_loop(params, x0, sc.config)
+                steps = max(int(np.sum(infos.active)), 1)
+                rows.append(
+                    _row(
+                        "NMPC (CasADi + IPOPT)",
+                        m,
+                        1e3 * solve_s / steps,
+                        sc.published,
+                        "IPOPT NMPC",
+                        note="nonlinear keep-out constraints, solver calls only",
+                    )
+                )
+                progress(f"NMPC: effort {float(m.effort_l1_N_s):.6g} N s")
+    return rows
+
+
+def format_comparison(name: str, rows: list[dict], published: dict) -> str:
+    lines = [f"{name}: the same closed loop with each solver"]
+    lines.append(
+        f"{'solver':<34}{'docked':>7}{'effort N s':>12}{'t dock s':>10}"
+        f"{'viol m':>9}{'ms/step':>9}{'paper':>10}{'diff':>8}"
+    )
+    for r in rows:
+        ref = r["paper_effort_l1_N_s"]
+        lines.append(
+            f"{r['solver']:<34}{str(r['docked']):>7}{r['effort_l1_N_s']:>12.5g}"
+            f"{(r['time_to_dock_s'] or float('nan')):>10.1f}{r['max_violation_m']:>9.1e}"
+            f"{r['ms_per_step']:>9.3f}{(ref if ref else float('nan')):>10.5g}"
+            + (f"{100 * r['rel_diff_to_paper']:>+7.1f}%" if ref else f"{'':>8}")
+        )
+    for key, refs in published.items():
+        lines.append(f"paper's {key}: " + ", ".join(f"{k} {v:g}" for k, v in refs.items()))
+    return "\n".join(lines)

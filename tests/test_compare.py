@@ -1,0 +1,52 @@
+"""The solver comparison of paper 000 Sec. IV on fastmpc-3d (rvdjax.compare)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rvdjax.compare import compare_solvers
+from rvdjax.scenarios import get_scenario
+
+
+@pytest.fixture(scope="module")
+def rows():
+    pytest.importorskip("casadi")
+    return {r["solver"]: r for r in compare_solvers("fastmpc-3d", progress=lambda m: None)}
+
+
+def test_every_solver_docks_without_violation(rows):
+    assert len(rows) == 5
+    for r in rows.values():
+        assert r["docked"], r["solver"]
+        assert r["max_violation_m"] <= 1e-5, r["solver"]
+
+
+def test_against_paper_000(rows):
+    """Paper 000: IPOPT NMPC 32.93, ISNM 33.80, Fast MPC 33.98 kN s. Measured: 33.03 (+0.3 %),
+    35.54 (+5.1 %), 35.53 (+4.6 %); accurate LQ-MPC and Clarabel 33.46."""
+    for label in (
+        "rvdjax Fast MPC (paper mode)",
+        "rvdjax ISNM (paper mode, dense)",
+        "NMPC (CasADi + IPOPT)",
+    ):
+        assert abs(rows[label]["rel_diff_to_paper"]) < 0.15, label
+    # the nonlinear keep-out constraint is less conservative than its linearisation: NMPC is
+    # the cheapest, as in the paper
+    nmpc = rows["NMPC (CasADi + IPOPT)"]["effort_l1_N_s"]
+    assert all(nmpc <= r["effort_l1_N_s"] + 1e-6 for r in rows.values())
+
+
+def test_same_problem_same_answer(rows):
+    """Accurate mode and Clarabel solve identical QPs to 1e-9: the same closed loop.
+
+    Fast MPC and ISNM run the same paper-mode iterations with different linear algebra; with
+    only 10 iterations per step (many steps end at max_iter) rounding differences grow through
+    the closed loop: measured 35.53 vs 35.54 kN s on 2 threads and 35.53 vs 34.64 kN s on one
+    core (2.5 %). Paper 000's own ISNM and Fast MPC differ by 0.5 %. Asserted: within 5 %."""
+    a = rows["rvdjax accurate"]["effort_l1_N_s"]
+    c = rows["Clarabel in the loop"]["effort_l1_N_s"]
+    assert abs(a - c) <= 1e-6 * c
+    f = rows["rvdjax Fast MPC (paper mode)"]["effort_l1_N_s"]
+    i = rows["rvdjax ISNM (paper mode, dense)"]["effort_l1_N_s"]
+    assert abs(f - i) <= 0.05 * f
+    assert get_scenario("fastmpc-3d").published["effort_l1_N_s"]["Fast MPC"] == 33.98e3
