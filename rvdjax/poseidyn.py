@@ -115,6 +115,7 @@ class PoseidynConfig:
     N: int = 20
     n_steps: int = 60
     substeps: int = 50
+    predict_cone: bool = True
     settings: SolverSettings = SolverSettings(max_iter=100)
 
     def __post_init__(self):
@@ -298,6 +299,7 @@ def _plane_angle(p: PoseidynParams, times):
 
 
 def _build_ocp(p: PoseidynParams, x, t, cone_on, N: int):
+    """``cone_on`` (N,) bool: stages whose entry-cone rows are enforced."""
     times = t + p.ts * jnp.arange(1, N + 1, dtype=x.dtype)
     phi = _plane_angle(p, times)
     F1, f1 = rotating_hyperplane_rows(
@@ -310,7 +312,8 @@ def _build_ocp(p: PoseidynParams, x, t, cone_on, N: int):
     Fx = jnp.concatenate([F1, F2], axis=1)
     fx = jnp.concatenate([f1, f2], axis=1)
     x_mask = jnp.concatenate(
-        [jnp.ones((N, 1), x.dtype), jnp.broadcast_to(cone_on.astype(x.dtype), (N, 2))], axis=1
+        [jnp.ones((N, 1), x.dtype), jnp.broadcast_to(cone_on.astype(x.dtype)[:, None], (N, 2))],
+        axis=1,
     )
     Fu, fu = thrust_box_rows(p.u_max, N)
     x_ref = jnp.broadcast_to(jnp.concatenate([p.dock, jnp.zeros(2, x.dtype)]), (N, NX))
@@ -356,6 +359,7 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
         (PoseidynInfo with a leading axis of n_steps, PoseidynMetrics).
     """
     N, M = config.N, config.substeps
+    predict = config.predict_cone
     dtype = p.A.dtype
     x0 = jnp.asarray(x0, dtype)
 
@@ -371,7 +375,10 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
 
     def step(c: _Carry, _):
         cone_on = c.cone_on | (jnp.linalg.norm(c.x[:2] - p.dock) <= p.cone_range)
-        ocp = _build_ocp(p, c.x, c.t, cone_on, N)
+        # predicted activation: stages whose previous-plan position lies in the cone range
+        ahead = jnp.linalg.norm(c.plan.x[:, :2] - p.dock, axis=-1) <= p.cone_range
+        stage_on = cone_on | (ahead & predict)
+        ocp = _build_ocp(p, c.x, c.t, stage_on, N)
 
         def fly(ocp):
             return solve(ocp, config.settings, init=c.plan)
