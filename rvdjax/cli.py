@@ -229,9 +229,12 @@ def cmd_run(args) -> int:
         for a in sc.assumptions:
             print(f"    - {a}")
     if args.plot:
-        from rvdjax.plots import plot_docking, plot_run
+        from rvdjax import plots
 
-        (plot_docking if sc.kind == "docking" else plot_run)(args.plot, sc, params, infos)
+        draw = {"docking": plots.plot_docking, "poseidyn": plots.plot_poseidyn}.get(
+            sc.kind, plots.plot_run
+        )
+        draw(args.plot, sc, params, infos)
         print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
     return 0
 

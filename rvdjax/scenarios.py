@@ -267,6 +267,10 @@ for _case in ("a", "b"):
             validate=_validate_docking,
         )
 
+from rvdjax.poseidyn import register as _register_poseidyn  # noqa: E402
+
+_register_poseidyn(SCENARIOS)  # paper 001: poseidyn-lqmpc, poseidyn-lqmpc-retuned
+
 DEFAULT_SCENARIO = "fastmpc-3d"
 
 
