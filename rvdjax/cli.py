@@ -206,9 +206,9 @@ def cmd_run(args) -> int:
         )
         rows = [
             ("docked", result["docked"], ""),
-            ("time to holding distance", result["time_to_dock_s"], "s"),
-            ("total impulse, L1 (sum |u_i| Ts)", result["effort_l1_N_s"], "N s"),
-            ("total impulse, L2 (sum ||u|| Ts)", result["total_impulse_N_s"], "N s"),
+            ("time to dock (holding distance)", result["time_to_dock_s"], "s"),
+            ("total impulse, L1 (per-axis sum)", result["effort_l1_N_s"], "N s"),
+            ("total impulse, L2 (vector norm)", result["total_impulse_N_s"], "N s"),
             ("delta-v (L2)", result["delta_v_m_s"], "m/s"),
             ("largest keep-out penetration", result["max_violation_m"], "m"),
             ("solver statuses", result["solver_status_counts"], ""),
@@ -231,9 +231,11 @@ def cmd_run(args) -> int:
     if args.plot:
         from rvdjax import plots
 
-        draw = {"docking": plots.plot_docking, "poseidyn": plots.plot_poseidyn}.get(
-            sc.kind, plots.plot_run
-        )
+        draw = {
+            "docking": plots.plot_docking,
+            "poseidyn": plots.plot_poseidyn,
+            "phases": plots.plot_phases,
+        }.get(sc.kind, plots.plot_run)
         draw(args.plot, sc, params, infos)
         print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
     return 0

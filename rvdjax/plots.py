@@ -293,3 +293,49 @@ def plot_poseidyn(path, scenario, params, infos, title: str | None = None):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_phases(path, scenario, params, infos, title: str | None = None):
+    """Draw a three-phase thesis run (paper 003): radial / along-track path coloured by phase
+    (log-scaled range inset: distance to the port), delta-v per step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    active = np.asarray(infos.active)
+    n = min(int(active.sum()) + 1, len(active))
+    x = np.asarray(infos.x)[:n]
+    u = np.asarray(infos.u)[:n]
+    t = np.asarray(infos.t)[:n]
+    phase = np.asarray(infos.phase)[:n]
+    colors = ["tab:red", "tab:orange", "tab:green"]
+    names = ["rendezvous", "approach", "docking"]
+    fig = plt.figure(figsize=(13, 6))
+    ax = fig.add_subplot(1, 2, 1)
+    for k in range(3):
+        sel = phase == k
+        if sel.any():
+            ax.plot(x[sel, 1], x[sel, 0], ".-", ms=3, color=colors[k], label=names[k])
+    ax.plot([0], [0], "ks", label="target")
+    ax.set_xlabel("along-track y [m]")
+    ax.set_ylabel("radial x [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title or f"{scenario.name}: closed loop")
+    ax_d = fig.add_subplot(2, 2, 2)
+    ax_d.semilogy(t, np.maximum(np.asarray(infos.port_distance)[:n], 1e-3), color="k")
+    ax_d.set_ylabel("distance to port [m]")
+    ax_d.grid(alpha=0.3, which="both")
+    ax_u = fig.add_subplot(2, 2, 4)
+    dv = np.linalg.norm(u, axis=1)
+    for k in range(3):
+        sel = phase == k
+        ax_u.bar(t[sel], dv[sel], width=np.asarray(infos.ts)[:n][sel] * 0.8, color=colors[k])
+    ax_u.set_xlabel("time [s]")
+    ax_u.set_ylabel("|delta-v| per step [m/s]")
+    ax_u.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

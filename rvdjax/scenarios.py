@@ -271,6 +271,10 @@ from rvdjax.poseidyn import register as _register_poseidyn  # noqa: E402
 
 _register_poseidyn(SCENARIOS)  # paper 001: poseidyn-lqmpc, poseidyn-lqmpc-retuned
 
+from rvdjax.phases import register as _register_phases  # noqa: E402
+
+_register_phases(SCENARIOS)  # paper 003: thesis-vbar, thesis-rbar, thesis-rotating
+
 DEFAULT_SCENARIO = "fastmpc-3d"
 
 
