@@ -1,8 +1,9 @@
 """The solver comparison of paper 000 Sec. IV: the same closed loop flown with each solver.
 
 For a named scenario: rvdjax Fast MPC (paper mode, Riccati step), the dense ISNM variant
-(paper mode, dense KKT solve), rvdjax accurate mode, Clarabel in the loop (driven from Python,
-rendezvous scenarios), and — when CasADi is installed (``pip install 'rvdjax[nmpc]'``) — a
+(paper mode, dense KKT solve), rvdjax accurate mode, Clarabel in the same jitted loop
+(``SolverSettings(backend="clarabel")``: a host callback per step, any scenario), and — when
+CasADi is installed (``pip install 'rvdjax[nmpc]'``) — a
 nonlinear MPC solved by IPOPT with the ellipsoidal keep-out constraints kept nonlinear (paper
 000 Eq. 6) for the rendezvous scenarios. Each row: the scenario's figures (total impulse /
 effort, time to dock, violation) and the mean solve time per MPC step.

@@ -99,6 +99,9 @@ class SolverSettings:
         kappa0_rel: accurate/barrier modes: first kappa = kappa0_rel * (1 + |J(start)|) / m.
         kappa_factor: barrier mode: kappa is divided by this when the iterate is centred.
         centring: barrier mode: centred when decrement^2 / 2 <= centring * m * kappa.
+        backend: "rvdjax" (this solver) or "clarabel": the same OCP solved by Clarabel on the
+            host through ``jax.pure_callback`` — the reference "Clarabel in the loop" for any
+            jitted closed loop (not differentiable; batches are solved one by one).
         violation_tol: a soft state row counts as violated above this distance (row-normalised
             units of the state, e.g. metres).
     """
@@ -115,10 +118,13 @@ class SolverSettings:
     kappa_factor: float = 10.0
     centring: float = 1.0
     violation_tol: float = 1e-6
+    backend: str = "rvdjax"
 
     def __post_init__(self):
         if self.mode not in ("paper", "accurate", "barrier"):
             raise ValueError(f"mode must be 'paper', 'accurate' or 'barrier', got {self.mode!r}")
+        if self.backend not in ("rvdjax", "clarabel"):
+            raise ValueError(f"backend must be 'rvdjax' or 'clarabel', got {self.backend!r}")
         if self.method not in KKT_SOLVERS:
             raise ValueError(f"method must be one of {sorted(KKT_SOLVERS)}, got {self.method!r}")
         if not self.kappa > 0:
@@ -931,8 +937,54 @@ def _solve_core_bwd(settings, res, sol_bar):
 _solve_core.defvjp(_solve_core_fwd, _solve_core_bwd)
 
 
+def _clarabel_host(*leaves):
+    """Host side of the Clarabel backend: one OCP as NumPy arrays -> solution arrays."""
+    import numpy as np
+
+    from rvdjax.peers import solve_clarabel
+    from rvdjax.qp import split_solution, to_qp
+
+    ocp = OCP(*(np.asarray(a, dtype=np.float64) for a in leaves))
+    N, nx, nu = ocp.B.shape
+    dtype = np.asarray(leaves[0]).dtype
+    try:
+        res = solve_clarabel(to_qp(ocp, soft=True))
+        u, x = split_solution(res.z, N, nx, nu)
+        ok = np.all(np.isfinite(u)) and np.all(np.isfinite(x))
+        status = Status.CONVERGED if res.status == "Solved" else Status.MAX_ITER
+        if "Infeasible" in res.status:
+            status = Status.INFEASIBLE
+        its = res.iterations
+    except Exception:  # a failed host solve reports a status, never raises into the loop
+        ok, status, its = False, Status.NONFINITE, 0
+    if not ok:
+        u, x, status = np.zeros((N, nu)), np.zeros((N, nx)), Status.NONFINITE
+    return (
+        u.astype(dtype),
+        x.astype(dtype),
+        np.int32(status),
+        np.int32(its),
+    )
+
+
+def _solve_clarabel(ocp: OCP) -> Solution:
+    dtype = ocp.B.dtype
+    shapes = (
+        jax.ShapeDtypeStruct((ocp.N, ocp.nu), dtype),
+        jax.ShapeDtypeStruct((ocp.N, ocp.nx), dtype),
+        jax.ShapeDtypeStruct((), jnp.int32),
+        jax.ShapeDtypeStruct((), jnp.int32),
+    )
+    u, x, status, its = jax.pure_callback(_clarabel_host, shapes, *ocp, vmap_method="sequential")
+    zero = jnp.zeros((), dtype)
+    return Solution(u, x, jnp.zeros((ocp.N, ocp.nx), dtype), zero, zero, its, zero, status)
+
+
 def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None) -> Solution:
-    sol = _solve_core(ocp, settings, init)
+    if settings.backend == "clarabel":
+        sol = _solve_clarabel(ocp)
+    else:
+        sol = _solve_core(ocp, settings, init)
     J = objective(ocp, sol.u, sol.x)
     # A failed solve (non-finite data or step) reports +inf, never NaN.
     failed = (sol.status == Status.NONFINITE) | ~jnp.isfinite(J)
