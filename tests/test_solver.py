@@ -479,6 +479,7 @@ def test_make_ocp_rejects_bad_inputs(change, word):
         (dict(max_iter=0), "max_iter"),
         (dict(tol=-1.0), "tol"),
         (dict(kappa_factor=1.0), "kappa_factor"),
+        (dict(backend="osqp"), "backend"),
     ],
 )
 def test_settings_reject_bad_values(kw, word):
