@@ -38,7 +38,7 @@ from jax import lax
 
 from rvdjax.constraints import entry_cone_rows, holding_radius_rows, thrust_box_rows
 from rvdjax.ocp import OCP
-from rvdjax.solver import Plan, SolverSettings, Status, shift_solution, solve
+from rvdjax.solver import Plan, SolverSettings, Status, drift_plan, shift_solution, solve_if
 
 __all__ = [
     "DockingParams",
@@ -391,12 +391,7 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     x0 = jnp.asarray(x0, dtype)
     two_phase = config.logic == "two-phase"
 
-    def drift(x, _):
-        x = p.A @ x
-        return x, x
-
-    _, x_drift = lax.scan(drift, x0, None, length=N)
-    init = Plan(jnp.zeros((N, 3), dtype), x_drift, jnp.zeros((N, 6), dtype))
+    init = drift_plan(p.A, x0, N, 3)
     carry0 = _Carry(x0, jnp.zeros((), dtype), init, p.r_hold0, jnp.asarray(0), jnp.asarray(True))
 
     def cone_active(c: _Carry):
@@ -410,15 +405,7 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
         cone_on = cone_active(c)
         ocp = _build_ocp(p, c.x, c.t, c.r_hold, cone_on, c.plan.x[:, :2], N)
 
-        def fly(ocp):
-            return solve(ocp, config.settings, init=c.plan)
-
-        def idle(ocp):
-            shapes = jax.eval_shape(fly, ocp)
-            sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-            return sol._replace(u=c.plan.u, x=c.plan.x, nu=c.plan.nu)
-
-        sol = lax.cond(c.active, fly, idle, ocp)
+        sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
         x_next = p.A @ c.x + p.B @ u
 

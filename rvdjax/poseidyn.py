@@ -50,7 +50,7 @@ from jax import lax
 
 from rvdjax.constraints import entry_cone_rows, rotating_hyperplane_rows, thrust_box_rows
 from rvdjax.ocp import OCP
-from rvdjax.solver import Plan, SolverSettings, Status, shift_solution, solve
+from rvdjax.solver import Plan, SolverSettings, Status, drift_plan, shift_solution, solve_if
 
 __all__ = [
     "PoseidynParams",
@@ -377,12 +377,7 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
     dtype = p.A.dtype
     x0 = jnp.asarray(x0, dtype)
 
-    def drift(x, _):
-        x = p.A @ x
-        return x, x
-
-    _, x_drift = lax.scan(drift, x0, None, length=N)
-    init = Plan(jnp.zeros((N, NU), dtype), x_drift, jnp.zeros((N, NX), dtype))
+    init = drift_plan(p.A, x0, N, NU)
     near0 = jnp.linalg.norm(x0[:2] - p.dock) <= p.cone_range
     carry0 = _Carry(x0, jnp.zeros((), dtype), init, near0, jnp.asarray(True))
     tau = p.ts * jnp.arange(1, M + 1, dtype=dtype) / M  # sub-sample instants in a step
@@ -394,15 +389,7 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
         stage_on = cone_on | (ahead & predict)
         ocp = _build_ocp(p, c.x, c.t, stage_on, N)
 
-        def fly(ocp):
-            return solve(ocp, config.settings, init=c.plan)
-
-        def idle(ocp):
-            shapes = jax.eval_shape(fly, ocp)
-            sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-            return sol._replace(u=c.plan.u, x=c.plan.x, nu=c.plan.nu)
-
-        sol = lax.cond(c.active, fly, idle, ocp)
+        sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
         x_next = p.A @ c.x + p.B @ u
 

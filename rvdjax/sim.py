@@ -23,7 +23,7 @@ from jax import lax
 from rvdjax.ocp import OCP
 from rvdjax.problems import obstacle_rows
 from rvdjax.propagate import Orbit, propagate_step
-from rvdjax.solver import Plan, SolverSettings, Status, shift_solution, solve
+from rvdjax.solver import Plan, SolverSettings, Status, drift_plan, shift_solution, solve_if
 
 __all__ = [
     "validate_loop",
@@ -227,12 +227,7 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
 
     # First expansion points: the unforced drift of x0 (a straight line to the target can
     # cross an obstacle and leave no feasible plan).
-    def drift(x, _):
-        x = p.A @ x
-        return x, x
-
-    _, x_drift = lax.scan(drift, x0, None, length=N)
-    init = Plan(jnp.zeros((N, nu), dtype), x_drift, jnp.zeros((N, nx), dtype))
+    init = drift_plan(p.A, x0, N, nu)
     if config.truth != "linear" and p.orbit is None:
         raise ValueError(f"truth={config.truth!r} needs LoopParams.orbit (the target's orbit)")
     orbit0 = p.orbit if config.truth != "linear" else None
@@ -242,15 +237,7 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
     def step(c: _Carry, _):
         ocp = build_ocp(p, c.x, c.t, c.plan.x[:, :d], N)
 
-        def fly(ocp):
-            return solve(ocp, config.settings, init=c.plan)
-
-        def idle(ocp):  # a finished run needs no solve (a vmapped batch runs both branches)
-            shapes = jax.eval_shape(fly, ocp)
-            sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-            return sol._replace(u=c.plan.u, x=c.plan.x, nu=c.plan.nu)
-
-        sol = lax.cond(c.active, fly, idle, ocp)
+        sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
         if config.truth == "linear":
             x_next, orbit_next = p.A @ c.x + p.B @ u, None

@@ -61,6 +61,8 @@ __all__ = [
     "Status",
     "solve",
     "solve_batch",
+    "solve_if",
+    "drift_plan",
     "shift_solution",
     "objective",
     "max_violation",
@@ -1017,6 +1019,36 @@ def solve(ocp: OCP, settings: SolverSettings = SolverSettings(), init: Plan | No
 
 
 _solve_jit = jax.jit(_solve, static_argnums=(1,))
+
+
+def solve_if(active, ocp: OCP, settings: SolverSettings = SolverSettings(), init=None):
+    """``solve`` when ``active`` (a traced bool), else the warm start returned untouched.
+
+    For closed loops whose finished runs idle under a mask: a single run skips the solve
+    (``lax.cond``); a vmapped batch evaluates both branches and selects. The idle branch
+    returns ``init``'s plan (or zeros) with status 0 and zero iterations.
+    """
+
+    def fly(ocp):
+        return solve(ocp, settings, init=init)
+
+    def idle(ocp):
+        shapes = jax.eval_shape(fly, ocp)
+        sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        return sol if init is None else sol._replace(u=init.u, x=init.x, nu=init.nu)
+
+    return lax.cond(active, fly, idle, ocp)
+
+
+def drift_plan(A, x0, N: int, nu: int) -> Plan:
+    """Cold-start plan: zero inputs and the unforced drift x_{t+1} = A x_t from x0."""
+
+    def step(x, _):
+        x = A @ x
+        return x, x
+
+    _, x = lax.scan(step, x0, None, length=N)
+    return Plan(jnp.zeros((N, nu), x0.dtype), x, jnp.zeros((N, x0.shape[-1]), x0.dtype))
 
 
 def solve_batch(
