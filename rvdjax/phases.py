@@ -18,6 +18,12 @@ r1 (1 + switch_tol) of the target; 1 -> 2 when within r2 (1 + switch_tol); docke
 r3 of the docking port. A rotating target (Sec. 3.4, Eq. 3.15) turns the port, the cone axes
 and the set points about the LVLH z-axis at ``target_rate``.
 
+Rendezvous cost variants of Sec. 3.6.4 (Table 3.6): ``PhaseParams.setpoint = 0`` makes the
+rendezvous reference the target's centre of mass ("QP without set point"); ``PhaseConfig.
+rendezvous_cost = "lp"`` replaces the rendezvous QP by the 1-norm cost of Eq. 2.10 (an LP),
+modelled exactly with soft-row pairs (state terms) and a split input (delta-v term), see
+:func:`_build_ocp` and ``LP_EPS`` / ``LP_REG``.
+
 One array shape for all phases (DESIGN §4 "Phases"): every phase is padded to the largest
 horizon with identity dynamics (A = I, B = 0) and zero state cost; the phase's terminal weight
 sits on the last padded stage (the padded stages hold x_N, so this equals the cost on the
@@ -81,6 +87,8 @@ class PhaseParams(NamedTuple):
         target_rate: () body rate about z [rad/s].
         rho: () exact penalty of the thesis' hard constraints.
         switch_tol: () relative tolerance on r1 and r2 for the phase switches.
+        setpoint: () rendezvous reference: 1.0 the set point at r1 on the approach-cone axis
+            (Eq. 3.2), 0.0 the target's centre of mass (Table 3.6 "QP without set point").
     """
 
     A: jnp.ndarray
@@ -104,6 +112,7 @@ class PhaseParams(NamedTuple):
     target_rate: jnp.ndarray
     rho: jnp.ndarray
     switch_tol: jnp.ndarray
+    setpoint: jnp.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,12 +124,16 @@ class PhaseConfig:
         n_steps: MPC steps simulated (scan length); finished runs idle.
         settings: solver settings.
         n_faces: faces of the polyhedral cones (paper 003: 4).
+        rendezvous_cost: "qp" (Eq. 3.2, the thesis' default) or "lp": the rendezvous phase
+            minimises the 1-norm cost of Eq. 2.10 (Sec. 3.6.4, Table 3.6), see
+            :func:`_build_ocp`. "lp" splits the input of every phase (one shape for all).
     """
 
     N: tuple[int, int, int] = (30, 15, 12)
     n_steps: int = 300
     settings: SolverSettings = SolverSettings()
     n_faces: int = 4
+    rendezvous_cost: str = "qp"
 
     def __post_init__(self):
         if len(self.N) != N_PHASES or any(not isinstance(k, int) or k < 1 for k in self.N):
@@ -129,6 +142,8 @@ class PhaseConfig:
             raise ValueError(f"n_steps must be an int >= 1, got {self.n_steps!r}")
         if not isinstance(self.n_faces, int) or self.n_faces < 3:
             raise ValueError(f"n_faces must be an int >= 3, got {self.n_faces!r}")
+        if self.rendezvous_cost not in ("qp", "lp"):
+            raise ValueError(f"rendezvous_cost must be 'qp' or 'lp', got {self.rendezvous_cost!r}")
 
 
 class PhaseInfo(NamedTuple):
@@ -205,12 +220,14 @@ def phase_params(
     target_rate_deg_s: float = 0.0,
     rho: float = 1e6,
     switch_tol: float = 0.05,
+    setpoint: bool = True,
     x0=None,
 ) -> PhaseParams:
     """Build and check :class:`PhaseParams` from physical values (before any jit).
 
     ``ts``, ``u_max``, ``lam``, ``los_deg`` take three values (one per phase), ``Q`` and ``R``
-    three matrices. The approach axis is the port direction in the body frame.
+    three matrices. The approach axis is the port direction in the body frame. ``setpoint``
+    False makes the rendezvous reference the target's centre of mass (Table 3.6).
 
     Raises ValueError naming the parameter: mass, altitude, every ts, u_max, lam, r1, r2, r3,
     v_max, rho > 0; 0 < los < 90 deg; r3 < r2 < r1; R positive definite and Q positive
@@ -310,12 +327,14 @@ def phase_params(
         target_rate=f(np.deg2rad(target_rate_deg_s)),
         rho=f(rho),
         switch_tol=f(switch_tol),
+        setpoint=f(1.0 if setpoint else 0.0),
     )
 
 
 def validate_phases(p: PhaseParams, x0, config: PhaseConfig | None = None) -> None:
     """Check a concrete set-up (ValueError naming the field): finite fields, ts, mass, radii,
-    u_max > 0, r3 < r2 < r1, x0 finite and outside the keep-out sphere."""
+    u_max > 0, r3 < r2 < r1, x0 finite and outside the keep-out sphere; with the LP
+    rendezvous cost a diagonal rendezvous R (the L1 input weight)."""
     for name, a in list(zip(PhaseParams._fields, p, strict=True)) + [("x0", x0)]:
         if not np.all(np.isfinite(np.asarray(a, dtype=float))):
             raise ValueError(f"{name} contains NaN or inf; it must be finite")
@@ -326,6 +345,13 @@ def validate_phases(p: PhaseParams, x0, config: PhaseConfig | None = None) -> No
         raise ValueError("radii must satisfy r3 < r2 < r1")
     if np.linalg.norm(np.asarray(x0, dtype=float)[:3]) <= float(p.r1):
         raise ValueError("x0 starts inside the keep-out sphere r1")
+    if config is not None and config.rendezvous_cost == "lp":
+        R0 = np.asarray(p.R[0], dtype=float)
+        if not np.array_equal(R0, np.diag(np.diag(R0))) or np.any(np.diag(R0) <= 0):
+            raise ValueError(
+                "R[0] must be diagonal with a positive diagonal for the LP rendezvous cost "
+                "(||R u||_1 is modelled as sum_i R_ii |u_i|)"
+            )
 
 
 # --------------------------------------------------------------------------- geometry
@@ -393,9 +419,10 @@ def _build_ocp(p: PhaseParams, config: PhaseConfig, x, t, phase):
     apex0 = jnp.zeros((N, 3), dtype)
 
     # references (per stage, turning with the target): phase 0 set point at r1 on the cone
-    # axis, phase 1 at r2, phase 2 the port state; velocities those of the turning points
+    # axis (or the origin when p.setpoint = 0), phase 1 at r2, phase 2 the port state;
+    # velocities those of the turning points
     omega = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], dtype) * p.target_rate, (N, 3))
-    ref0 = jnp.concatenate([p.r1 * axis, jnp.cross(omega, p.r1 * axis)], -1)
+    ref0 = p.setpoint * jnp.concatenate([p.r1 * axis, jnp.cross(omega, p.r1 * axis)], -1)
     ref1 = jnp.concatenate([p.r2 * axis, jnp.cross(omega, p.r2 * axis)], -1)
     ref2 = jnp.concatenate([port, port_vel], -1)
     x_ref = jnp.stack([ref0, ref1, ref2])[phase]
@@ -445,26 +472,79 @@ def _build_ocp(p: PhaseParams, config: PhaseConfig, x, t, phase):
     Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
     Q = Q.at[-1].set(p.Q_f[phase])
     u_max = jnp.broadcast_to(p.u_max[phase], (3,))
+    R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
+    r = jnp.zeros((N, 3), dtype)
     Fu = jnp.broadcast_to(jnp.concatenate([jnp.eye(3), -jnp.eye(3)]), (N, 6, 3)).astype(dtype)
     fu = jnp.broadcast_to(jnp.concatenate([u_max, u_max]), (N, 6))
+
+    if config.rendezvous_cost == "lp":
+        # 1-norm rendezvous cost (paper 003 Eq. 2.10 about the set point, Sec. 3.6.4):
+        #   sum_{i<N} ||Q (x_i - x_s)||_1 + ||R u_i||_1 + ||Q_f (x_N - x_s)||_1
+        # state terms: each row of W (Q, Q_f on the terminal stage) gives the soft-row pair
+        # +-W_j (x - x_s) <= 0 with exact penalty 1, i.e. max(0, g) + max(0, -g) = |g|;
+        W = jnp.where((stage < n_real - 1)[:, None, None], p.Q[0], p.Q_f[0])
+        Wr = jnp.einsum("tij,tj->ti", W, x_ref)
+        Fx = jnp.concatenate([Fx, jnp.concatenate([W, -W], axis=1)], axis=1)
+        fx = jnp.concatenate([fx, Wr, -Wr], axis=1)
+        rho = jnp.concatenate([rho, jnp.ones((N, 12), dtype)], axis=1)
+        x_mask = jnp.concatenate([x_mask, jnp.broadcast_to(on * p0, (N, 12))], axis=1)
+        Q = jnp.where(p0, 0.0, Q)
+        # input: six variables v = [v1; v2] in every phase (one shape). Rendezvous: the split
+        # u = v1 - v2 with 0 <= v1, v2 <= u_max, so sum_i R_ii |u_i| = w^T (v1 + v2) at the
+        # optimum (R diagonal, checked by validate_phases): B' = [B, -B], linear cost r = w,
+        # R' = LP_REG max(w) I. Approach and docking keep the QP of the thesis exactly: u = v1
+        # with its box, B' = [B, 0], and v2 a dummy input with no effect and weight R (its
+        # optimum is v2 = 0): R' = diag(R, R).
+        B = jnp.concatenate([B, jnp.where(p0, -B, 0.0)], axis=-1)
+        w = jnp.diagonal(p.R[0])
+        R_lp = jnp.where(
+            p0,
+            LP_REG * jnp.max(w) * jnp.eye(6, dtype=dtype),
+            jnp.kron(jnp.eye(2, dtype=dtype), p.R[phase]),
+        )
+        R = jnp.broadcast_to(R_lp, (N, 6, 6))
+        r = jnp.where(p0, jnp.broadcast_to(jnp.concatenate([w, w]), (N, 6)), 0.0)
+        # hard rows v <= hi, -v <= lo: hi = lo = u_max in approach and docking; in rendezvous
+        # the bound v >= 0 is relaxed to v >= -LP_EPS u_max so that v = 0 is strictly
+        # feasible (the solver's cold start needs fu > 0), and v <= (1 - LP_EPS) u_max keeps
+        # the applied |v1 - v2| <= u_max exactly
+        e6 = jnp.eye(6, dtype=dtype)
+        Fu = jnp.broadcast_to(jnp.concatenate([e6, -e6]), (N, 12, 6))
+        um = jnp.concatenate([u_max, u_max])
+        hi = jnp.where(p0, 1.0 - LP_EPS, 1.0) * um
+        lo = jnp.where(p0, LP_EPS, 1.0) * um
+        fu = jnp.broadcast_to(jnp.concatenate([hi, lo]), (N, 12))
+
     return OCP(
         A=A,
         B=B,
         c=jnp.zeros((N, 6), dtype),
         x0=x,
         Q=Q,
-        R=jnp.broadcast_to(p.R[phase], (N, 3, 3)),
+        R=R,
         x_ref=x_ref,
         q=jnp.zeros((N, 6), dtype),
-        r=jnp.zeros((N, 3), dtype),
+        r=r,
         Fu=Fu,
         fu=fu,
-        u_mask=jnp.ones((N, 6), dtype),
+        u_mask=jnp.ones(Fu.shape[:2], dtype),
         Fx=Fx,
         fx=fx,
         rho=rho,
         x_mask=x_mask,
     )
+
+
+# LP rendezvous (PhaseConfig.rendezvous_cost = "lp"): the solver needs u = 0 strictly feasible
+# and R positive definite. The split's lower bounds v >= 0 are written -v <= LP_EPS u_max (a
+# slack of 1.8e-8 m/s per axis and step, taken off the upper bounds; with 1e-9 four of the 81
+# warm-started rendezvous solves of the V-bar case ended NONFINITE), and the rendezvous weight
+# is R' = LP_REG max(w) I: the LP becomes a QP whose quadratic term is below LP_REG of the L1
+# term for |v| <= u_max (LP_REG max(w) v^2 <= LP_REG w_max u_max v). Neither moves the
+# delta-v by more than 1e-5 m/s (V-bar: eps 1e-9 .. 1e-6, reg 1e-9 .. 1e-4 checked); the plans
+# match Clarabel's LP optimum.
+LP_EPS = 1e-7
+LP_REG = 1e-9
 
 
 def _drift_plan(ocp: OCP) -> Plan:
@@ -503,8 +583,10 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
         jnp.asarray(True),
     )
     nf = config.n_faces
+    # LP: the 12 L1 state-cost rows are cost, not constraints
+    n_cost = 12 if config.rendezvous_cost == "lp" else 0
     hard_rows = jnp.concatenate(
-        [jnp.ones(1), jnp.zeros(nf), jnp.ones(1), jnp.ones(nf), jnp.ones(6)]
+        [jnp.ones(1), jnp.zeros(nf), jnp.ones(1), jnp.ones(nf), jnp.ones(6), jnp.zeros(n_cost)]
     ).astype(dtype)
 
     def step(c: _Carry, _):
@@ -520,7 +602,10 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
             return sol._replace(u=init.u, x=init.x, nu=init.nu)
 
         sol = lax.cond(c.active, fly, idle, ocp)
-        u = jnp.where(c.active, sol.u[0], 0.0)
+        u0 = sol.u[0]
+        if config.rendezvous_cost == "lp":  # split (rendezvous) or [u; dummy]
+            u0 = u0[:3] - jnp.where(c.phase == 0, u0[3:], 0.0)
+        u = jnp.where(c.active, u0, 0.0)
         # INFEASIBLE from the solver means "a soft row is violated at the optimum"; the cone
         # penalty rows (rho = lambda) are an external penalty in the thesis, not constraints,
         # so only the rows standing for hard constraints make a step infeasible here.
@@ -630,8 +715,9 @@ THESIS_CASES = {
 }
 
 
-def thesis_build(case: str):
-    """() -> (PhaseParams, x0) for a paper 003 Sec. 3.6 case ("vbar", "rbar", "rotating")."""
+def thesis_build(case: str, setpoint: bool = True):
+    """() -> (PhaseParams, x0) for a paper 003 Sec. 3.6 case ("vbar", "rbar", "rotating");
+    ``setpoint=False``: rendezvous reference at the target (Table 3.6)."""
     angle0, rate = THESIS_CASES[case][:2]
 
     def build():
@@ -655,6 +741,7 @@ def thesis_build(case: str):
             target_rate_deg_s=rate,
             rho=a["rho"],
             switch_tol=a["switch_tol"],
+            setpoint=setpoint,
             x0=x0,
         )
         return params, x0
@@ -686,8 +773,39 @@ THESIS_ASSUMPTIONS = (
 )
 
 
+# Paper 003 Sec. 3.6.4, Table 3.6 (V-bar): rendezvous cost variants.
+# name: (set point in the rendezvous reference, rendezvous cost, delta-v [m/s], time [s])
+THESIS_COST_VARIANTS = {
+    "vbar-nosetpoint": (False, "qp", 12.65, 71.23 * 60),
+    "vbar-lp": (True, "lp", 12.74, 40.57 * 60),
+}
+
+VARIANT_ASSUMPTIONS = {
+    "vbar-nosetpoint": (
+        "QP without set point (Table 3.6): the rendezvous reference is the target's centre of "
+        "mass with zero velocity (Sec. 3.1.1, App. A: 'in effect the origin'; replaces the "
+        "rendezvous set point above); terminal cone "
+        "penalty, keep-out planes and the approach and docking phases unchanged",
+    ),
+    "vbar-lp": (
+        "LP rendezvous (Sec. 3.6.4, Eq. 2.10 about the set point): sum_i ||Q (x_i - x_s)||_1 "
+        "+ ||R u_i||_1 + ||Q_f (x_N - x_s)||_1 with the QP's Q, R, Q_f (DARE) and set point "
+        "(the thesis gives no separate LP weights); cone penalty and keep-out planes unchanged",
+        "L1 state terms as soft-row pairs +-W_j (x - x_s) <= 0 with exact penalty 1; L1 input "
+        f"term by the split u = v1 - v2, 0 <= v <= u_max, cost w^T (v1 + v2), w = diag R; the "
+        f"lower bounds relaxed to -{LP_EPS:g} u_max (u = 0 strictly feasible) and R' = "
+        f"{LP_REG:g} max(w) I (R positive definite): solved as a QP with a negligible quadratic "
+        "term",
+        "approach and docking phases: the thesis' QP on v1, v2 a dummy input (no effect, "
+        "weight R, optimum 0)",
+        "solver max_iter = 300 (the LP rendezvous solves take up to ~140 iterations)",
+    ),
+}
+
+
 def register(scenarios: dict) -> None:
-    """Add ``thesis-vbar``, ``thesis-rbar``, ``thesis-rotating`` to a scenario registry."""
+    """Add ``thesis-vbar``, ``thesis-rbar``, ``thesis-rotating`` and the Table 3.6 variants
+    ``thesis-vbar-nosetpoint``, ``thesis-vbar-lp`` to a scenario registry."""
     from rvdjax.scenarios import Scenario
 
     config = PhaseConfig(N=THESIS["N"], n_steps=300, settings=SolverSettings())
@@ -703,6 +821,23 @@ def register(scenarios: dict) -> None:
             config=config,
             published={"delta_v_m_s": {"thesis": dv}, "time_to_dock_s": {"thesis": tf}},
             assumptions=THESIS_ASSUMPTIONS,
+            fly=fly_phases,
+            kind="phases",
+            validate=validate_phases,
+        )
+    labels = {"vbar-nosetpoint": "QP without set point", "vbar-lp": "LP (1-norm cost)"}
+    for variant, (setpoint, cost, dv, tf) in THESIS_COST_VARIANTS.items():
+        name = f"thesis-{variant}"
+        settings = SolverSettings(max_iter=300) if cost == "lp" else SolverSettings()
+        scenarios[name] = Scenario(
+            name=name,
+            source="paper 003 Sec. 3.6.4, Table 3.6",
+            description=f"three-phase 6U CubeSat V-bar rendezvous and docking, rendezvous "
+            f"phase: {labels[variant]} (CW, impulsive delta-v)",
+            build=thesis_build("vbar", setpoint=setpoint),
+            config=PhaseConfig(N=THESIS["N"], n_steps=300, settings=settings, rendezvous_cost=cost),
+            published={"delta_v_m_s": {"thesis": dv}, "time_to_dock_s": {"thesis": tf}},
+            assumptions=THESIS_ASSUMPTIONS + VARIANT_ASSUMPTIONS[variant],
             fly=fly_phases,
             kind="phases",
             validate=validate_phases,

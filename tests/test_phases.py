@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -10,13 +12,16 @@ from rvdjax import phases as ph
 from rvdjax.solver import Status, solve
 
 CASES = ("vbar", "rbar", "rotating")
+# the Table 3.6 variant without set point differs from V-bar only in traced data: same program
+RUNS = CASES + ("vbar-nosetpoint",)
 ENTRY_STEPS = 6  # docking-phase steps (30 s) allowed for the entry transient
 
 
 @pytest.fixture(scope="module")
 def runs():
-    """The three cases differ only in traced data (target attitude and rate): one program."""
-    built = [ph.thesis_build(c)() for c in CASES]
+    """The three cases and the V-bar case without set point differ only in traced data
+    (target attitude and rate, rendezvous reference): one program."""
+    built = [ph.thesis_build(c)() for c in CASES] + [ph.thesis_build("vbar", setpoint=False)()]
     params = jax.tree.map(lambda *a: np.stack(a), *[b[0] for b in built])
     x0 = np.stack([b[1] for b in built])
     config = ph.PhaseConfig(N=ph.THESIS["N"], n_steps=200)
@@ -25,10 +30,29 @@ def runs():
     return params, jax.tree.map(np.asarray, infos), jax.tree.map(np.asarray, m)
 
 
-def test_every_case_docks_at_the_port(runs):
-    params, infos, m = runs
+@pytest.fixture(scope="module")
+def lp_run():
+    """V-bar with the LP rendezvous (Table 3.6), the registered configuration with fewer
+    steps; a leading batch axis of one so the checks below apply unchanged."""
+    reg = {}
+    ph.register(reg)
+    sc = reg["thesis-vbar-lp"]
+    params, x0 = sc.build()
+    sc.validate(params, x0, sc.config)
+    config = dataclasses.replace(sc.config, n_steps=150)
+    infos, m = jax.jit(lambda p, x: ph.fly_phases(p, x, config))(params, x0)
+    return jax.tree.map(lambda a: np.asarray(a)[None], (params, infos, m))
+
+
+@pytest.fixture(params=["runs", "lp_run"])
+def any_run(request):
+    return request.getfixturevalue(request.param)
+
+
+def test_every_case_docks_at_the_port(any_run):
+    params, infos, m = any_run
     assert np.all(m.docked)
-    for i in range(len(CASES)):
+    for i in range(len(m.docked)):
         n = int(infos.active[i].sum())
         # phases run 0 -> 1 -> 2 in order, each visited
         phase = infos.phase[i, :n]
@@ -50,11 +74,11 @@ def test_every_case_docks_at_the_port(runs):
         assert np.all(np.abs(infos.u[i, :n]) <= params.u_max[i, phase][:, None] + 1e-9)
 
 
-def test_constraints_of_the_truth(runs):
-    params, infos, m = runs
+def test_constraints_of_the_truth(any_run):
+    params, infos, m = any_run
     # keep-out sphere (rendezvous) and overshoot plane (approach): never entered
     assert np.all(m.max_violation_m == 0.0)
-    for i in range(len(CASES)):
+    for i in range(len(m.docked)):
         act = infos.active[i]
         dock_steps = np.flatnonzero(act & (infos.phase[i] == 2))
         settled = dock_steps[ENTRY_STEPS:]
@@ -63,16 +87,21 @@ def test_constraints_of_the_truth(runs):
         assert np.min(infos.cone_margin[i, settled]) >= -1e-6
         assert np.min(infos.speed_margin[i, settled]) >= -1e-6
         # every hard-row violation of a plan is either a planned (not flown) keep-out plane
-        # violation far from the sphere, or the docking entry transient
+        # violation far from the sphere, or the docking entry transient. Without set point
+        # the chaser is pulled at the sphere and its plans cannot brake in time against the
+        # turning planes (<= 4.7 m planned, the closest 38 m from the sphere; the truth stays
+        # outside, max_violation_m = 0)
         bad = np.flatnonzero(act & (infos.hard_violation[i] > 1e-6))
         far = bad[infos.phase[i, bad] == 0]
-        assert np.all(infos.keepout_margin[i, far] > 100.0)
+        setpoint = float(params.setpoint[i]) == 1.0
+        assert np.all(infos.keepout_margin[i, far] > (100.0 if setpoint else 30.0))
+        assert np.all(infos.hard_violation[i, far] < 0.1 * infos.keepout_margin[i, far])
         assert set(bad[infos.phase[i, bad] == 2]) <= set(dock_steps[:ENTRY_STEPS])
         assert not np.any(infos.phase[i, bad] == 1)
 
 
-def test_solver_statuses(runs):
-    _, infos, m = runs
+def test_solver_statuses(any_run):
+    _, infos, m = any_run
     counts = m.status_counts
     # every solve met its stopping test (no iteration cap, nothing non-finite) ...
     assert np.all(counts[:, Status.MAX_ITER] == 0) and np.all(counts[:, Status.NONFINITE] == 0)
@@ -101,6 +130,33 @@ def test_compare_with_thesis(runs):
         assert pdv[0] / pdv.sum() > 0.6
         # same order of magnitude as the thesis: within 30 % on delta-v and time
         assert 0.7 < m.delta_v_m_s[i] / dv < 1.3 and 0.7 < m.time_to_dock_s[i] / tf < 1.3
+
+
+def test_compare_with_table_3_6(runs, lp_run):
+    """Paper 003 Sec. 3.6.4, Table 3.6 (V-bar rendezvous cost variants). Within 15 %: the LP
+    maneuver time. Delta-v comes out ~18-20 % below the thesis in every variant (as for the
+    V-bar QP with set point) and the time without set point ~23 % below: not asserted. The
+    thesis' qualitative results hold: without the set point the maneuver takes much longer
+    (thesis 2.45x, here ~2.3x), the LP takes longer than the QP with set point but uses less
+    delta-v, and the order of the times (set point < LP < no set point) and of the delta-v
+    (no set point < LP < set point) is the thesis' order."""
+    _, infos, m = runs
+    _, lp_infos, lp = lp_run
+    qp, nosp = CASES.index("vbar"), RUNS.index("vbar-nosetpoint")
+    _, _, dv_lp, tf_lp = ph.THESIS_COST_VARIANTS["vbar-lp"]
+    assert lp.time_to_dock_s[0] == pytest.approx(tf_lp, rel=0.15)
+    t = {"qp": m.time_to_dock_s[qp], "nosp": m.time_to_dock_s[nosp], "lp": lp.time_to_dock_s[0]}
+    dv = {"qp": m.delta_v_m_s[qp], "nosp": m.delta_v_m_s[nosp], "lp": lp.delta_v_m_s[0]}
+    assert t["nosp"] > 2.0 * t["qp"]
+    assert t["qp"] < t["lp"] < t["nosp"]
+    assert dv["nosp"] < dv["lp"] < dv["qp"]
+    # same order of magnitude as the thesis: within 30 % on delta-v and time
+    for key, name in (("nosp", "vbar-nosetpoint"), ("lp", "vbar-lp")):
+        _, _, dv_t, tf_t = ph.THESIS_COST_VARIANTS[name]
+        assert 0.7 < dv[key] / dv_t < 1.3 and 0.7 < t[key] / tf_t < 1.3
+    # the rendezvous phase stays the dominant one
+    assert m.phase_delta_v_m_s[nosp, 0] / dv["nosp"] > 0.6
+    assert lp.phase_delta_v_m_s[0, 0] / dv["lp"] > 0.6
 
 
 def test_padding_equals_unpadded_phase():
@@ -181,7 +237,27 @@ def test_bad_config():
 def test_register_and_validate():
     reg = {}
     ph.register(reg)
-    assert set(reg) == {"thesis-vbar", "thesis-rbar", "thesis-rotating"}
+    assert set(reg) == {
+        "thesis-vbar",
+        "thesis-rbar",
+        "thesis-rotating",
+        "thesis-vbar-nosetpoint",
+        "thesis-vbar-lp",
+    }
+    assert reg["thesis-vbar-nosetpoint"].published == {
+        "delta_v_m_s": {"thesis": 12.65},
+        "time_to_dock_s": {"thesis": 71.23 * 60},
+    }
+    assert reg["thesis-vbar-lp"].published == {
+        "delta_v_m_s": {"thesis": 12.74},
+        "time_to_dock_s": {"thesis": 40.57 * 60},
+    }
+    for name in ("thesis-vbar-nosetpoint", "thesis-vbar-lp"):
+        v = reg[name]
+        assert v.kind == "phases" and v.fly is ph.fly_phases and v.validate is ph.validate_phases
+        assert len(v.assumptions) > len(reg["thesis-vbar"].assumptions)
+    assert float(reg["thesis-vbar-nosetpoint"].build()[0].setpoint) == 0.0
+    assert reg["thesis-vbar-lp"].config.rendezvous_cost == "lp"
     sc = reg["thesis-vbar"]
     assert sc.published == {"delta_v_m_s": {"thesis": 13.28}, "time_to_dock_s": {"thesis": 1744.0}}
     assert sc.kind == "phases" and sc.fly is ph.fly_phases and sc.assumptions
