@@ -448,9 +448,7 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     last, infos = lax.scan(step, carry0, None, length=config.n_steps)
     n_active = jnp.sum(infos.active)
     docked = ~last.active
-    counts = jnp.stack(
-        [jnp.sum(infos.active & (infos.status == k)) for k in range(len(Status.names))]
-    )
+    counts = Status.counts(infos.status, infos.active)
     margin = jnp.minimum(infos.koz_margin, jnp.min(infos.obstacle_margin, axis=-1))
     impulse = jnp.sum(jnp.linalg.norm(infos.u[:, :2], axis=-1)) * p.ts
     metrics = DockingMetrics(

@@ -662,7 +662,7 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
     act = infos.active
     n_active = jnp.sum(act)
     docked = ~last.active
-    counts = jnp.stack([jnp.sum(act & (infos.status == k)) for k in range(len(Status.names))])
+    counts = Status.counts(infos.status, act)
     dv2 = jnp.linalg.norm(infos.u, axis=-1)
     dv1 = jnp.sum(jnp.abs(infos.u), axis=-1)
     in_phase = (infos.phase[:, None] == jnp.arange(N_PHASES)) & act[:, None]

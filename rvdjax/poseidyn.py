@@ -431,7 +431,7 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
     act = infos.active
     n_active = jnp.sum(act)
     docked = ~last.active
-    counts = jnp.stack([jnp.sum(act & (infos.status == k)) for k in range(len(Status.names))])
+    counts = Status.counts(infos.status, act)
     impulse = jnp.sum(jnp.linalg.norm(infos.u, axis=-1) * infos.dt)
     koz_v = jnp.maximum(0.0, -jnp.min(jnp.where(act, infos.koz_margin, jnp.inf)))
     cone_v = jnp.maximum(0.0, -jnp.min(jnp.where(act, infos.cone_margin, jnp.inf)))

@@ -272,9 +272,7 @@ def _metrics(p: LoopParams, infos: StepInfo, last: _Carry) -> Metrics:
     docked = ~last.active
     impulse = jnp.sum(jnp.linalg.norm(infos.u, axis=-1)) * p.ts
     effort_l1 = jnp.sum(jnp.abs(infos.u)) * p.ts
-    counts = jnp.stack(
-        [jnp.sum(infos.active & (infos.status == code)) for code in range(len(Status.names))]
-    )
+    counts = Status.counts(infos.status, infos.active)
     return Metrics(
         docked=docked,
         time_to_dock_s=jnp.where(docked, n_active * p.ts, jnp.inf),

@@ -84,6 +84,12 @@ class Status:
     def name(cls, code: int) -> str:
         return cls.names[int(code)]
 
+    @classmethod
+    def counts(cls, status, active):
+        """(4,) number of steps with each status among the ``active`` ones (a closed loop's
+        per-step statuses; idle steps are not counted)."""
+        return jnp.stack([jnp.sum(active & (status == k)) for k in range(len(cls.names))])
+
 
 @dataclasses.dataclass(frozen=True)
 class SolverSettings:
