@@ -256,8 +256,8 @@ def cmd_compare(args) -> int:
     else:
         print(format_comparison(sc.name, rows, sc.published))
         print(
-            "ms/step: rvdjax rows = wall time of the jitted closed loop per MPC step; "
-            "Clarabel / NMPC rows = solver calls only"
+            "ms/step: wall time of the closed loop per MPC step (Clarabel: host callback with "
+            "the QP assembly); NMPC row: IPOPT calls only; IDVD row: the whole planning"
         )
     return 0
 
