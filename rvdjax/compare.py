@@ -54,7 +54,20 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
     params, x0 = sc.build()
     sc.validate(params, x0, sc.config)
     rows = []
-    for label, (settings, paper_name) in VARIANTS.items():
+    # The rvdjax variants, then Clarabel in the same jitted loop (host callback per step).
+    loops = [
+        (label, settings, paper, "jitted closed loop, wall time / step")
+        for label, (settings, paper) in VARIANTS.items()
+    ]
+    loops.append(
+        (
+            "Clarabel in the loop",
+            SolverSettings(backend="clarabel"),
+            None,
+            "host callback per step incl. QP assembly, wall time / step",
+        )
+    )
+    for label, settings, paper_name, note in loops:
         config = dataclasses.replace(sc.config, settings=settings)
         fly = jax.jit(lambda p, x, c=config: sc.fly(p, x, c)).lower(params, x0).compile()
         jax.block_until_ready(fly(params, x0))
@@ -62,32 +75,8 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
         infos, m = jax.block_until_ready(fly(params, x0))
         steps = max(int(np.sum(np.asarray(infos.active))), 1)
         ms = 1e3 * (time.perf_counter() - t0) / steps
-        rows.append(
-            _row(
-                label, m, ms, sc.published, paper_name, note="jitted closed loop, wall time / step"
-            )
-        )
+        rows.append(_row(label, m, ms, sc.published, paper_name, note=note))
         progress(f"{label}: effort {float(m.effort_l1_N_s):.6g} N s, {ms:.3f} ms/step")
-
-    # Clarabel in the same jitted loop (host callback per step): any scenario.
-    config = dataclasses.replace(sc.config, settings=SolverSettings(backend="clarabel"))
-    fly = jax.jit(lambda p, x, c=config: sc.fly(p, x, c))
-    jax.block_until_ready(fly(params, x0))
-    t0 = time.perf_counter()
-    infos, m = jax.block_until_ready(fly(params, x0))
-    steps = max(int(np.sum(np.asarray(infos.active))), 1)
-    ms = 1e3 * (time.perf_counter() - t0) / steps
-    rows.append(
-        _row(
-            "Clarabel in the loop",
-            m,
-            ms,
-            sc.published,
-            None,
-            note="host callback per step incl. QP assembly, wall time / step",
-        )
-    )
-    progress(f"Clarabel: effort {float(m.effort_l1_N_s):.6g} N s, {ms:.3f} ms/step")
 
     if nmpc and sc.kind == "rendezvous":
         try:
