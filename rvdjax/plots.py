@@ -81,6 +81,17 @@ def plot_plan(path, ocp, solutions: dict, obstacles: dict | None = None, clarabe
     plt.close(fig)
 
 
+def _finish_lvlh_axes(ax, title):
+    """Target marker, LVLH labels (radial up, along-track across), equal aspect, legend."""
+    ax.plot([0], [0], "ks", label="target")
+    ax.set_xlabel("along-track y [m]")
+    ax.set_ylabel("radial x [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+
+
 def plot_run(path, scenario, params, infos, title: str | None = None):
     """Draw one closed-loop run: path with keep-out snapshots, thrust, range and margins.
 
@@ -128,13 +139,7 @@ def plot_run(path, scenario, params, infos, title: str | None = None):
             ax.plot(x[s, 1], x[s, 0], ".", color="tab:red", alpha=alpha)
     if mask.any():
         ax.plot([], [], color="tab:blue", label="keep-out zones (snapshots, later = darker)")
-    ax.plot([0], [0], "ks", label="target")
-    ax.set_xlabel("along-track y [m]")
-    ax.set_ylabel("radial x [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(title or f"{scenario.name}: closed loop")
+    _finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
 
     ax_u = fig.add_subplot(2, 2, 2)
     for i, ls in zip(range(u.shape[1]), ["-", "--", ":"], strict=False):
@@ -317,13 +322,7 @@ def plot_phases(path, scenario, params, infos, title: str | None = None):
         sel = phase == k
         if sel.any():
             ax.plot(x[sel, 1], x[sel, 0], ".-", ms=3, color=colors[k], label=names[k])
-    ax.plot([0], [0], "ks", label="target")
-    ax.set_xlabel("along-track y [m]")
-    ax.set_ylabel("radial x [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(title or f"{scenario.name}: closed loop")
+    _finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
     ax_d = fig.add_subplot(2, 2, 2)
     ax_d.semilogy(t, np.maximum(np.asarray(infos.port_distance)[:n], 1e-3), color="k")
     ax_d.set_ylabel("distance to port [m]")
