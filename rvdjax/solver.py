@@ -9,7 +9,9 @@ Three modes (DESIGN §3):
 
 * ``paper``: fixed kappa (0.05), at most 10 Newton iterations, alpha = 0.01, beta = 0.95,
   backtracking on the residual norm — Algorithm 1 as published. It returns the barrier
-  problem's iterate, not the QP optimum (on a cold start its plan costs 15-35 % more).
+  problem's iterate, not the QP optimum (on a cold start its plan costs 15-35 % more). It
+  starts by default from the states the warm-start inputs produce (``paper_start``), so the
+  dynamics hold at every iterate; kappa is a per-problem tuning value (the scenarios set it).
 * ``accurate`` (default): barrier continuation with *primal-dual* Newton steps. The barrier
   weight follows Mehrotra's rule kappa = sigma * gap / m, sigma = (gap_affine / gap)^3, with a
   predictor and a corrector solve sharing one Riccati factorisation; it stops when the
@@ -112,6 +114,13 @@ class SolverSettings:
             jitted closed loop (not differentiable; batches are solved one by one).
         violation_tol: a soft state row counts as violated above this distance (row-normalised
             units of the state, e.g. metres).
+        paper_start: paper mode's starting states. "feasible" (default): the states the
+            warm-start inputs produce through the dynamics, so the equality residual is zero
+            from the first iterate and an iterate cut at ``max_iter`` is a flyable plan.
+            "warm": the warm start's own states (Algorithm 1's infeasible start, paper 000
+            Sec. III.D: "the solution may not be primal feasible"). Measured: with "warm",
+            10 iterations leave the thesis cases' plans dynamically inconsistent and the
+            flown u_0 breaches the 100 m keep-out by 46 m (README, paper mode).
     """
 
     mode: str = "accurate"
@@ -127,10 +136,13 @@ class SolverSettings:
     centring: float = 1.0
     violation_tol: float = 1e-6
     backend: str = "rvdjax"
+    paper_start: str = "feasible"
 
     def __post_init__(self):
         if self.mode not in ("paper", "accurate", "barrier"):
             raise ValueError(f"mode must be 'paper', 'accurate' or 'barrier', got {self.mode!r}")
+        if self.paper_start not in ("feasible", "warm"):
+            raise ValueError(f"paper_start must be 'feasible' or 'warm', got {self.paper_start!r}")
         if self.backend not in ("rvdjax", "clarabel"):
             raise ValueError(f"backend must be 'rvdjax' or 'clarabel', got {self.backend!r}")
         if self.method not in KKT_SOLVERS:
@@ -812,9 +824,13 @@ def _solve_forward(ocp: OCP, settings: SolverSettings, init: Plan | None):
         init = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), init)
         u0, nu0, x_start = init.u, init.nu, init.x
     u0 = _pull_inside(rows, u0)
-    # The accurate mode is a feasible-start method: x follows from u through the dynamics.
-    # Paper mode keeps the warm start's states (an infeasible start, as in Algorithm 1).
-    x0s = x_start if (x_start is not None and settings.mode == "paper") else _drift(ocp, u0)
+    # The accurate mode is a feasible-start method; so is paper mode by default (``paper_start
+    # = "feasible"``): a run cut at max_iter then still flies a plan that obeys the dynamics.
+    # Algorithm 1's literal infeasible start keeps the warm start's states (``"warm"``).
+    warm_states = (
+        x_start is not None and settings.mode == "paper" and settings.paper_start == "warm"
+    )
+    x0s = x_start if warm_states else _drift(ocp, u0)
     start_ok = jnp.all(jnp.where(rows.wu > 0, _u_slack(rows, u0) > 0, True))
 
     if settings.mode == "paper":

@@ -479,6 +479,7 @@ def test_make_ocp_rejects_bad_inputs(change, word):
         (dict(max_iter=0), "max_iter"),
         (dict(tol=-1.0), "tol"),
         (dict(kappa_factor=1.0), "kappa_factor"),
+        (dict(paper_start="cold"), "paper_start"),
         (dict(backend="osqp"), "backend"),
     ],
 )
@@ -514,3 +515,28 @@ def test_warm_start_next_step(fastmpc_pair, fastmpc_accurate, clarabel_solve):
     print(f"\n[warm start] iterations warm {int(warm.iterations)} cold {int(cold.iterations)}; {m}")
     assert not failures, "\n".join(failures)
     assert abs(float(warm.objective) - float(cold.objective)) <= 1e-8 * abs(float(cold.objective))
+
+
+def test_paper_start_feasible_keeps_the_dynamics(fastmpc_pair, fastmpc_accurate):
+    """Paper mode from a warm start whose states do not match the new x0 (the shifted plan of
+    step 1 against a perturbed measurement), cut after 2 Newton steps: the default feasible
+    start returns a plan that obeys the dynamics to rounding; Algorithm 1's literal infeasible
+    start ("warm") still carries part of the initial dynamics residual (it shrinks by the
+    factor (1 - t) of each step), so its u_0 belongs to no flyable plan."""
+    from rvdjax.solver import _dyn_residual
+
+    _, sols = fastmpc_accurate
+    first = fastmpc_pair[0][0]
+    sol1 = Solution(*_index(sols, 0))
+    x1 = np.asarray(sol1.x[0]) + np.array([5.0, -5.0, 2.0, 0.01, 0.0, -0.01])
+    nxt = first._replace(x0=jnp.asarray(x1))
+    init = shift_solution(sol1)
+    scale = float(np.max(np.abs(x1)))
+    res = {}
+    for start in ("feasible", "warm"):
+        settings = SolverSettings.paper(max_iter=2, paper_start=start)
+        sol = solve(nxt, settings, init=init)
+        assert int(sol.status) in (Status.CONVERGED, Status.MAX_ITER)
+        res[start] = float(jnp.max(jnp.abs(_dyn_residual(nxt, sol.u, sol.x)))) / scale
+    assert res["feasible"] < 1e-12
+    assert res["warm"] > 1e-6
