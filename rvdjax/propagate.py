@@ -1,8 +1,8 @@
 """Nonlinear relative-motion truth propagator (two-body, optionally J2) with fixed-step RK4.
 
 Used for model mismatch in the closed loop (DESIGN.md §4; paper 003 Ch. 5 ran its truth model in
-the 42 simulator with EGM96 gravity and atmospheric drag — here only the dominant zonal term J2
-is modelled, drag is not).
+the 42 simulator with degree-8 gravity and flat-plate atmospheric drag — here the dominant zonal
+term J2 and cannonball drag with an exponential atmosphere, :class:`Drag`).
 
 Frames and conventions (same as :mod:`rvdjax.dynamics`):
 
@@ -39,11 +39,16 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rvdjax.dynamics import MU_EARTH, R_EARTH, check_finite, check_positive
 
 __all__ = [
     "J2_EARTH",
+    "OMEGA_EARTH",
+    "Drag",
+    "atmosphere_density",
+    "drag_accel",
     "Orbit",
     "circular_orbit",
     "lvlh_basis",
@@ -55,6 +60,77 @@ __all__ = [
 ]
 
 J2_EARTH = 1.08262668e-3  # Earth's second zonal harmonic (dimensionless)
+OMEGA_EARTH = 7.292115e-5  # Earth's rotation rate [rad/s] (the atmosphere co-rotates)
+
+# Exponential atmosphere (Vallado, "Fundamentals of Astrodynamics and Applications", Table 8-4,
+# after CIRA-72): base altitude [km], density at the base [kg/m^3], scale height [km].
+_ATMOSPHERE = (
+    (0.0, 1.225, 7.249),
+    (25.0, 3.899e-2, 6.349),
+    (30.0, 1.774e-2, 6.682),
+    (40.0, 3.972e-3, 7.554),
+    (50.0, 1.057e-3, 8.382),
+    (60.0, 3.206e-4, 7.714),
+    (70.0, 8.770e-5, 6.549),
+    (80.0, 1.905e-5, 5.799),
+    (90.0, 3.396e-6, 5.382),
+    (100.0, 5.297e-7, 5.877),
+    (110.0, 9.661e-8, 7.263),
+    (120.0, 2.438e-8, 9.473),
+    (130.0, 8.484e-9, 12.636),
+    (140.0, 3.845e-9, 16.149),
+    (150.0, 2.070e-9, 22.523),
+    (180.0, 5.464e-10, 29.740),
+    (200.0, 2.789e-10, 37.105),
+    (250.0, 7.248e-11, 45.546),
+    (300.0, 2.418e-11, 53.628),
+    (350.0, 9.518e-12, 53.298),
+    (400.0, 3.725e-12, 58.515),
+    (450.0, 1.585e-12, 60.828),
+    (500.0, 6.967e-13, 63.822),
+    (600.0, 1.454e-13, 71.835),
+    (700.0, 3.614e-14, 88.667),
+    (800.0, 1.170e-14, 124.64),
+    (900.0, 5.245e-15, 181.05),
+    (1000.0, 3.019e-15, 268.00),
+)
+
+
+class Drag(NamedTuple):
+    """Cannonball drag of both bodies: a = -1/2 rho(h) B |v_rel| v_rel, v_rel = v - w_E x r.
+
+    Paper 003 Eq. 5.5 sums flat plates, 1/2 rho |v_rel|^2 C_D sum_j A_j max(cos theta_j, 0); with
+    a fixed attitude that is a constant area A, so B = C_D A / m (the ballistic coefficient).
+    Only the *difference* of the two bodies' drag moves the relative state.
+
+    Attributes:
+        b_chaser: C_D A / m of the chaser [m^2/kg].
+        b_target: C_D A / m of the target [m^2/kg].
+    """
+
+    b_chaser: jax.Array
+    b_target: jax.Array
+
+
+def atmosphere_density(altitude_m):
+    """Exponential-atmosphere density [kg/m^3] at ``altitude_m`` [m] (Vallado Table 8-4).
+
+    rho = rho_0 exp(-(h - h_0) / H) with the band's base h_0; above 1000 km the last band is
+    extended; below 0 km the sea-level value is used.
+    """
+    table = jnp.asarray(_ATMOSPHERE)
+    h_km = jnp.maximum(jnp.asarray(altitude_m) / 1e3, 0.0)
+    k = jnp.clip(jnp.searchsorted(table[:, 0], h_km, side="right") - 1, 0, table.shape[0] - 1)
+    h0, rho0, scale = table[k, 0], table[k, 1], table[k, 2]
+    return rho0 * jnp.exp(-(h_km - h0) / scale)
+
+
+def drag_accel(r, v, b):
+    """Drag acceleration [m/s^2] in ECI of a body at (r, v) with ballistic coefficient ``b``
+    [m^2/kg] in an atmosphere rotating with the Earth (about ECI z)."""
+    v_rel = v - jnp.cross(jnp.array([0.0, 0.0, OMEGA_EARTH]), r)
+    rho = atmosphere_density(jnp.linalg.norm(r) - R_EARTH)
+    return -0.5 * rho * b * jnp.linalg.norm(v_rel) * v_rel
 
 
 class Orbit(NamedTuple):
@@ -185,7 +261,7 @@ def accel(r, j2: bool = False):
 
 
 @partial(jax.jit, static_argnames=("n_substeps", "j2"))
-def propagate_step(orbit, x_rel, force_lvlh, mass, dt, n_substeps, j2):
+def propagate_step(orbit, x_rel, force_lvlh, mass, dt, n_substeps, j2, drag: Drag | None = None):
     """:func:`propagate_relative` without the input checks (for use inside jitted loops)."""
     rt = jnp.asarray(orbit.r, dtype=float)
     vt = jnp.asarray(orbit.v, dtype=float)
@@ -199,6 +275,10 @@ def propagate_step(orbit, x_rel, force_lvlh, mass, dt, n_substeps, j2):
         at = accel(rt, j2)
         R, _ = lvlh_basis(rt, vt)  # thrust held constant in the (rotating) LVLH frame
         da = accel(rt + dr, j2) - at + R @ f_over_m
+        if drag is not None:
+            a_dt = drag_accel(rt, vt, drag.b_target)
+            at = at + a_dt
+            da = da + drag_accel(rt + dr, vt + dv, drag.b_chaser) - a_dt
         return (vt, at, dv, da)
 
     def axpy(s, k, c):
@@ -220,7 +300,9 @@ def propagate_step(orbit, x_rel, force_lvlh, mass, dt, n_substeps, j2):
     return orbit_next, _offset_to_lvlh(orbit_next, dr, dv)
 
 
-def propagate_relative(orbit: Orbit, x_rel, force_lvlh, mass, dt, n_substeps: int, j2=False):
+def propagate_relative(
+    orbit: Orbit, x_rel, force_lvlh, mass, dt, n_substeps: int, j2=False, drag: Drag | None = None
+):
     """Propagate target and chaser over ``dt`` with fixed-step RK4 in the inertial frame.
 
     Args:
@@ -234,6 +316,7 @@ def propagate_relative(orbit: Orbit, x_rel, force_lvlh, mass, dt, n_substeps: in
         n_substeps: number of RK4 steps of length dt / n_substeps (static int >= 1). For LEO,
             dt / n_substeps <= ~15 s gives relative-state errors far below 1e-6 m per step.
         j2: include the J2 zonal perturbation for both bodies (static bool).
+        drag: atmospheric drag of both bodies (:class:`Drag`), or None (no drag).
 
     Returns:
         (orbit_next, x_rel_next): the target inertial state and the chaser relative state in
@@ -251,4 +334,10 @@ def propagate_relative(orbit: Orbit, x_rel, force_lvlh, mass, dt, n_substeps: in
     check_finite("force_lvlh", force_lvlh)
     check_finite("orbit.r", orbit.r)
     check_finite("orbit.v", orbit.v)
-    return propagate_step(orbit, x_rel, force_lvlh, mass, dt, n_substeps=n_substeps, j2=bool(j2))
+    if drag is not None:
+        for name, b in (("drag.b_chaser", drag.b_chaser), ("drag.b_target", drag.b_target)):
+            if not (np.isfinite(b) and b >= 0):
+                raise ValueError(f"{name} (C_D A / m) must be finite and >= 0 m^2/kg, got {b}")
+    return propagate_step(
+        orbit, x_rel, force_lvlh, mass, dt, n_substeps=n_substeps, j2=bool(j2), drag=drag
+    )
