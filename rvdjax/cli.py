@@ -121,20 +121,20 @@ def cmd_demo(args) -> int:
 def cmd_list(args) -> int:
     from rvdjax.scenarios import DEFAULT_SCENARIO, SCENARIOS
 
+    width = max(len(name) for name in SCENARIOS) + 2
     for name, sc in SCENARIOS.items():
         mark = " (default)" if name == DEFAULT_SCENARIO else ""
-        print(f"{name:<18}{sc.description}  [{sc.source}]{mark}")
+        print(f"{name:<{width}}{sc.description}  [{sc.source}]{mark}")
     return 0
 
 
-def _settings_for(mode: str):
-    from rvdjax.solver import SolverSettings
+def run_scenario(
+    name: str, mode: str = "accurate", truth: str = "linear", disturbed: bool = False, seed=0
+):
+    """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step).
 
-    return SolverSettings.paper() if mode == "paper" else SolverSettings(mode=mode)
-
-
-def run_scenario(name: str, mode: str = "accurate", truth: str = "linear"):
-    """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step)."""
+    ``disturbed``: navigation noise, thrust-amplitude error and minimum impulse bit of the
+    scenario's :class:`rvdjax.disturbances.Disturbances`, drawn from PRNG key ``seed``."""
     import dataclasses
     import time
 
@@ -144,16 +144,19 @@ def run_scenario(name: str, mode: str = "accurate", truth: str = "linear"):
 
     sc = get_scenario(name)
     params, x0 = sc.build()
-    config = dataclasses.replace(sc.config, settings=_settings_for(mode))
+    config = dataclasses.replace(sc.config, settings=sc.settings(mode))
     if truth != "linear":
         if not hasattr(config, "truth"):
             raise ValueError(f"truth={truth!r} is not available for scenario {name!r}")
         config = dataclasses.replace(config, truth=truth)
+    if disturbed:
+        config = dataclasses.replace(config, disturbed=True)
     sc.validate(params, x0, config)
-    fly = jax.jit(lambda p, x: sc.fly(p, x, config))
-    compiled = fly.lower(params, x0).compile()
+    key = jax.random.key(int(seed))
+    fly = jax.jit(lambda p, x, k: sc.fly(p, x, config, k))
+    compiled = fly.lower(params, x0, key).compile()
     t0 = time.perf_counter()
-    infos, metrics = jax.block_until_ready(compiled(params, x0))
+    infos, metrics = jax.block_until_ready(compiled(params, x0, key))
     wall = time.perf_counter() - t0
     steps = max(int(infos.active.sum()), 1)
     return sc, params, infos, metrics, 1e3 * wall / steps
@@ -162,14 +165,27 @@ def run_scenario(name: str, mode: str = "accurate", truth: str = "linear"):
 def cmd_run(args) -> int:
     import numpy as np
 
+    from rvdjax.disturbances import DISTURBANCE_NOTES
     from rvdjax.solver import Status
 
-    sc, params, infos, m, ms_per_step = run_scenario(args.scenario, args.mode, args.truth)
+    sc, params, infos, m, ms_per_step = run_scenario(
+        args.scenario, args.mode, args.truth, args.disturbed, args.seed
+    )
+    notes = list(sc.notes(args.mode))
+    if args.disturbed:
+        d = params.disturbances
+        notes.append(
+            DISTURBANCE_NOTES[0].format(
+                sigma_pos=float(d.sigma_pos), sigma_vel=float(d.sigma_vel), mib_s=float(d.mib_s)
+            )
+        )
     result = {
         "scenario": sc.name,
         "source": sc.source,
         "solver_mode": args.mode,
         "truth": args.truth,
+        "disturbed": bool(args.disturbed),
+        "seed": args.seed if args.disturbed else None,
         "docked": bool(m.docked),
         "delta_v_m_s": float(m.delta_v_m_s),
         "delta_v_norm": "sum_k ||u_k||_2 Ts / m",
@@ -184,7 +200,8 @@ def cmd_run(args) -> int:
         "mean_solve_ms": ms_per_step,
         "mean_solve_ms_note": "wall time of the jitted closed loop per MPC step, after compile",
         "published": sc.published,
-        "assumptions": list(sc.assumptions),
+        "paper_kappa": sc.paper_kappa if args.mode == "paper" else None,
+        "assumptions": notes,
     }
     comparisons = []
     for key, refs in sc.published.items():
@@ -226,7 +243,7 @@ def cmd_run(args) -> int:
                     f"({100 * (ours - ref) / ref:+.1f} %)"
                 )
         print("  assumptions:")
-        for a in sc.assumptions:
+        for a in notes:
             print(f"    - {a}")
     if args.plot:
         from rvdjax import plots
@@ -339,10 +356,17 @@ def main(argv=None) -> int:
     )
     p.add_argument(
         "--truth",
-        choices=("linear", "two-body", "two-body-j2"),
+        choices=("linear", "two-body", "two-body-j2", "two-body-j2-drag"),
         default="linear",
-        help="truth propagation: the CW model (default) or nonlinear (model mismatch)",
+        help="truth propagation: the CW model (default) or nonlinear (model mismatch); "
+        "two-body-j2-drag: thesis scenarios only",
     )
+    p.add_argument(
+        "--disturbed",
+        action="store_true",
+        help="navigation noise and Gauss-Markov thrust error (paper 003 Ch. 5)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed of a disturbed run")
     p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)

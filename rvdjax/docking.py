@@ -37,6 +37,14 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.constraints import entry_cone_rows, holding_radius_rows, thrust_box_rows
+from rvdjax.disturbances import (
+    LAB_DISTURBANCES,
+    Disturbances,
+    actuate,
+    disturbances,
+    sense,
+    start,
+)
 from rvdjax.ocp import OCP
 from rvdjax.solver import Plan, SolverSettings, Status, drift_plan, shift_solution, solve_if
 
@@ -77,6 +85,8 @@ class DockingParams(NamedTuple):
         rho: () exact penalty of the soft state rows.
         ts: () sample time [s]; dock_tol: () docked position tolerance [m].
         mass: () chaser mass [kg] (for delta-v).
+        disturbances: navigation noise and thrust error of a disturbed run
+            (:mod:`rvdjax.disturbances`, ``DockingConfig.disturbed``).
     """
 
     A: jnp.ndarray
@@ -105,6 +115,7 @@ class DockingParams(NamedTuple):
     ts: jnp.ndarray
     dock_tol: jnp.ndarray
     mass: jnp.ndarray
+    disturbances: Disturbances | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,12 +125,16 @@ class DockingConfig:
     Attributes:
         N: horizon; n_steps: MPC steps simulated; settings: solver settings.
         logic: "two-phase" (paper 002 Fig. 4) or "holding-radius" (paper 000 Sec. II.C.3).
+        disturbed: the guidance sees a noisy state (position, velocity, attitude) and the
+            thrusters apply (1 + w) u with the Gauss-Markov error w; force pulses shorter than
+            the minimum impulse bit are dropped (``DockingParams.disturbances``; needs a key).
     """
 
     N: int = 40
     n_steps: int = 150
     settings: SolverSettings = SolverSettings()
     logic: str = "two-phase"
+    disturbed: bool = False
 
     def __post_init__(self):
         if self.logic not in ("two-phase", "holding-radius"):
@@ -286,6 +301,7 @@ def docking_params(
         obstacles=f(obstacles),
         obstacle_radii=f(obstacle_radii),
         obstacle_mask=f(obstacle_mask),
+        disturbances=disturbances(**LAB_DISTURBANCES),
     )
 
 
@@ -378,10 +394,16 @@ class _Carry(NamedTuple):
     r_hold: jnp.ndarray
     phase: jnp.ndarray
     active: jnp.ndarray
+    key: jnp.ndarray | None = None  # PRNG key (disturbed runs)
+    gm: jnp.ndarray | None = None  # (3, 2) Gauss-Markov thrust-error states
 
 
-def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
-    """Fly one docking maneuver. Pure function of (p, x0): jit / vmap apply.
+def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig(), key=None):
+    """Fly one docking maneuver. Pure function of (p, x0, key): jit / vmap apply.
+
+    ``key`` drives the navigation noise and thrust error of a disturbed run
+    (``config.disturbed``); undisturbed runs ignore it. The shrink rule, docking and the
+    margins are judged on the true state.
 
     Returns:
         (DockingInfo with a leading axis of n_steps, DockingMetrics).
@@ -392,7 +414,10 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
     two_phase = config.logic == "two-phase"
 
     init = drift_plan(p.A, x0, N, 3)
-    carry0 = _Carry(x0, jnp.zeros((), dtype), init, p.r_hold0, jnp.asarray(0), jnp.asarray(True))
+    key, gm0 = start(config.disturbed, p.disturbances, key, 3, "DockingParams")
+    carry0 = _Carry(
+        x0, jnp.zeros((), dtype), init, p.r_hold0, jnp.asarray(0), jnp.asarray(True), key, gm0
+    )
 
     def cone_active(c: _Carry):
         if two_phase:  # paper 002: from the phase switch on
@@ -403,10 +428,13 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
 
     def step(c: _Carry, _):
         cone_on = cone_active(c)
-        ocp = _build_ocp(p, c.x, c.t, c.r_hold, cone_on, c.plan.x[:, :2], N)
+        key, k_act, x_meas = sense(config.disturbed, c.key, c.x, p.disturbances, POS, (3, 4), (2,))
+        ocp = _build_ocp(p, x_meas, c.t, c.r_hold, cone_on, c.plan.x[:, :2], N)
 
         sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
+        # MIB on the force axes (the torque comes from thruster pairs), (1 + w) on every axis
+        u, gm_next = actuate(config.disturbed, k_act, c.gm, u, p.disturbances, p.ts, p.ts, POS)
         x_next = p.A @ c.x + p.B @ u
 
         # Shrink rule on the state reached: errors to the current holding state.
@@ -441,7 +469,9 @@ def fly_docking(p: DockingParams, x0, config: DockingConfig = DockingConfig()):
             obstacle_margin=jnp.where(p.obstacle_mask > 0, obs_margin, jnp.inf),
             cone_margin=jnp.where(cone_on, cone_slack, jnp.inf),
         )
-        nxt = _Carry(x_next, t_next, shift_solution(sol), r_hold, phase, c.active & ~docked)
+        nxt = _Carry(
+            x_next, t_next, shift_solution(sol), r_hold, phase, c.active & ~docked, key, gm_next
+        )
         nxt = jax.tree.map(lambda a, b: jnp.where(c.active, a, b), nxt, c)
         return nxt, info
 

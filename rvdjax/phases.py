@@ -45,7 +45,18 @@ import numpy as np
 from jax import lax
 
 from rvdjax.constraints import approach_cone_rows_3d, overshoot_row, velocity_bound_rows
+from rvdjax.disturbances import (
+    THESIS_DISTURBANCES,
+    Disturbances,
+    actuate,
+    sense,
+    start,
+)
+from rvdjax.disturbances import (
+    disturbances as make_disturbances,
+)
 from rvdjax.ocp import OCP
+from rvdjax.propagate import Drag, Orbit, circular_orbit, propagate_step
 from rvdjax.solver import Plan, SolverSettings, Status, shift_solution, solve
 
 __all__ = [
@@ -63,6 +74,7 @@ __all__ = [
 POS = (0, 1, 2)
 VEL = (3, 4, 5)
 N_PHASES = 3
+TRUTHS = ("linear", "two-body", "two-body-j2", "two-body-j2-drag")
 
 
 class PhaseParams(NamedTuple):
@@ -89,6 +101,10 @@ class PhaseParams(NamedTuple):
         switch_tol: () relative tolerance on r1 and r2 for the phase switches.
         setpoint: () rendezvous reference: 1.0 the set point at r1 on the approach-cone axis
             (Eq. 3.2), 0.0 the target's centre of mass (Table 3.6 "QP without set point").
+        orbit: the target's inertial state at t = 0 (nonlinear truths, ``PhaseConfig.truth``).
+        drag: ballistic coefficients of chaser and target (truth "two-body-j2-drag").
+        disturbances: navigation noise, thrust error and minimum impulse bit
+            (:mod:`rvdjax.disturbances`; used when ``PhaseConfig.disturbed``).
     """
 
     A: jnp.ndarray
@@ -113,6 +129,9 @@ class PhaseParams(NamedTuple):
     rho: jnp.ndarray
     switch_tol: jnp.ndarray
     setpoint: jnp.ndarray
+    orbit: Orbit | None = None
+    drag: Drag | None = None
+    disturbances: Disturbances | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +146,15 @@ class PhaseConfig:
         rendezvous_cost: "qp" (Eq. 3.2, the thesis' default) or "lp": the rendezvous phase
             minimises the 1-norm cost of Eq. 2.10 (Sec. 3.6.4, Table 3.6), see
             :func:`_build_ocp`. "lp" splits the input of every phase (one shape for all).
+        truth: "linear" (the impulsive CW model itself, exact), or the nonlinear relative
+            motion of :mod:`rvdjax.propagate` for model mismatch (paper 003 Ch. 5 flew its
+            guidance in the 42 simulator with gravity harmonics and drag): "two-body",
+            "two-body-j2" or "two-body-j2-drag". The delta-v is applied at the start of the
+            step, then both bodies coast for Ts.
+        substeps: RK4 steps per sample time for the nonlinear truths (<= ~10 s each).
+        disturbed: fly with ``PhaseParams.disturbances`` (paper 003 Ch. 5): the guidance sees
+            a noisy state, the thrusters apply (1 + w) dv with the Gauss-Markov error w and
+            drop pulses shorter than the minimum impulse bit. Needs a PRNG key.
     """
 
     N: tuple[int, int, int] = (30, 15, 12)
@@ -134,6 +162,9 @@ class PhaseConfig:
     settings: SolverSettings = SolverSettings()
     n_faces: int = 4
     rendezvous_cost: str = "qp"
+    truth: str = "linear"
+    substeps: int = 3
+    disturbed: bool = False
 
     def __post_init__(self):
         if len(self.N) != N_PHASES or any(not isinstance(k, int) or k < 1 for k in self.N):
@@ -142,6 +173,10 @@ class PhaseConfig:
             raise ValueError(f"n_steps must be an int >= 1, got {self.n_steps!r}")
         if not isinstance(self.n_faces, int) or self.n_faces < 3:
             raise ValueError(f"n_faces must be an int >= 3, got {self.n_faces!r}")
+        if self.truth not in TRUTHS:
+            raise ValueError(f"truth must be one of {TRUTHS}, got {self.truth!r}")
+        if not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ValueError(f"substeps must be an int >= 1, got {self.substeps!r}")
         if self.rendezvous_cost not in ("qp", "lp"):
             raise ValueError(f"rendezvous_cost must be 'qp' or 'lp', got {self.rendezvous_cost!r}")
 
@@ -149,8 +184,9 @@ class PhaseConfig:
 class PhaseInfo(NamedTuple):
     """Per-step record (leading axis: step)."""
 
-    x: jnp.ndarray  # (6,) state at the step start
+    x: jnp.ndarray  # (6,) true state at the step start
     u: jnp.ndarray  # (3,) applied delta-v [m/s] (zero once docked)
+    u_cmd: jnp.ndarray  # (3,) commanded delta-v [m/s] (= u unless disturbed)
     t: jnp.ndarray  # time at the step start [s]
     ts: jnp.ndarray  # sample time of this step [s]
     phase: jnp.ndarray  # 0 rendezvous, 1 approach, 2 docking
@@ -222,12 +258,24 @@ def phase_params(
     switch_tol: float = 0.05,
     setpoint: bool = True,
     x0=None,
+    inclination_deg: float = 51.6,
+    drag_area_m2: float = 0.0366,
+    cd_chaser: float = 1.4,
+    cd_target: float = 2.0,
+    target_mass: float | None = None,
+    disturbances: Disturbances | None = None,
 ) -> PhaseParams:
     """Build and check :class:`PhaseParams` from physical values (before any jit).
 
     ``ts``, ``u_max``, ``lam``, ``los_deg`` take three values (one per phase), ``Q`` and ``R``
     three matrices. The approach axis is the port direction in the body frame. ``setpoint``
     False makes the rendezvous reference the target's centre of mass (Table 3.6).
+    ``inclination_deg``, ``drag_area_m2``, ``cd_chaser``, ``cd_target`` and ``target_mass``
+    (default: ``mass``) set up the nonlinear truths: the target's circular orbit (ascending
+    node at t = 0) and both bodies' ballistic coefficients C_D A / m (paper 003 Sec. 5.4:
+    C_D = 1.4 chaser, 2.0 target). ``disturbances`` (default: paper 003 Ch. 5's navigation
+    noise and thrust error, :data:`rvdjax.disturbances.THESIS_DISTURBANCES`) act only in runs
+    with ``PhaseConfig(disturbed=True)``.
 
     Raises ValueError naming the parameter: mass, altitude, every ts, u_max, lam, r1, r2, r3,
     v_max, rho > 0; 0 < los < 90 deg; r3 < r2 < r1; R positive definite and Q positive
@@ -296,6 +344,17 @@ def phase_params(
                 f"x0 starts inside the keep-out sphere ({np.linalg.norm(x0[:3]):.3g} m from the "
                 f"target, r1 = {r1} m)"
             )
+    target_mass = mass if target_mass is None else target_mass
+    for name, v in (
+        ("drag_area_m2", drag_area_m2),
+        ("cd_chaser", cd_chaser),
+        ("cd_target", cd_target),
+        ("target_mass", target_mass),
+    ):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {v}")
+    if not (np.isfinite(inclination_deg) and 0.0 <= inclination_deg <= 180.0):
+        raise ValueError(f"inclination_deg must be in [0, 180] deg, got {inclination_deg}")
     n = mean_motion(altitude_m=altitude_m)
     Ac, _ = cw_continuous(n, mass)
     A, B, P = [], [], []
@@ -328,6 +387,14 @@ def phase_params(
         rho=f(rho),
         switch_tol=f(switch_tol),
         setpoint=f(1.0 if setpoint else 0.0),
+        orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
+        drag=Drag(
+            b_chaser=f(cd_chaser * drag_area_m2 / mass),
+            b_target=f(cd_target * drag_area_m2 / target_mass),
+        ),
+        disturbances=(
+            make_disturbances(**THESIS_DISTURBANCES) if disturbances is None else disturbances
+        ),
     )
 
 
@@ -563,16 +630,28 @@ class _Carry(NamedTuple):
     phase: jnp.ndarray
     fresh: jnp.ndarray  # the phase just changed: cold (drift) start
     active: jnp.ndarray
+    orbit: Orbit | None  # target inertial state (nonlinear truths)
+    key: jnp.ndarray | None  # PRNG key (disturbed runs)
+    gm: jnp.ndarray | None  # (3, 2) Gauss-Markov thrust-error states (disturbed runs)
 
 
-def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
-    """Fly the three-phase maneuver. Pure function of (p, x0): jit / vmap apply.
+def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig(), key=None):
+    """Fly the three-phase maneuver. Pure function of (p, x0, key): jit / vmap apply.
+
+    ``key`` (a PRNG key) drives the navigation noise and thrust error of a disturbed run
+    (``config.disturbed``); undisturbed runs ignore it. Phase switches and docking are decided
+    on the true state (the 5 cm navigation noise is far inside the switch margins).
 
     Returns:
         (PhaseInfo with a leading axis of n_steps, PhaseMetrics).
     """
     dtype = p.A.dtype
     x0 = jnp.asarray(x0, dtype)
+    if config.truth != "linear" and p.orbit is None:
+        raise ValueError(f"truth={config.truth!r} needs PhaseParams.orbit (the target's orbit)")
+    if config.truth == "two-body-j2-drag" and p.drag is None:
+        raise ValueError("truth='two-body-j2-drag' needs PhaseParams.drag")
+    key, gm0 = start(config.disturbed, p.disturbances, key, 3, "PhaseParams")
     ocp0 = _build_ocp(p, config, x0, jnp.zeros((), dtype), jnp.asarray(0))
     carry0 = _Carry(
         x0,
@@ -581,6 +660,9 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
         jnp.asarray(0),
         jnp.asarray(True),
         jnp.asarray(True),
+        p.orbit if config.truth != "linear" else None,
+        key,
+        gm0,
     )
     nf = config.n_faces
     # LP: the 12 L1 state-cost rows are cost, not constraints
@@ -590,7 +672,8 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
     ).astype(dtype)
 
     def step(c: _Carry, _):
-        ocp = _build_ocp(p, config, c.x, c.t, c.phase)
+        key, k_act, x_meas = sense(config.disturbed, c.key, c.x, p.disturbances, POS, VEL)
+        ocp = _build_ocp(p, config, x_meas, c.t, c.phase)
         init = jax.tree.map(lambda a, b: jnp.where(c.fresh, a, b), _drift_plan(ocp), c.plan)
 
         def fly(ocp):
@@ -605,7 +688,10 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
         u0 = sol.u[0]
         if config.rendezvous_cost == "lp":  # split (rendezvous) or [u; dummy]
             u0 = u0[:3] - jnp.where(c.phase == 0, u0[3:], 0.0)
-        u = jnp.where(c.active, u0, 0.0)
+        u_cmd = jnp.where(c.active, u0, 0.0)
+        u, gm_next = actuate(  # delta-v input: impulse m dv
+            config.disturbed, k_act, c.gm, u_cmd, p.disturbances, p.mass, p.ts[c.phase], POS
+        )
         # INFEASIBLE from the solver means "a soft row is violated at the optimum"; the cone
         # penalty rows (rho = lambda) are an external penalty in the thesis, not constraints,
         # so only the rows standing for hard constraints make a step infeasible here.
@@ -617,7 +703,19 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
             sol.status,
         )
         ts = p.ts[c.phase]
-        x_next = p.A[c.phase] @ c.x + p.B[c.phase] @ u
+        if config.truth == "linear":
+            x_next, orbit_next = p.A[c.phase] @ c.x + p.B[c.phase] @ u, None
+        else:  # impulse at the step start (Eq. 3.1), then both bodies coast for Ts
+            orbit_next, x_next = propagate_step(
+                c.orbit,
+                c.x.at[3:].add(u),
+                jnp.zeros(3, dtype),
+                p.mass,
+                ts,
+                config.substeps,
+                config.truth != "two-body",
+                p.drag if config.truth == "two-body-j2-drag" else None,
+            )
         t_next = c.t + ts
 
         # phase switches on the state reached (Algorithm 1)
@@ -638,6 +736,7 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
         info = PhaseInfo(
             x=c.x,
             u=u,
+            u_cmd=u_cmd,
             t=c.t,
             ts=ts,
             phase=c.phase,
@@ -654,7 +753,17 @@ def fly_phases(p: PhaseParams, x0, config: PhaseConfig = PhaseConfig()):
             speed_margin=jnp.where(c.phase == 2, p.v_max - jnp.max(jnp.abs(c.x[3:])), inf),
             port_distance=jnp.linalg.norm(rc - port_c),
         )
-        nxt = _Carry(x_next, t_next, shift_solution(sol), phase, phase != c.phase, ~docked)
+        nxt = _Carry(
+            x_next,
+            t_next,
+            shift_solution(sol),
+            phase,
+            phase != c.phase,
+            ~docked,
+            orbit_next,
+            key,
+            gm_next,
+        )
         nxt = jax.tree.map(lambda a, b: jnp.where(c.active, a, b), nxt, c)
         return nxt, info
 
@@ -751,7 +860,12 @@ def thesis_build(case: str, setpoint: bool = True):
 
 THESIS_ASSUMPTIONS = (
     f"circular target orbit at {ASSUMED['altitude_m'] / 1e3:.0f} km altitude (CW mean motion); "
-    "the CW model is also the truth (the thesis flies 42 with drag and J2)",
+    "the CW model is also the truth unless --truth two-body / two-body-j2 / two-body-j2-drag "
+    "(the thesis flies 42 with degree-8 gravity and drag)",
+    "nonlinear truths: target orbit inclined 51.6 deg (ISS deployment; thesis silent), J2 "
+    "only, exponential atmosphere (Vallado Table 8-4), both 14 kg 6U CubeSats presenting "
+    "0.0366 m^2 (10 x 36.6 cm face) to the flow with C_D 1.4 (chaser) and 2.0 (target) (thesis "
+    "Sec. 5.4)",
     f"phase radii: keep-out r1 = {ASSUMED['r1']:g} m, approach-to-docking switch "
     f"r2 = {ASSUMED['r2']:g} m, docked within r3 = {ASSUMED['r3']:g} m of the port",
     f"phase switches at r1 (1 + {ASSUMED['switch_tol']:g}) inside the 15 deg approach cone and at "

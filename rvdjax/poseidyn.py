@@ -49,6 +49,14 @@ import numpy as np
 from jax import lax
 
 from rvdjax.constraints import entry_cone_rows, rotating_hyperplane_rows, thrust_box_rows
+from rvdjax.disturbances import (
+    LAB_DISTURBANCES,
+    Disturbances,
+    actuate,
+    disturbances,
+    sense,
+    start,
+)
 from rvdjax.ocp import OCP
 from rvdjax.solver import Plan, SolverSettings, Status, drift_plan, shift_solution, solve_if
 
@@ -110,6 +118,7 @@ class PoseidynParams(NamedTuple):
     dock_tol: jnp.ndarray
     dock_speed_tol: jnp.ndarray
     mass: jnp.ndarray
+    disturbances: Disturbances | None = None  # disturbed runs (PoseidynConfig.disturbed)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +139,7 @@ class PoseidynConfig:
     substeps: int = 50
     predict_cone: bool = True
     settings: SolverSettings = SolverSettings(max_iter=100)
+    disturbed: bool = False  # noisy navigation, thrust error, MIB (rvdjax.disturbances)
 
     def __post_init__(self):
         for name in ("N", "n_steps", "substeps"):
@@ -302,6 +312,7 @@ def poseidyn_params(
         dock_tol=f(float(dock_tol)),
         dock_speed_tol=f(float(dock_speed_tol)),
         mass=f(float(mass)),
+        disturbances=disturbances(**LAB_DISTURBANCES),
     )
 
 
@@ -364,10 +375,16 @@ class _Carry(NamedTuple):
     plan: Plan
     cone_on: jnp.ndarray
     active: jnp.ndarray
+    key: jnp.ndarray | None = None  # PRNG key (disturbed runs)
+    gm: jnp.ndarray | None = None  # (2, 2) Gauss-Markov thrust-error states
 
 
-def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig()):
-    """Fly one docking maneuver. Pure function of (p, x0): jit / vmap apply.
+def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(), key=None):
+    """Fly one docking maneuver. Pure function of (p, x0, key): jit / vmap apply.
+
+    ``key`` drives the navigation noise and thrust error of a disturbed run
+    (``config.disturbed``); undisturbed runs ignore it. Docking and the margins are judged on
+    the true state.
 
     Returns:
         (PoseidynInfo with a leading axis of n_steps, PoseidynMetrics).
@@ -379,7 +396,8 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
 
     init = drift_plan(p.A, x0, N, NU)
     near0 = jnp.linalg.norm(x0[:2] - p.dock) <= p.cone_range
-    carry0 = _Carry(x0, jnp.zeros((), dtype), init, near0, jnp.asarray(True))
+    key, gm0 = start(config.disturbed, p.disturbances, key, NU, "PoseidynParams")
+    carry0 = _Carry(x0, jnp.zeros((), dtype), init, near0, jnp.asarray(True), key, gm0)
     tau = p.ts * jnp.arange(1, M + 1, dtype=dtype) / M  # sub-sample instants in a step
 
     def step(c: _Carry, _):
@@ -387,10 +405,12 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
         # predicted activation: stages whose previous-plan position lies in the cone range
         ahead = jnp.linalg.norm(c.plan.x[:, :2] - p.dock, axis=-1) <= p.cone_range
         stage_on = cone_on | (ahead & predict)
-        ocp = _build_ocp(p, c.x, c.t, stage_on, N)
+        key, k_act, x_meas = sense(config.disturbed, c.key, c.x, p.disturbances, (0, 1), (2, 3))
+        ocp = _build_ocp(p, x_meas, c.t, stage_on, N)
 
         sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
+        u, gm_next = actuate(config.disturbed, k_act, c.gm, u, p.disturbances, p.ts, p.ts, (0, 1))
         x_next = p.A @ c.x + p.B @ u
 
         # continuous truth inside the step (double integrator under constant force)
@@ -423,7 +443,9 @@ def fly_poseidyn(p: PoseidynParams, x0, config: PoseidynConfig = PoseidynConfig(
             plane_margin=n_now @ (c.x[:2] - p.obstacle) - p.r_obs,
             cone_margin=jnp.min(cone),
         )
-        nxt = _Carry(x_next, c.t + p.ts, shift_solution(sol), cone_on, c.active & ~docked)
+        nxt = _Carry(
+            x_next, c.t + p.ts, shift_solution(sol), cone_on, c.active & ~docked, key, gm_next
+        )
         nxt = jax.tree.map(lambda a_, b_: jnp.where(c.active, a_, b_), nxt, c)
         return nxt, info
 

@@ -20,6 +20,12 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.disturbances import (
+    Disturbances,
+    actuate,
+    sense,
+    start,
+)
 from rvdjax.ocp import OCP
 from rvdjax.problems import obstacle_rows
 from rvdjax.propagate import Orbit, propagate_step
@@ -52,6 +58,8 @@ class LoopParams(NamedTuple):
         stop_radius: () the run ends when |r| <= stop_radius [m] (paper 000: 2.3 m).
         orbit: the target's inertial state (:class:`rvdjax.propagate.Orbit`) for a nonlinear
             truth (``LoopConfig.truth``); None for the linear truth.
+        disturbances: navigation noise, thrust-amplitude error and minimum impulse bit
+            (:mod:`rvdjax.disturbances`) of a disturbed run (``LoopConfig.disturbed``).
     """
 
     A: jnp.ndarray
@@ -69,6 +77,7 @@ class LoopParams(NamedTuple):
     mass: jnp.ndarray
     stop_radius: jnp.ndarray
     orbit: Orbit | None = None
+    disturbances: Disturbances | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +92,9 @@ class LoopConfig:
             the target integrated in the inertial frame (RK4, ``substeps`` per Ts, thrust held
             constant in the LVLH frame; :mod:`rvdjax.propagate`) — model mismatch.
         substeps: RK4 steps per sample time for the nonlinear truth.
+        disturbed: the guidance sees a noisy state and the thrusters apply (1 + w) u with the
+            Gauss-Markov error w, dropping pulses shorter than the minimum impulse bit
+            (``LoopParams.disturbances``; needs a PRNG key).
     """
 
     N: int = 30
@@ -90,6 +102,7 @@ class LoopConfig:
     settings: SolverSettings = SolverSettings()
     truth: str = "linear"
     substeps: int = 3
+    disturbed: bool = False
 
     def __post_init__(self):
         if self.truth not in ("linear", "two-body", "two-body-j2"):
@@ -103,8 +116,8 @@ class LoopConfig:
 class StepInfo(NamedTuple):
     """Per-step record (leading axis: step)."""
 
-    x: jnp.ndarray  # (nx,) state at the start of the step (measured = truth here)
-    u: jnp.ndarray  # (nu,) applied input [N] (zero after docking)
+    x: jnp.ndarray  # (nx,) true state at the start of the step
+    u: jnp.ndarray  # (nu,) applied input [N] (zero after docking; disturbed: after the errors)
     status: jnp.ndarray  # solver status (-1 after docking: no solve needed)
     iterations: jnp.ndarray
     objective: jnp.ndarray
@@ -135,6 +148,8 @@ def validate_loop(p: LoopParams, x0, config: LoopConfig | None = None) -> None:
     import numpy as np
 
     for name, a in list(zip(LoopParams._fields, p, strict=True)) + [("x0", x0)]:
+        if a is None:
+            continue
         if not np.all(np.isfinite(np.asarray(a, dtype=float))):
             raise ValueError(f"{name} contains NaN or inf; it must be finite")
     for name in ("mass", "ts", "stop_radius", "rho"):
@@ -164,6 +179,8 @@ def validate_loop(p: LoopParams, x0, config: LoopConfig | None = None) -> None:
         )
     if config is not None and config.truth != "linear" and p.orbit is None:
         raise ValueError(f"truth={config.truth!r} needs LoopParams.orbit (the target's orbit)")
+    if config is not None and config.disturbed and p.disturbances is None:
+        raise ValueError("a disturbed run needs LoopParams.disturbances")
 
 
 def _box_rows(u_max, N):
@@ -211,10 +228,16 @@ class _Carry(NamedTuple):
     plan: Plan
     active: jnp.ndarray
     orbit: Orbit | None = None
+    key: jnp.ndarray | None = None  # PRNG key (disturbed runs)
+    gm: jnp.ndarray | None = None  # (nu, 2) Gauss-Markov thrust-error states
 
 
-def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
-    """Fly one maneuver from x0. Pure: jit, vmap over (p, x0) and grad apply.
+def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig(), key=None):
+    """Fly one maneuver from x0. Pure: jit, vmap over (p, x0, key) and grad apply.
+
+    ``key`` (a PRNG key) drives the navigation noise and thrust error of a disturbed run
+    (``config.disturbed``); undisturbed runs ignore it. Docking and the keep-out margins are
+    judged on the true state.
 
     Returns:
         (StepInfo with a leading axis of n_steps, Metrics).
@@ -232,13 +255,20 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
         raise ValueError(f"truth={config.truth!r} needs LoopParams.orbit (the target's orbit)")
     orbit0 = p.orbit if config.truth != "linear" else None
     active0 = jnp.linalg.norm(x0[:d]) > p.stop_radius
-    carry0 = _Carry(x0, jnp.zeros((), dtype), init, active0, orbit0)
+    key, gm0 = start(config.disturbed, p.disturbances, key, nu, "LoopParams")
+    carry0 = _Carry(x0, jnp.zeros((), dtype), init, active0, orbit0, key, gm0)
 
     def step(c: _Carry, _):
-        ocp = build_ocp(p, c.x, c.t, c.plan.x[:, :d], N)
+        key, k_act, x_meas = sense(
+            config.disturbed, c.key, c.x, p.disturbances, tuple(range(d)), tuple(range(d, 2 * d))
+        )
+        ocp = build_ocp(p, x_meas, c.t, c.plan.x[:, :d], N)
 
         sol = solve_if(c.active, ocp, config.settings, init=c.plan)
         u = jnp.where(c.active, sol.u[0], 0.0)
+        u, gm_next = actuate(  # force input: impulse F Ts
+            config.disturbed, k_act, c.gm, u, p.disturbances, p.ts, p.ts, tuple(range(nu))
+        )
         if config.truth == "linear":
             x_next, orbit_next = p.A @ c.x + p.B @ u, None
         else:
@@ -258,7 +288,7 @@ def run_closed_loop(p: LoopParams, x0, config: LoopConfig = LoopConfig()):
             keepout_margin=margin,
         )
         active = c.active & (jnp.linalg.norm(x_next[:d]) > p.stop_radius)
-        nxt = _Carry(x_next, c.t + p.ts, shift_solution(sol), active, orbit_next)
+        nxt = _Carry(x_next, c.t + p.ts, shift_solution(sol), active, orbit_next, key, gm_next)
         # A finished run idles: its carry stops changing.
         nxt = jax.tree.map(lambda a, b: jnp.where(c.active, a, b), nxt, c)
         return nxt, info

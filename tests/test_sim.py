@@ -108,8 +108,20 @@ def test_unknown_scenario_is_a_clear_error(capsys):
 def test_list_names_every_scenario(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
-    for name in SCENARIOS:
-        assert name in out
+    # one line per scenario, its name as the first word (long names stay separate)
+    assert [line.split()[0] for line in out.splitlines()] == list(SCENARIOS)
+
+
+def test_run_disturbed_json(capsys):
+    """`rvdjax run NAME --disturbed --seed S`: noise and thrust error from PRNG key S; the
+    JSON says so and lists the disturbance assumptions."""
+    import json
+
+    assert main(["run", "rotating-target-a", "--disturbed", "--seed", "4", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["disturbed"] is True and out["seed"] == 4
+    assert out["docked"] is True and np.isfinite(out["effort_l1_N_s"])
+    assert any("Gauss-Markov" in a for a in out["assumptions"])
 
 
 def test_run_command_json_and_plot(capsys, tmp_path):
