@@ -92,8 +92,11 @@ ASSUMPTIONS_IDVD = (
     "IDVD: entry cone enforced within 0.75 m of the docking point in the plan (Tables 4-5); "
     "the truth is checked against Table 1's 0.5 m range",
     "IDVD: d_i >= 1e-6 (d_i > 0, Eq. 13c), also d_b1 >= 1e-6",
-    "IDVD: planned once and flown open loop by default (truth = model); the paper re-plans "
-    "at 5 Hz with <= 15 IPOPT iterations",
+    "IDVD: planned once and flown open loop by default (truth = model); `rvdjax compare` "
+    "re-plans at 5 Hz with <= 15 IPOPT iterations as the paper, warm-started from the "
+    "remaining part of the current plan re-parametrised to start now (primal) and its "
+    "multipliers; a non-converged but feasible re-plan is flown (paper 001 Sec. 5), an "
+    "infeasible one is dropped (the current plan continues)",
 )
 
 _NPAR = 5  # a5, b5, da1, da2, db2
@@ -151,6 +154,9 @@ class IDVDPlan:
     status: str
     iterations: int
     z: np.ndarray  # decision vector (warm start)
+    lam_x: np.ndarray | None = None  # bound multipliers (IPOPT warm start)
+    lam_g: np.ndarray | None = None  # constraint multipliers (IPOPT warm start)
+    feasible: bool = True  # bounds and constraints hold to 1e-6 (also when not converged)
 
     def force(self, t, mass):
         """Planned force (2,) at absolute time t (held at zero after the plan ends)."""
@@ -163,6 +169,28 @@ class IDVDPlan:
         uy, _ = _accel(self.ay, *self.dy, ky)
         return mass * np.array([ux, uy])
 
+    def shifted(self, t, mass, u_max, S):
+        """Decision vector of the remaining part of this plan, re-parametrised to start at
+        absolute time ``t`` (a warm start for a re-plan: with k = k_t + (1 - k_t) k', a
+        degree-5 polynomial stays degree 5 with a_5' = a_5 (1 - k_t)^5, and the time map
+        d_1 k + d_2 k^2 becomes d_1' = (1 - k_t)(d_1 + 2 d_2 k_t), d_2' = d_2 (1 - k_t)^2).
+        The slacks are the plan's |u| at the new points."""
+        tau = min(max(t - self.t0, 0.0), self.tf)
+        kx = float(_kappa_of_t(*self.dx, tau, np))
+        ky = float(_kappa_of_t(*self.dy, tau, np))
+        (d1, d2), (e1, e2) = self.dx, self.dy
+        z = [
+            self.ax[5] * (1 - kx) ** 5,
+            self.ay[5] * (1 - ky) ** 5,
+            max((1 - kx) * (d1 + 2 * d2 * kx), _EPS_D),
+            max(d2 * (1 - kx) ** 2, _EPS_D),
+            max(e2 * (1 - ky) ** 2, _EPS_D),
+        ]
+        k = np.linspace(0.0, 1.0, S)
+        ux = mass * _accel(self.ax, d1, d2, kx + (1 - kx) * k)[0]
+        uy = mass * _accel(self.ay, e1, e2, ky + (1 - ky) * k)[0]
+        return np.r_[z, np.minimum(np.abs(ux) + 1e-9, u_max), np.minimum(np.abs(uy) + 1e-9, u_max)]
+
     def position(self, t):
         tau = np.clip(np.asarray(t, float) - self.t0, 0.0, self.tf)
         kx = _kappa_of_t(*self.dx, tau, np)
@@ -174,7 +202,19 @@ class _NLP:
     """CasADi/IPOPT IDVD problem with parameters (x, y, vx, vy, time budget)."""
 
     def __init__(
-        self, dock, obstacle, r_obs, axis, half, cone_range, u_max, mass, S, max_iter, cone=True
+        self,
+        dock,
+        obstacle,
+        r_obs,
+        axis,
+        half,
+        cone_range,
+        u_max,
+        mass,
+        S,
+        max_iter,
+        cone=True,
+        warm=False,
     ):
         import casadi as ca
 
@@ -227,6 +267,7 @@ class _NLP:
         self.lbg, self.ubg = lbg, ubg
         self._coef = ca.Function("coef", [z, par], [ca.vertcat(*cx), ca.vertcat(*cy), db1])
         nlp = {"x": ca.vertcat(z, sx, sy), "p": par, "f": cost, "g": ca.vertcat(*g)}
+        self._g = ca.Function("g", [nlp["x"], par], [nlp["g"]])
         opts = {
             "ipopt.print_level": 0,
             "print_time": False,
@@ -234,13 +275,37 @@ class _NLP:
             "ipopt.tol": 1e-8,
             "ipopt.sb": "yes",
         }
+        if warm:  # paper 001: "Using the IPOPT warm start capabilities" (primal and dual)
+            opts.update(
+                {
+                    "ipopt.warm_start_init_point": "yes",
+                    "ipopt.mu_init": 1e-6,
+                    "ipopt.warm_start_bound_push": 1e-9,
+                    "ipopt.warm_start_bound_frac": 1e-9,
+                    "ipopt.warm_start_slack_bound_push": 1e-9,
+                    "ipopt.warm_start_slack_bound_frac": 1e-9,
+                    "ipopt.warm_start_mult_bound_push": 1e-9,
+                }
+            )
         self.solver = ca.nlpsol("idvd", "ipopt", nlp, opts)
 
-    def solve(self, state, budget, t0, x_init):
+    def solve(self, state, budget, t0, x_init, lam_x=None, lam_g=None):
         par = np.r_[state, budget]
-        sol = self.solver(x0=x_init, p=par, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
+        warm = {} if lam_x is None else {"lam_x0": lam_x, "lam_g0": lam_g}
+        sol = self.solver(
+            x0=x_init, p=par, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg, **warm
+        )
         st = self.solver.stats()
         x = np.asarray(sol["x"]).ravel()
+        g = np.asarray(self._g(x, par)).ravel()
+        tol = 1e-6
+        feasible = bool(
+            np.all(np.isfinite(x))
+            and np.all(x >= np.asarray(self.lbx) - tol)
+            and np.all(x <= np.asarray(self.ubx) + tol)
+            and np.all(g >= np.asarray(self.lbg) - tol)
+            and np.all(g <= np.asarray(self.ubg) + tol)
+        )
         z = x[:_NPAR]
         cx, cy, db1 = (np.asarray(v).ravel() for v in self._coef(z, par))
         return IDVDPlan(
@@ -255,6 +320,9 @@ class _NLP:
             status=str(st["return_status"]),
             iterations=int(st["iter_count"]),
             z=x,
+            lam_x=np.asarray(sol["lam_x"]).ravel(),
+            lam_g=np.asarray(sol["lam_g"]).ravel(),
+            feasible=feasible,
         )
 
 
@@ -265,9 +333,19 @@ def _initial_guess(state, dock, budget, S, side=1.0):
 
 
 def plan_idvd(
-    tuning: str = "initial", *, x0=(3.5, 3.5, 0.0, 0.0), max_iter: int = 3000, **overrides
+    tuning: str = "initial",
+    *,
+    x0=(3.5, 3.5, 0.0, 0.0),
+    max_iter: int = 3000,
+    replan_max_iter: int | None = None,
+    **overrides,
 ):
-    """Solve the one-shot IDVD NLP from ``x0``; returns (IDVDPlan, scenario dict)."""
+    """Solve the one-shot IDVD NLP from ``x0``.
+
+    Returns:
+        (IDVDPlan, scenario dict, the NLP for re-planning: the same problem with IPOPT capped
+        at ``replan_max_iter`` iterations, or at ``max_iter`` when that is None).
+    """
     cfg = {**IDVD_TUNINGS[tuning], **overrides}
     p = poseidyn_params(x0=x0, u_max=cfg["u_max"])
     scen = dict(
@@ -299,6 +377,7 @@ def plan_idvd(
     # cone warm started from it (IPOPT reports infeasibility from the cold start)
     pre = _NLP(*args, cone=False)
     nlp = _NLP(*args)
+    replan = nlp if replan_max_iter is None else _NLP(*args[:-1], int(replan_max_iter), warm=True)
     x0 = np.asarray(x0, float)
     best = None
     for side in (1.0, -1.0):
@@ -306,7 +385,7 @@ def plan_idvd(
         plan = nlp.solve(x0, scen["t_max"], 0.0, pre.solve(x0, scen["t_max"], 0.0, guess).z)
         if best is None or (plan.success, -plan.cost) > (best.success, -best.cost):
             best = plan
-    return best, scen, nlp
+    return best, scen, replan
 
 
 def _cone_slack(r, dock, axis, half):
@@ -337,6 +416,8 @@ def run_idvd(
         replan_period_s: None (plan once, default) or the re-planning period [s]
             (paper: 0.2 s).
         freeze_s: stop re-planning when less than this remains of the current plan [s].
+        replan_max_iter: IPOPT iteration cap of a re-plan (paper 001: at most 15); a re-plan
+            that does not converge is discarded and the current plan kept.
         t_extra_s: keep simulating this long after the planned final time.
         overrides: replace entries of :data:`IDVD_TUNINGS` (t_max, u_max, cone_range_idvd,
             n_points).
@@ -353,7 +434,12 @@ def run_idvd(
     if replan_period_s is not None and not (replan_period_s > 0):
         raise ValueError(f"replan_period_s must be None or > 0 s, got {replan_period_s}")
     t_start = time.perf_counter()
-    plan, sc, nlp = plan_idvd(tuning, x0=x0, **overrides)
+    plan, sc, nlp = plan_idvd(
+        tuning,
+        x0=x0,
+        replan_max_iter=replan_max_iter if replan_period_s is not None else None,
+        **overrides,
+    )
     first = plan
     m = sc["mass"]
     dock, obs = sc["dock"], sc["obstacle"]
@@ -367,18 +453,22 @@ def run_idvd(
     cone_min = np.inf
     max_f = 0.0
     t_dock = np.inf
-    n_solves, fails = 1, 0
+    n_solves, fails, unconverged, iters = 1, 0, 0, []
     next_replan = replan_period_s if replan_period_s is not None else np.inf
     for _ in range(n_steps):
         if t >= next_replan - 1e-9:
             next_replan += replan_period_s
             remaining = plan.t0 + plan.tf - t
             if remaining > freeze_s:
-                guess = plan.z
-                new = nlp.solve(x, sc["t_max"] - t, t, guess)
+                guess = plan.shifted(t, m, sc["u_max"], nlp.S)
+                new = nlp.solve(x, sc["t_max"] - t, t, guess, plan.lam_x, plan.lam_g)
                 n_solves += 1
-                if new.success:
+                iters.append(new.iterations)
+                # paper 001: a non-converged but feasible re-plan is flown; an infeasible one
+                # is not (here: the current plan is kept)
+                if new.success or new.feasible:
                     plan = new
+                    unconverged += not new.success
                 else:
                     fails += 1
         u = plan.force(t + 0.5 * dt_sim, m)  # ZOH of the mid-interval force (O(h^2) drift)
@@ -438,6 +528,8 @@ def run_idvd(
         solver_iterations=first.iterations,
         n_solves=n_solves,
         n_failed_replans=fails,
+        n_unconverged_replans=unconverged,
+        mean_replan_iterations=float(np.mean(iters)) if iters else 0.0,
         solve_time_s=time.perf_counter() - t_start,
         plan=first,
         t=np.asarray(ts),
