@@ -274,7 +274,8 @@ def cmd_compare(args) -> int:
         print(format_comparison(sc.name, rows, sc.published))
         print(
             "ms/step: wall time of the closed loop per MPC step (Clarabel: host callback with "
-            "the QP assembly); NMPC row: IPOPT calls only; IDVD row: the whole planning"
+            "the QP assembly); NMPC row: IPOPT calls only; IDVD row: per IPOPT (re-)plan, "
+            "incl. the simulation"
         )
     return 0
 
