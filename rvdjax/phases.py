@@ -1,8 +1,10 @@
 """Three-phase rendezvous and docking of a 6U CubeSat (paper 003 Ch. 3, Algorithm 1).
 
-The chaser flies the Clohessy-Wiltshire model with impulsive inputs (u_k = delta-v, paper 003
-Eq. 3.1: B = A [0; I]); the model is also the truth (exact, no perturbations). Every MPC step
-solves the QP of the current phase (paper 003):
+The guidance uses the Clohessy-Wiltshire model with impulsive inputs (u_k = delta-v, paper 003
+Eq. 3.1: B = A [0; I]). The truth is that model (exact) or, with ``PhaseConfig.truth``, the
+nonlinear relative motion with J2 and drag (:mod:`rvdjax.propagate`); ``PhaseConfig.disturbed``
+adds navigation noise and thrust errors (:mod:`rvdjax.disturbances`). Every MPC step solves the
+QP of the current phase (paper 003):
 
 0. rendezvous (Eq. 3.7): quadratic cost to a set point on the approach-cone axis at the
    keep-out radius r1, rotating-plane keep-out rows n_i^T r_i >= r1 (Eqs. 3.5-3.6, normal

@@ -23,8 +23,9 @@ hyperplanes until docking is achieved"); before that they are enforced on the st
 previous-plan position lies within the range (``predict_cone``), so the plan enters the
 range inside the cone instead of being corrected after crossing into it.
 
-The truth is the same double integrator (exact ZOH, no thruster modulation or noise), so the
-figures measure the controller alone. Docking is detected on the continuous truth trajectory
+The truth is the same double integrator (exact ZOH, no thruster modulation), so the figures
+measure the controller alone; ``PoseidynConfig.disturbed`` adds navigation noise and thrust
+errors (:mod:`rvdjax.disturbances`). Docking is detected on the continuous truth trajectory
 (sub-sampled inside each ZOH step), so ``time_to_dock_s`` is not quantised to Ts, and effort
 is integrated up to that instant (paper 001 Eq. 14: u_T = int ||u||_1 dt).
 

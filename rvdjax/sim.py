@@ -5,10 +5,12 @@ step the OCP is rebuilt at the measured state, the moving keep-out zones are re-
 about the previous plan (paper 000 Eqs. 6-8, expansion points from "the reference trajectory
 of the chaser from the previous iteration"), the solver is warm-started from the shifted
 previous solution, u_0 is applied for Ts through a zero-order hold and the truth state is
-propagated exactly (the model is the truth: linear CW, matrix exponential). Runs that have
-reached the holding distance keep stepping as no-ops under a mask, so a batch has one shape;
-the whole loop of one run is one pure function of (parameters, x0), so it can be jitted,
-vmapped over initial conditions and differentiated.
+propagated exactly (linear CW, matrix exponential) or, with ``LoopConfig.truth``, by the
+nonlinear two-body / J2 propagator; ``LoopConfig.disturbed`` adds navigation noise and thrust
+errors (:mod:`rvdjax.disturbances`). Runs that have reached the holding distance keep stepping
+as no-ops under a mask, so a batch has one shape; the whole loop of one run is one pure
+function of (parameters, x0, key), so it can be jitted, vmapped over initial conditions and
+keys, and differentiated.
 """
 
 from __future__ import annotations
