@@ -540,3 +540,50 @@ def test_paper_start_feasible_keeps_the_dynamics(fastmpc_pair, fastmpc_accurate)
         res[start] = float(jnp.max(jnp.abs(_dyn_residual(nxt, sol.u, sol.x)))) / scale
     assert res["feasible"] < 1e-12
     assert res["warm"] > 1e-6
+
+
+def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate):
+    """paper_start="track": the start inputs minimise sum (x - x_prev)'Q(x - x_prev) +
+    (u - u_prev)'R(u - u_prev) under the dynamics from the new x0 — checked against the dense
+    equality-constrained least-squares solution (NumPy KKT solve), and its states are closer
+    to the previous plan (in that weighted measure) than the drift of the shifted inputs."""
+    from rvdjax.solver import _drift, _track_plan
+
+    _, sols = fastmpc_accurate
+    first = fastmpc_pair[0][0]
+    sol1 = Solution(*_index(sols, 0))
+    init = shift_solution(sol1)
+    x1 = np.asarray(sol1.x[0]) + np.array([5.0, -5.0, 2.0, 0.01, 0.0, -0.01])
+    ocp = first._replace(x0=jnp.asarray(x1))
+    u = np.asarray(_track_plan(ocp, init.u, init.x, PAPER))
+    # dense reference: z = (u_0, x_1, ..., u_{N-1}, x_N)
+    N, nx, nu = ocp.N, ocp.nx, ocp.nu
+    A, B = np.asarray(ocp.A), np.asarray(ocp.B)
+    n = N * (nx + nu)
+    H, g = np.zeros((n, n)), np.zeros(n)
+    C, b = np.zeros((N * nx, n)), np.zeros(N * nx)
+    for t in range(N):
+        iu, ix = t * (nx + nu), t * (nx + nu) + nu
+        H[iu : iu + nu, iu : iu + nu] = 2 * np.asarray(ocp.R[t])
+        H[ix : ix + nx, ix : ix + nx] = 2 * np.asarray(ocp.Q[t])
+        g[iu : iu + nu] = -2 * np.asarray(ocp.R[t]) @ np.asarray(init.u[t])
+        g[ix : ix + nx] = -2 * np.asarray(ocp.Q[t]) @ np.asarray(init.x[t])
+        C[t * nx : (t + 1) * nx, ix : ix + nx] = np.eye(nx)
+        C[t * nx : (t + 1) * nx, iu : iu + nu] = -B[t]
+        if t == 0:
+            b[:nx] = A[0] @ x1
+        else:
+            C[t * nx : (t + 1) * nx, ix - nx - nu : ix - nu] = -A[t]
+    K = np.block([[H, C.T], [C, np.zeros((N * nx, N * nx))]])
+    z = np.linalg.solve(K, np.concatenate([-g, b]))[:n]
+    u_ref = np.stack([z[t * (nx + nu) : t * (nx + nu) + nu] for t in range(N)])
+    np.testing.assert_allclose(u, u_ref, rtol=0, atol=1e-8 * FASTMPC3D["u_max"])
+
+    def tracking(uu):
+        e = np.asarray(_drift(ocp, jnp.asarray(uu))) - np.asarray(init.x)
+        du = np.asarray(uu) - np.asarray(init.u)
+        return np.einsum("ti,tij,tj->", e, np.asarray(ocp.Q), e) + np.einsum(
+            "ti,tij,tj->", du, np.asarray(ocp.R), du
+        )
+
+    assert tracking(u) < 0.5 * tracking(init.u)
