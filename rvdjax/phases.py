@@ -454,10 +454,16 @@ def _in_cone(r, apex, axis, half_angle, n_faces):
     return jnp.min(f[0] - F[0] @ x)
 
 
-def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max):
+def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max, v0=None):
     """Keep-out plane normals (N_max, 3) rotating from the bearing of r0 towards a_final
-    (paper 003 Eq. 3.6): equal angles over the real horizon, at most rate_max ts per stage,
-    along the shortest great circle (fallback: through the radial axis when antipodal)."""
+    (paper 003 Eq. 3.6): equal angles over the real horizon, at most rate_max ts per stage.
+
+    Direction (Sec. 3.1.3): when the rotation fits in the horizon at the capped rate, along
+    the shortest great circle; otherwise "in the direction most closely aligned with the
+    natural relative orbit motion" — here the sense in which the chaser's bearing turns,
+    r0 x v0 (the long way round if that is the sense of motion). Antipodal bearings fall
+    back to the plane through the radial axis.
+    """
     u0 = r0 / jnp.maximum(jnp.linalg.norm(r0), 1e-12)
     cosd = jnp.clip(jnp.dot(u0, a_final), -1.0, 1.0)
     delta = jnp.arccos(cosd)
@@ -465,6 +471,13 @@ def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max):
     alt = jnp.array([1.0, 0.0, 0.0]) - jnp.dot(u0, jnp.array([1.0, 0.0, 0.0])) * u0
     w = jnp.where(jnp.linalg.norm(w) > 1e-9, w, alt)
     w = w / jnp.maximum(jnp.linalg.norm(w), 1e-12)
+    if v0 is not None:
+        fits = delta <= rate_max * ts * n_real
+        # bearing rate direction: the tangential part of v0; against w means the long way
+        against = jnp.dot(v0 - jnp.dot(v0, u0) * u0, w) < 0.0
+        long_way = ~fits & against
+        w = jnp.where(long_way, -w, w)
+        delta = jnp.where(long_way, 2.0 * jnp.pi - delta, delta)
     step = jnp.minimum(delta / n_real, rate_max * ts)
     i = jnp.minimum(jnp.arange(1, N_max + 1), n_real)
     ang = jnp.minimum(delta, step * i)
@@ -497,7 +510,7 @@ def _build_ocp(p: PhaseParams, config: PhaseConfig, x, t, phase):
     x_ref = jnp.stack([ref0, ref1, ref2])[phase]
 
     # rows: keep-out plane (1), approach cone (nf), overshoot (1), docking cone (nf), speed (6)
-    normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n)
+    normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n, x[3:])
     F_ko = jnp.concatenate([-normals, jnp.zeros((N, 3), dtype)], -1)[:, None, :]
     f_ko = jnp.full((N, 1), -p.r1, dtype)
     F_ac, f_ac = _cone_rows(apex0, axis, p.half_angle[phase], nf)

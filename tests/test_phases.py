@@ -299,3 +299,24 @@ def test_nonlinear_truth_with_j2_and_drag():
     # the CW prediction of the same step misses the truth by a measurable amount
     cw = np.asarray(params.A[0] @ infos.x[0] + params.B[0] @ infos.u[0])
     assert 1e-4 < np.linalg.norm(cw[:3] - np.asarray(infos.x[1, :3])) < 10.0
+
+
+def test_keep_out_planes_turn_with_the_natural_motion():
+    """Paper 003 Sec. 3.1.3: a rotation that does not fit in the horizon at the capped rate
+    turns the way the chaser's bearing is already turning (the long way round if need be);
+    one that fits takes the shortest path."""
+    import jax.numpy as jnp
+
+    r0 = jnp.array([0.0, -1000.0, 0.0])
+    a_final = jnp.array([1.0, 0.0, 0.0])  # 90 deg away, the short way through +x
+    slow, fast = 1e-4, 1.0  # rad/s: 30 stages x 30 s x 1e-4 = 0.09 rad < pi / 2
+    for v0, sign in ((jnp.array([1.0, 0.0, 0.0]), 1.0), (jnp.array([-1.0, 0.0, 0.0]), -1.0)):
+        n = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, slow, v0))
+        assert np.all(sign * n[:, 0] > 0)  # turning towards +x (with the motion) or -x
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+        # rate cap: consecutive normals at most rate * ts apart
+        ang = np.arccos(np.clip(np.sum(n[1:] * n[:-1], axis=1), -1, 1))
+        assert np.all(ang <= slow * 30.0 + 1e-12)
+        n_fast = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, fast, v0))
+        np.testing.assert_allclose(n_fast[-1], np.asarray(a_final), atol=1e-12)
+        assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
