@@ -893,8 +893,10 @@ THESIS_ASSUMPTIONS = (
     "x 5 s, 0.0357 = x 1 s); the printed unit m/s^2 does not fit the delta-v input",
     "keep-out planes, overshoot, docking cone and velocity bound are soft rows with exact "
     f"penalty rho = {ASSUMED['rho']:g} (hard in the thesis); cone penalties use rho = lambda",
-    "keep-out plane normal rotates along the shortest great circle from the chaser's bearing "
-    "(the thesis' preference for the natural-motion direction is not modelled)",
+    "keep-out plane normal rotates from the chaser's bearing towards the cone axis at most at "
+    "the orbit rate: along the shortest great circle when that fits in the horizon, otherwise "
+    "in the sense the bearing already turns (the thesis' 'natural relative orbit motion', read "
+    "as the tangential velocity)",
     "V-bar: port (body x) along LVLH +y; R-bar: along +x; rotating: initially +y, rotating "
     f"about z at {ASSUMED['rotating_rate_deg_s']:g} deg/s (rate not given in the thesis)",
     "delta-v = sum_k ||dv_k||_2 (thesis silent; its figures show the resultant magnitude); "
