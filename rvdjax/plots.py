@@ -300,9 +300,23 @@ def plot_poseidyn(path, scenario, params, infos, title: str | None = None):
     plt.close(fig)
 
 
+def _cone_edges(apex, axis, half_angle, length):
+    """Plot coordinates (along-track, radial) of a planar cone's two edges from ``apex``
+    along the x-y LVLH direction ``axis`` (unit (2,) in x, y)."""
+    edges = []
+    for sgn in (1.0, -1.0):
+        c, s_ = np.cos(sgn * half_angle), np.sin(sgn * half_angle)
+        d = np.array([c * axis[0] - s_ * axis[1], s_ * axis[0] + c * axis[1]])
+        end = apex + length * d
+        edges.append(([apex[1], end[1]], [apex[0], end[0]]))
+    return edges
+
+
 def plot_phases(path, scenario, params, infos, title: str | None = None):
-    """Draw a three-phase thesis run (paper 003): radial / along-track path coloured by phase
-    (log-scaled range inset: distance to the port), delta-v per step."""
+    """Draw a three-phase thesis run (paper 003): the radial / along-track path coloured by
+    phase with the keep-out sphere r1 and the approach cone; a zoom on the approach and
+    docking (overshoot line at r2, docking cone at the port, at the final attitude of the
+    target); distance to the port (log) and delta-v per step."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -316,18 +330,53 @@ def plot_phases(path, scenario, params, infos, title: str | None = None):
     phase = np.asarray(infos.phase)[:n]
     colors = ["tab:red", "tab:orange", "tab:green"]
     names = ["rendezvous", "approach", "docking"]
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    for k in range(3):
-        sel = phase == k
-        if sel.any():
-            ax.plot(x[sel, 1], x[sel, 0], ".-", ms=3, color=colors[k], label=names[k])
+    r1, r2 = float(params.r1), float(params.r2)
+    ang = float(params.target_angle0) + float(params.target_rate) * t[-1]
+    rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    axis = rot @ np.asarray(params.axis_body)[:2]
+    port = rot @ np.asarray(params.port_body)[:2]
+    half = np.asarray(params.half_angle)
+
+    fig = plt.figure(figsize=(17, 6))
+    grid = fig.add_gridspec(2, 3, width_ratios=[1.25, 1.0, 1.1])
+    ax = fig.add_subplot(grid[:, 0])
+    ax_z = fig.add_subplot(grid[:, 1])
+    for a_, zoom in ((ax, False), (ax_z, True)):
+        for k in range(3):
+            sel = phase == k
+            if sel.any():
+                a_.plot(x[sel, 1], x[sel, 0], ".-", ms=3, color=colors[k], label=names[k])
+        circle = plt.Circle((0.0, 0.0), r1, fill=False, ls="--", color="0.4")
+        a_.add_patch(circle)
+        reach = (1.6 if zoom else 3.0) * r1
+        for i, (ex, ey) in enumerate(_cone_edges(np.zeros(2), axis, half[0], reach)):
+            a_.plot(ex, ey, ":", color="tab:purple", label="approach cone" if i == 0 else None)
+        if zoom:
+            normal = np.array([-axis[1], axis[0]])
+            p_os = r2 * axis
+            a_.plot(
+                [p_os[1] - 0.6 * r1 * normal[1], p_os[1] + 0.6 * r1 * normal[1]],
+                [p_os[0] - 0.6 * r1 * normal[0], p_os[0] + 0.6 * r1 * normal[0]],
+                "-",
+                color="tab:brown",
+                lw=0.8,
+                label="overshoot line r2",
+            )
+            for i, (ex, ey) in enumerate(_cone_edges(port, axis, half[2], 2.0 * r2)):
+                a_.plot(
+                    ex, ey, "-", color="tab:green", lw=0.8, label="docking cone" if i == 0 else None
+                )
+    ax.plot([], [], "--", color="0.4", label=f"keep-out r1 = {r1:g} m")
     _finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
-    ax_d = fig.add_subplot(2, 2, 2)
+    _finish_lvlh_axes(ax_z, "approach and docking (target attitude at the end)")
+    ax_z.set_aspect("equal", adjustable="box")
+    ax_z.set_xlim(-1.6 * r1, 1.6 * r1)
+    ax_z.set_ylim(-1.6 * r1, 1.6 * r1)
+    ax_d = fig.add_subplot(grid[0, 2])
     ax_d.semilogy(t, np.maximum(np.asarray(infos.port_distance)[:n], 1e-3), color="k")
     ax_d.set_ylabel("distance to port [m]")
     ax_d.grid(alpha=0.3, which="both")
-    ax_u = fig.add_subplot(2, 2, 4)
+    ax_u = fig.add_subplot(grid[1, 2])
     dv = np.linalg.norm(u, axis=1)
     for k in range(3):
         sel = phase == k

@@ -123,3 +123,13 @@ def test_spot_2d_cases_dock_safely():
     assert np.min(obs[0]) >= -1e-6 and np.min(obs[2]) >= -1e-6
     cone = np.where(active, np.asarray(infos.cone_margin), np.inf)
     assert np.min(cone) >= -1e-3
+
+
+def test_plot_docking_writes_a_figure(runs, tmp_path):
+    from rvdjax import plots
+
+    params, (infos, _) = runs
+    first = lambda tree: jax.tree.map(lambda a: np.asarray(a)[0], tree)  # noqa: E731
+    out = tmp_path / "docking.png"
+    plots.plot_docking(out, SCENARIOS["rotating-target-a"], first(params), first(infos))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000

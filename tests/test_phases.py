@@ -320,3 +320,14 @@ def test_keep_out_planes_turn_with_the_natural_motion():
         n_fast = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, fast, v0))
         np.testing.assert_allclose(n_fast[-1], np.asarray(a_final), atol=1e-12)
         assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
+
+
+def test_plot_phases_writes_a_figure(runs, tmp_path):
+    from rvdjax import plots
+    from rvdjax.scenarios import SCENARIOS
+
+    params, infos, _ = runs
+    first = lambda tree: jax.tree.map(lambda a: np.asarray(a)[0], tree)  # noqa: E731
+    out = tmp_path / "phases.png"
+    plots.plot_phases(out, SCENARIOS["thesis-vbar"], first(params), first(infos))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000

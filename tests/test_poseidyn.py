@@ -139,3 +139,13 @@ def test_bad_config_raises():
         PoseidynConfig(n_steps=0)
     with pytest.raises(ValueError, match="x0"):
         validate_poseidyn(None, np.zeros(3), PoseidynConfig())
+
+
+def test_plot_poseidyn_writes_a_figure(runs, scenarios, tmp_path):
+    from rvdjax import plots
+
+    params, (infos, _) = runs
+    first = lambda tree: jax.tree.map(lambda a: np.asarray(a)[0], tree)  # noqa: E731
+    out = tmp_path / "poseidyn.png"
+    plots.plot_poseidyn(out, scenarios[NAMES[0]], first(params), first(infos))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000
