@@ -21,14 +21,22 @@ import time
 from collections.abc import Callable, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from rvdjax.peers import PEERS, available_peers, qpax_batch_solver
-from rvdjax.problems import fastmpc3d_first_step, fastmpc3d_first_step_batch, perturbed_x0
+from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
 from rvdjax.qp import to_qp
 from rvdjax.solver import SolverSettings, max_violation, solve, solve_batch
 
-__all__ = ["BenchConfig", "run_benchmark", "format_table", "demo_problem", "machine_info"]
+__all__ = [
+    "BenchConfig",
+    "run_benchmark",
+    "format_table",
+    "machine_info",
+    "closed_loop_batch_benchmark",
+    "format_closed_loop",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -350,11 +358,6 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def demo_problem():
-    """The default problem of the README's first command (the fastmpc-3d first step)."""
-    return fastmpc3d_first_step()
-
-
 def machine_info() -> str:
     import os
     import platform
@@ -374,51 +377,143 @@ def machine_info() -> str:
     )
 
 
-def closed_loop_benchmark(names: Sequence[str] | None = None, repeats: int = 3, progress=print):
-    """Wall time of one whole closed-loop maneuver per scenario: the jitted rvdjax loop (after
-    compile) against the same loop with Clarabel solving each step (host callback,
-    ``SolverSettings(backend="clarabel")``; QP assembly in SciPy included), and — for the
-    rendezvous scenarios — against the loop driven step by step from Python
-    (:func:`rvdjax.sim.run_reference_loop`).
+#: One scenario per family: the default of ``rvdjax bench --closed-loop``.
+FAMILY_SCENARIOS = ("fastmpc-3d", "spot-2d-a", "rotating-target-b", "poseidyn-lqmpc", "thesis-vbar")
 
-    Returns rows with ``scenario``, ``steps``, ``rvdjax_s``, ``clarabel_s`` and the ratio
-    (``python_loop_s`` / ``clarabel_solve_s`` where available).
+
+def perturbed_states(x0, n: int, seed: int = 0, rel: float = 0.02):
+    """``n`` initial states: each non-zero component of ``x0`` perturbed uniformly by up to
+    ``rel`` of its size (the first state is ``x0`` itself)."""
+    x0 = jnp.asarray(x0, dtype=float)
+    u = jax.random.uniform(jax.random.key(seed), (n, x0.shape[0]), minval=-1.0, maxval=1.0)
+    x = x0 + rel * jnp.abs(x0) * u
+    return x.at[0].set(x0)
+
+
+def closed_loop_batch_benchmark(
+    names=FAMILY_SCENARIOS,
+    batches=(1, 16, 64, 256),
+    runs: int = 256,
+    single_runs: int = 16,
+    disturbed: bool = False,
+    mode: str = "accurate",
+    chunk: int = 32,
+    iterations: int = 2,
+    progress=print,
+) -> list[dict]:
+    """Maneuvers per second flown one jitted maneuver at a time and by the batch engine.
+
+    For each scenario, ``runs`` distinct initial states (:func:`perturbed_states`; with
+    ``disturbed`` also distinct PRNG keys) are flown by the engine with B slots for every B in
+    ``batches`` (after a compile on one tick), and the first ``single_runs`` of them one at a
+    time through the jitted :func:`rvdjax.loop.fly` (after its compile). Rows: scenario,
+    family, method, batch, runs, seconds, maneuvers_per_s, speedup over one at a time,
+    peak_memory_mb (XLA's planned memory of the engine program: arguments, outputs and
+    temporaries), docked_fraction, mean_iterations and the per-step iteration distribution.
     """
-    import dataclasses
-
-    from rvdjax.scenarios import SCENARIOS
-    from rvdjax.sim import run_reference_loop
+    from rvdjax.loop import fly
+    from rvdjax.loop.engine import EngineConfig, arrays_source, compile_engine, run_batch
+    from rvdjax.scenarios import get_scenario
 
     rows = []
-    for name in names or list(SCENARIOS):
-        sc = SCENARIOS[name]
+    for name in names:
+        sc = get_scenario(name)
         params, x0 = sc.build()
-        times = {}
-        for backend in ("rvdjax", "clarabel"):
-            config = dataclasses.replace(sc.config, settings=SolverSettings(backend=backend))
-            fly, compile_s, _ = _compile(lambda p, x, c=config, f=sc.fly: f(p, x, c), params, x0)
-            _, times[backend] = _time(lambda fly=fly, p=params, x=x0: fly(p, x), repeats)
-            if backend == "rvdjax":
-                infos, _ = fly(params, x0)
-                rvdjax_compile_s = compile_s
-        row = {
-            "scenario": name,
-            "steps": int(np.sum(np.asarray(infos.active))),
-            "rvdjax_s": times["rvdjax"],
-            "rvdjax_compile_s": rvdjax_compile_s,
-            "clarabel_s": times["clarabel"],
-            "speedup": times["clarabel"] / times["rvdjax"],
-            "python_loop_s": None,
-            "clarabel_solve_s": None,
-        }
-        if sc.kind == "rendezvous":
-            t0 = time.perf_counter()
-            _, _, solve_s = run_reference_loop(params, x0, sc.config)
-            row["python_loop_s"] = time.perf_counter() - t0
-            row["clarabel_solve_s"] = solve_s
-        rows.append(row)
-        progress(
-            f"{name}: rvdjax {times['rvdjax']:.3f} s, Clarabel {times['clarabel']:.2f} s, "
-            f"{row['steps']} steps"
+        loop = sc.loop(mode, disturbed=disturbed)
+        sp = sc.solver_params(mode)
+        x0s = perturbed_states(x0, runs)
+        keys = jax.random.split(jax.random.key(1), runs)
+        # one jitted maneuver at a time
+        f = jax.jit(lambda p, x, k, s, lp=loop: fly(lp, p, x, k, s)[1])
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(params, x0s[0], keys[0], sp))
+        compile_s = time.perf_counter() - t0
+        n1 = min(single_runs, runs)
+        t0 = time.perf_counter()
+        singles = [jax.block_until_ready(f(params, x0s[i], keys[i], sp)) for i in range(n1)]
+        sec = time.perf_counter() - t0
+        single_rate = n1 / sec
+        docked = np.mean([bool(m.docked) for m in singles])
+        its = np.mean([float(m.mean_iterations) for m in singles])
+        rows.append(
+            dict(
+                scenario=name,
+                family=sc.family,
+                mode=mode,
+                disturbed=disturbed,
+                method="one at a time (jitted fly)",
+                batch=1,
+                runs=n1,
+                seconds=sec,
+                maneuvers_per_s=single_rate,
+                speedup=1.0,
+                peak_memory_mb=float("nan"),
+                compile_s=compile_s,
+                docked_fraction=float(docked),
+                mean_iterations=float(its),
+            )
         )
+        progress(f"{name}: one at a time {single_rate:.2f} maneuvers/s ({n1} runs)")
+        for B in batches:
+            cfg = EngineConfig(slots=B, chunk=chunk, iterations=iterations)
+            source = arrays_source(x0s, keys)
+            t0 = time.perf_counter()
+            mem_mb = compile_engine(loop, source, params, sp, cfg)
+            compile_s = time.perf_counter() - t0
+            out = run_batch(loop, source, runs, params=params, solver_params=sp, config=cfg)
+            m = out["metrics"]
+            hist = np.asarray(m.iteration_histogram).sum(axis=0)
+            rate = runs / out["seconds"]
+            rows.append(
+                dict(
+                    scenario=name,
+                    family=sc.family,
+                    mode=mode,
+                    disturbed=disturbed,
+                    method=f"engine (chunk {cfg.chunk_size}, {iterations} iterations / tick)",
+                    batch=B,
+                    runs=runs,
+                    seconds=out["seconds"],
+                    maneuvers_per_s=rate,
+                    speedup=rate / single_rate,
+                    peak_memory_mb=mem_mb,
+                    compile_s=compile_s,
+                    docked_fraction=float(np.mean(m.docked)),
+                    mean_iterations=float(np.sum(hist * np.arange(len(hist))) / max(hist.sum(), 1)),
+                    iterations_p50=_hist_quantile(hist, 0.5),
+                    iterations_p90=_hist_quantile(hist, 0.9),
+                    iterations_max=int(np.flatnonzero(hist)[-1]) if hist.any() else 0,
+                    ticks=out["ticks"],
+                )
+            )
+            progress(
+                f"{name}: B={B} {rate:.2f} maneuvers/s ({rate / single_rate:.1f}x), "
+                f"{mem_mb:.0f} MB, docked {np.mean(m.docked):.2f}"
+            )
     return rows
+
+
+def _hist_quantile(hist, q: float) -> int:
+    c = np.cumsum(hist)
+    return int(np.searchsorted(c, q * c[-1])) if c[-1] else 0
+
+
+def format_closed_loop(rows: list[dict]) -> str:
+    head = (
+        f"{'scenario':<20}{'method':<40}{'B':>5}{'runs':>6}{'man/s':>9}{'x single':>9}"
+        f"{'mem MB':>8}{'docked':>8}{'its/step':>9}{'p50/p90/max':>13}"
+    )
+    out = [head]
+    for r in rows:
+        dist = (
+            f"{r['iterations_p50']}/{r['iterations_p90']}/{r['iterations_max']}"
+            if "iterations_p50" in r
+            else "-"
+        )
+        mem = "-" if np.isnan(r["peak_memory_mb"]) else f"{r['peak_memory_mb']:.0f}"
+        out.append(
+            f"{r['scenario']:<20}{r['method']:<40}{r['batch']:>5}{r['runs']:>6}"
+            f"{r['maneuvers_per_s']:>9.2f}{r['speedup']:>9.1f}{mem:>8}"
+            f"{r['docked_fraction']:>8.2f}{r['mean_iterations']:>9.2f}{dist:>13}"
+        )
+    return "\n".join(out)

@@ -1,5 +1,5 @@
-"""Command line: ``rvdjax run`` (closed-loop scenario), ``list``, ``compare``, ``demo`` (one QP),
-``bench``."""
+"""Command line: ``rvdjax run`` (a scenario in closed loop), ``list``, ``compare``, ``demo``
+(one QP), ``bench`` (solver peers; ``--closed-loop``: maneuvers per second in batches)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import argparse
 import json
 import os
 import sys
+
+PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 
 def _one_thread():
@@ -32,6 +34,28 @@ def _ints(text: str) -> list[int]:
     return values
 
 
+def check_output(path: str | None, option: str, formats: tuple[str, ...] | None = None) -> None:
+    """ValueError unless ``path`` can be written (checked before any work is done): its
+    directory exists and is writable, the file (if it exists) is writable, and the extension
+    is one of ``formats``."""
+    if path is None:
+        return
+    if formats is not None and os.path.splitext(path)[1].lower() not in formats:
+        raise ValueError(
+            f"{option} {path!r}: the file name must end in one of {', '.join(formats)}"
+        )
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise ValueError(f"{option} {path!r}: directory {directory!r} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"{option} {path!r} is a directory, not a file")
+    if os.path.exists(path):
+        if not os.access(path, os.W_OK):
+            raise ValueError(f"{option} {path!r}: the file is not writable")
+    elif not os.access(directory, os.W_OK):
+        raise ValueError(f"{option} {path!r}: directory {directory!r} is not writable")
+
+
 def cmd_demo(args) -> int:
     """Solve the fastmpc-3d first MPC step with both modes and Clarabel; print and plot."""
     import time
@@ -44,6 +68,7 @@ def cmd_demo(args) -> int:
     from rvdjax.qp import split_solution, to_qp
     from rvdjax.solver import SolverSettings, Status, max_violation, solve
 
+    check_output(args.plot, "--plot", PLOT_FORMATS)
     ocp = fastmpc3d_first_step(obstacles=not args.no_obstacles)
     ref = solve_clarabel(to_qp(ocp, soft=False))
     rows = []
@@ -114,7 +139,7 @@ def cmd_demo(args) -> int:
             obstacles=None if args.no_obstacles else FASTMPC3D,
             clarabel_x=x_ref,
         )
-        print(f"plot written to {args.plot}")
+        print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
 
@@ -124,7 +149,7 @@ def cmd_list(args) -> int:
     width = max(len(name) for name in SCENARIOS) + 2
     for name, sc in SCENARIOS.items():
         mark = " (default)" if name == DEFAULT_SCENARIO else ""
-        print(f"{name:<{width}}{sc.description}  [{sc.source}]{mark}")
+        print(f"{name:<{width}}{sc.description}  [{sc.source}; family {sc.family}]{mark}")
     return 0
 
 
@@ -134,40 +159,67 @@ def run_scenario(
     """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step).
 
     ``disturbed``: navigation noise, thrust-amplitude error and minimum impulse bit of the
-    scenario's :class:`rvdjax.disturbances.Disturbances`, drawn from PRNG key ``seed``."""
-    import dataclasses
+    scenario's disturbance parameters, drawn from PRNG key ``seed``."""
     import time
 
     import jax
 
+    from rvdjax.loop import fly
     from rvdjax.scenarios import get_scenario
 
     sc = get_scenario(name)
     params, x0 = sc.build()
-    config = dataclasses.replace(sc.config, settings=sc.settings(mode))
-    if truth != "linear":
-        if not hasattr(config, "truth"):
-            raise ValueError(f"truth={truth!r} is not available for scenario {name!r}")
-        config = dataclasses.replace(config, truth=truth)
-    if disturbed:
-        config = dataclasses.replace(config, disturbed=True)
-    sc.validate(params, x0, config)
+    loop = sc.loop(mode, truth=truth, disturbed=disturbed)
+    sc.check(params, x0, loop)
+    sp = sc.solver_params(mode)
     key = jax.random.key(int(seed))
-    fly = jax.jit(lambda p, x, k: sc.fly(p, x, config, k))
-    compiled = fly.lower(params, x0, key).compile()
+    run = jax.jit(lambda p, x, k, s: fly(loop, p, x, k, s))
+    compiled = run.lower(params, x0, key, sp).compile()
     t0 = time.perf_counter()
-    infos, metrics = jax.block_until_ready(compiled(params, x0, key))
+    infos, metrics = jax.block_until_ready(compiled(params, x0, key, sp))
     wall = time.perf_counter() - t0
-    steps = max(int(infos.active.sum()), 1)
+    steps = max(int(metrics.steps), 1)
     return sc, params, infos, metrics, 1e3 * wall / steps
 
 
-def cmd_run(args) -> int:
+def metrics_dict(m) -> dict:
+    """A run's metrics as plain JSON values (inf as None)."""
     import numpy as np
 
-    from rvdjax.disturbances import DISTURBANCE_NOTES
+    from rvdjax.loop import RunStatus
     from rvdjax.solver import Status
 
+    def val(v):
+        v = float(v)
+        return v if np.isfinite(v) else None
+
+    return {
+        "status": RunStatus.name(int(m.status)),
+        "docked": bool(m.docked),
+        "steps": int(m.steps),
+        "time_to_dock_s": val(m.time_to_dock_s),
+        "delta_v_m_s": val(m.delta_v_m_s),
+        "delta_v_l1_m_s": val(m.delta_v_l1_m_s),
+        "total_impulse_N_s": val(m.total_impulse_N_s),
+        "effort_l1_N_s": val(m.effort_l1_N_s),
+        "torque_l1_N_m_s": val(m.torque_l1_N_m_s),
+        "phase_delta_v_m_s": [float(v) for v in np.asarray(m.phase_delta_v_m_s)],
+        "phase_time_s": [float(v) for v in np.asarray(m.phase_time_s)],
+        "max_violation_m": val(m.max_violation_m),
+        "margins_m": {k: val(v) for k, v in m.margins_m.items()},
+        "solver_status_counts": {
+            Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
+        },
+        "mean_iterations": float(m.mean_iterations),
+    }
+
+
+def cmd_run(args) -> int:
+    from rvdjax.disturbances import DISTURBANCE_NOTES
+    from rvdjax.scenarios import get_scenario
+
+    check_output(args.plot, "--plot", PLOT_FORMATS)
+    get_scenario(args.scenario)  # unknown names fail before anything is compiled
     sc, params, infos, m, ms_per_step = run_scenario(
         args.scenario, args.mode, args.truth, args.disturbed, args.seed
     )
@@ -181,22 +233,14 @@ def cmd_run(args) -> int:
         )
     result = {
         "scenario": sc.name,
+        "family": sc.family,
         "source": sc.source,
         "solver_mode": args.mode,
         "truth": args.truth,
         "disturbed": bool(args.disturbed),
         "seed": args.seed if args.disturbed else None,
-        "docked": bool(m.docked),
-        "delta_v_m_s": float(m.delta_v_m_s),
-        "delta_v_norm": "sum_k ||u_k||_2 Ts / m",
-        "total_impulse_N_s": float(m.total_impulse_N_s),
-        "effort_l1_N_s": float(m.effort_l1_N_s),
-        "time_to_dock_s": float(m.time_to_dock_s) if bool(m.docked) else None,
-        "max_violation_m": float(m.max_violation_m),
-        "solver_status_counts": {
-            Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
-        },
-        "mean_iterations": float(m.mean_iterations),
+        **metrics_dict(m),
+        "delta_v_norm": "sum_k ||dv_k||_2 (force inputs: sum_k ||u_k||_2 dt / m)",
         "mean_solve_ms": ms_per_step,
         "mean_solve_ms_note": "wall time of the jitted closed loop per MPC step, after compile",
         "published": sc.published,
@@ -219,41 +263,34 @@ def cmd_run(args) -> int:
     else:
         print(
             f"{sc.name}: {sc.description} [{sc.source}], solver mode {args.mode}, "
-            f"truth {args.truth}"
+            f"truth {args.truth}" + (f", disturbed (seed {args.seed})" if args.disturbed else "")
         )
         rows = [
             ("docked", result["docked"], ""),
-            ("time to dock (holding distance)", result["time_to_dock_s"], "s"),
+            ("time to dock", result["time_to_dock_s"], "s"),
             ("total impulse, L1 (per-axis sum)", result["effort_l1_N_s"], "N s"),
             ("total impulse, L2 (vector norm)", result["total_impulse_N_s"], "N s"),
             ("delta-v (L2)", result["delta_v_m_s"], "m/s"),
-            ("largest keep-out penetration", result["max_violation_m"], "m"),
+            ("largest constraint violation (truth)", result["max_violation_m"], "m"),
             ("solver statuses", result["solver_status_counts"], ""),
-            ("mean Newton iterations / step", result["mean_iterations"], ""),
+            ("mean solver iterations / step", result["mean_iterations"], ""),
             ("wall time / MPC step", ms_per_step, "ms"),
         ]
         for label, value, unit in rows:
             text = f"{value:.4g}" if isinstance(value, float) else str(value)
-            print(f"  {label:<36}{text} {unit}")
+            print(f"  {label:<38}{text} {unit}")
         if comparisons:
             print("  compared with the paper:")
             for f, ours, ref in comparisons:
                 print(
-                    f"    {f:<44}rvdjax {ours:8.3f}  paper {ref:8.3f}  "
+                    f"    {f:<44}rvdjax {ours:9.4g}  paper {ref:9.4g}  "
                     f"({100 * (ours - ref) / ref:+.1f} %)"
                 )
         print("  assumptions:")
         for a in notes:
             print(f"    - {a}")
     if args.plot:
-        from rvdjax import plots
-
-        draw = {
-            "docking": plots.plot_docking,
-            "poseidyn": plots.plot_poseidyn,
-            "phases": plots.plot_phases,
-        }.get(sc.kind, plots.plot_run)
-        draw(args.plot, sc, params, infos)
+        sc.family_.plot(args.plot, sc, params, infos)
         print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
@@ -281,59 +318,62 @@ def cmd_compare(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from rvdjax.bench import BenchConfig, format_table, machine_info, run_benchmark
+    from rvdjax.bench import machine_info
 
-    if args.quick:
-        config = BenchConfig(
-            batches=(64, 256), horizons=(15, 30), horizon_batch=64, n_peer=8, repeats=2
-        )
-    else:
-        config = BenchConfig()
-    overrides = {}
-    if args.batches:
-        overrides["batches"] = tuple(args.batches)
-    if args.horizons:
-        overrides["horizons"] = tuple(args.horizons)
-    if args.peers is not None:
-        overrides["peers"] = tuple(p for p in args.peers.split(",") if p)
-    if overrides:
-        import dataclasses
-
-        config = dataclasses.replace(config, **overrides)
+    check_output(args.out, "--out", (".json",))
 
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
 
     if args.closed_loop:
-        from rvdjax.bench import closed_loop_benchmark
+        from rvdjax.bench import FAMILY_SCENARIOS, closed_loop_batch_benchmark, format_closed_loop
+        from rvdjax.scenarios import get_scenario
 
-        rows = closed_loop_benchmark(progress=progress)
-        if args.json:
-            print(json.dumps(rows, indent=1))
-        else:
-            print(f"machine: {machine_info()}")
-            print(
-                f"{'scenario':<24}{'steps':>6}{'rvdjax s':>10}{'Clarabel s':>12}{'x':>7}"
-                f"{'Python loop s':>15}{'(solves s)':>12}"
+        names = args.scenarios.split(",") if args.scenarios else FAMILY_SCENARIOS
+        for n in names:
+            get_scenario(n)
+        rows = closed_loop_batch_benchmark(
+            names,
+            batches=tuple(args.batch or (1, 16, 64, 256)),
+            runs=args.runs,
+            single_runs=args.single_runs,
+            disturbed=args.disturbed,
+            mode=args.mode,
+            chunk=args.chunk,
+            iterations=args.iterations,
+            progress=progress,
+        )
+        text = format_closed_loop(rows)
+    else:
+        from rvdjax.bench import BenchConfig, format_table, run_benchmark
+
+        if args.quick:
+            config = BenchConfig(
+                batches=(64, 256), horizons=(15, 30), horizon_batch=64, n_peer=8, repeats=2
             )
-            for r in rows:
-                py = r["python_loop_s"]
-                tail = (
-                    f"{py:>15.2f}{r['clarabel_solve_s']:>12.2f}"
-                    if py is not None
-                    else f"{'-':>15}{'-':>12}"
-                )
-                print(
-                    f"{r['scenario']:<24}{r['steps']:>6}{r['rvdjax_s']:>10.3f}"
-                    f"{r['clarabel_s']:>12.3f}{r['speedup']:>7.1f}" + tail
-                )
-        return 0
-    rows = run_benchmark(config, progress=progress)
+        else:
+            config = BenchConfig()
+        overrides = {}
+        if args.batch:
+            overrides["batches"] = tuple(args.batch)
+        if args.horizons:
+            overrides["horizons"] = tuple(args.horizons)
+        if args.peers is not None:
+            overrides["peers"] = tuple(p for p in args.peers.split(",") if p)
+        if overrides:
+            import dataclasses
+
+            config = dataclasses.replace(config, **overrides)
+        rows = run_benchmark(config, progress=progress)
+        text = format_table(rows)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"machine": machine_info(), "rows": rows}, f, indent=1)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:
         print(f"machine: {machine_info()}")
-        print(format_table(rows))
+        print(text)
     return 0
 
 
@@ -359,8 +399,8 @@ def main(argv=None) -> int:
         "--truth",
         choices=("linear", "two-body", "two-body-j2", "two-body-j2-drag"),
         default="linear",
-        help="truth propagation: the CW model (default) or nonlinear (model mismatch); "
-        "two-body-j2-drag: thesis scenarios only",
+        help="truth propagation: the model (default) or nonlinear (model mismatch; what each "
+        "family supports: rvdjax list)",
     )
     p.add_argument(
         "--disturbed",
@@ -368,14 +408,14 @@ def main(argv=None) -> int:
         help="navigation noise and Gauss-Markov thrust error (paper 003 Ch. 5)",
     )
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of a disturbed run")
-    p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png)")
+    p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png, pdf)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("compare", help="fly a scenario with every solver (paper 000 Sec. IV)")
     p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--no-nmpc", action="store_true", help="skip the CasADi/IPOPT NMPC row")
+    p.add_argument("--no-nmpc", action="store_true", help="skip the CasADi/IPOPT baselines")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("demo", help="solve one QP: the fastmpc-3d first MPC step")
@@ -384,17 +424,49 @@ def main(argv=None) -> int:
     p.add_argument("--no-obstacles", action="store_true", help="drop the keep-out zones")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("bench", help="benchmark rvdjax against Clarabel, PIQP, DAQP, OSQP, qpax")
+    p = sub.add_parser(
+        "bench",
+        help="benchmark: QP solves against Clarabel and the peers, or closed-loop maneuvers "
+        "per second in batches (--closed-loop)",
+    )
     p.add_argument("--json", action="store_true", help="print the rows as JSON")
+    p.add_argument("--out", metavar="FILE", help="also write the rows to FILE (.json)")
     p.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
     p.add_argument(
         "--closed-loop",
         action="store_true",
-        help="time whole closed-loop maneuvers against Clarabel in a Python loop",
+        help="whole maneuvers: one jitted maneuver at a time against the batch engine",
     )
-    p.add_argument("--batches", type=_ints, help="vmapped batch sizes, e.g. 64,1024,4096")
-    p.add_argument("--horizons", type=_ints, help="horizons for the scaling rows, e.g. 15,30")
-    p.add_argument("--peers", help="comma-separated peers (default: all installed)")
+    p.add_argument(
+        "--batch", type=_ints, help="batch sizes (QP: vmapped batches; closed loop: slots)"
+    )
+    p.add_argument(
+        "--scenarios", help="closed loop: comma-separated scenarios (default: one per family)"
+    )
+    p.add_argument("--runs", type=int, default=256, help="closed loop: runs per batch size")
+    p.add_argument(
+        "--single-runs",
+        type=int,
+        default=16,
+        help="closed loop: runs flown one at a time for the reference rate",
+    )
+    p.add_argument(
+        "--disturbed",
+        action="store_true",
+        help="closed loop: navigation noise and thrust error, distinct keys",
+    )
+    p.add_argument(
+        "--mode",
+        choices=("accurate", "paper", "barrier"),
+        default="accurate",
+        help="closed loop: solver mode (default accurate)",
+    )
+    p.add_argument("--chunk", type=int, default=32, help="closed loop: slots per vmapped chunk")
+    p.add_argument(
+        "--iterations", type=int, default=2, help="closed loop: solver iterations per slot per tick"
+    )
+    p.add_argument("--horizons", type=_ints, help="QP: horizons for the scaling rows, e.g. 15,30")
+    p.add_argument("--peers", help="QP: comma-separated peers (default: all installed)")
     p.add_argument(
         "--threads",
         type=int,

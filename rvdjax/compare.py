@@ -18,19 +18,25 @@ import time
 import jax
 import numpy as np
 
+from rvdjax.loop import fly
 from rvdjax.scenarios import get_scenario
 from rvdjax.solver import SolverSettings
 
-__all__ = ["compare_solvers", "VARIANTS"]
+__all__ = ["compare_solvers", "VARIANTS", "format_comparison"]
 
-# label -> (settings for a scenario, paper-000 name of the same algorithm)
+# label -> (settings of a scenario, solver-parameter mode, paper-000 name of the same algorithm)
 VARIANTS = {
-    "rvdjax Fast MPC (paper mode)": (lambda sc: sc.settings("paper"), "Fast MPC"),
+    "rvdjax Fast MPC (paper mode)": (lambda sc: sc.settings("paper"), "paper", "Fast MPC"),
     "rvdjax ISNM (paper mode, dense)": (
         lambda sc: dataclasses.replace(sc.settings("paper"), method="dense"),
+        "paper",
         "ISNM",
     ),
-    "rvdjax accurate": (lambda sc: sc.settings("accurate"), None),
+    "rvdjax accurate": (lambda sc: sc.settings("accurate"), "accurate", None),
+    "Clarabel in the loop": (lambda sc: SolverSettings(backend="clarabel"), "accurate", None),
+}
+_NOTES = {
+    "Clarabel in the loop": "host callback per step incl. QP assembly, wall time / step",
 }
 
 
@@ -55,40 +61,30 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
     """Fly scenario ``name`` with every solver; return one row per solver."""
     sc = get_scenario(name)
     params, x0 = sc.build()
-    sc.validate(params, x0, sc.config)
     rows = []
-    # The rvdjax variants, then Clarabel in the same jitted loop (host callback per step).
-    loops = [
-        (label, settings_of(sc), paper, "jitted closed loop, wall time / step")
-        for label, (settings_of, paper) in VARIANTS.items()
-    ]
-    loops.append(
-        (
-            "Clarabel in the loop",
-            SolverSettings(backend="clarabel"),
-            None,
-            "host callback per step incl. QP assembly, wall time / step",
-        )
-    )
-    for label, settings, paper_name, note in loops:
-        config = dataclasses.replace(sc.config, settings=settings)
-        fly = jax.jit(lambda p, x, c=config: sc.fly(p, x, c)).lower(params, x0).compile()
-        jax.block_until_ready(fly(params, x0))
+    for label, (settings_of, mode, paper_name) in VARIANTS.items():
+        loop = sc.loop(mode, settings=settings_of(sc))
+        sp = sc.solver_params(mode)
+        run = jax.jit(lambda p, x, s, lp=loop: fly(lp, p, x, None, s))
+        run = run.lower(params, x0, sp).compile()
+        jax.block_until_ready(run(params, x0, sp))
         t0 = time.perf_counter()
-        infos, m = jax.block_until_ready(fly(params, x0))
+        infos, m = jax.block_until_ready(run(params, x0, sp))
         steps = max(int(np.sum(np.asarray(infos.active))), 1)
         ms = 1e3 * (time.perf_counter() - t0) / steps
+        note = _NOTES.get(label, "jitted closed loop, wall time / step")
         rows.append(_row(label, m, ms, sc.published, paper_name, note=note))
         progress(f"{label}: effort {float(m.effort_l1_N_s):.6g} N s, {ms:.3f} ms/step")
 
-    if nmpc and sc.kind == "rendezvous":
+    baselines = sc.family_.baselines if nmpc else ()
+    if "nmpc" in baselines:
         try:
             from rvdjax.nmpc import run_nmpc_loop
         except ImportError as err:
             progress(f"note: NMPC skipped ({err}); pip install 'rvdjax[nmpc]'")
         else:
-            infos, m, solve_s = run_nmpc_loop(params, x0, sc.config)
-            steps = max(int(np.sum(infos.active)), 1)
+            infos, m, solve_s = run_nmpc_loop(params, x0, sc.loop("accurate"))
+            steps = max(int(np.sum(infos["active"])), 1)
             rows.append(
                 _row(
                     "NMPC (CasADi + IPOPT)",
@@ -101,7 +97,7 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
             )
             progress(f"NMPC: effort {float(m.effort_l1_N_s):.6g} N s")
 
-    if nmpc and sc.kind == "poseidyn":
+    if "idvd" in baselines:
         # paper 001 Sec. 3.2: inverse dynamics in the virtual domain, planned with IPOPT
         try:
             from rvdjax.idvd import run_idvd

@@ -40,7 +40,7 @@ Implementation notes (choices not fixed by the paper, also listed in :data:`ASSU
   started), until less than ``freeze_s`` of the plan remains.
 * Truth: the double integrator with the planned force held constant over ``dt_sim`` (ZOH,
   exact integration), sub-sampled for docking detection and constraint margins. Docking and
-  effort use poseidyn.py's definitions (within 0.05 m of the docking point and slower than
+  effort use the poseidyn family's definitions (within 0.05 m of the docking point and slower than
   0.05 m/s; effort integrated up to that instant).
 """
 
@@ -51,7 +51,8 @@ import time
 
 import numpy as np
 
-from rvdjax.poseidyn import ASSUMPTIONS, poseidyn_params
+from rvdjax.families.poseidyn import make_params as poseidyn_params
+from rvdjax.scenarios.paper001 import ASSUMPTIONS, PHYSICAL
 
 __all__ = [
     "IDVD_TUNINGS",
@@ -347,7 +348,7 @@ def plan_idvd(
         at ``replan_max_iter`` iterations, or at ``max_iter`` when that is None).
     """
     cfg = {**IDVD_TUNINGS[tuning], **overrides}
-    p = poseidyn_params(x0=x0, u_max=cfg["u_max"])
+    p = poseidyn_params(**{**PHYSICAL, "x0": x0, "u_max": cfg["u_max"]})
     scen = dict(
         dock=np.asarray(p.dock, float),
         obstacle=np.asarray(p.obstacle, float),

@@ -1,6 +1,7 @@
 """Nonlinear MPC reference (CasADi + IPOPT) for the rendezvous closed loop (paper 000 Sec. IV).
 
-The OCP of :mod:`rvdjax.sim` with the ellipsoidal keep-out constraints kept nonlinear,
+The OCP of the rendezvous family (:mod:`rvdjax.families.rendezvous`) with the ellipsoidal
+keep-out constraints kept nonlinear,
 1 <= (r - o)^T S (r - o) (paper 000 Eq. 6), instead of linearised: the "IPOPT NMPC" of paper
 000's comparison. Same CW model, weights, thrust box, horizon and truth as the LQ-MPC loop;
 each step is warm-started from the previous solution shifted by one stage. Optional:
@@ -11,27 +12,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from rvdjax.sim import LoopConfig, LoopParams, StepInfo, _Carry, _metrics
+from rvdjax.families.rendezvous import Params
+from rvdjax.loop.kernel import HIST_BINS, Loop, Metrics, RunStatus
 
 __all__ = ["run_nmpc_loop"]
 
 
-def run_nmpc_loop(p: LoopParams, x0, config: LoopConfig | None = None, ipopt_tol=1e-8):
-    """Fly the rendezvous loop with nonlinear MPC solved by IPOPT.
+def run_nmpc_loop(p: Params, x0, loop: Loop, ipopt_tol=1e-8):
+    """Fly the rendezvous loop (``loop``: its horizon and step count) with nonlinear MPC solved
+    by IPOPT.
 
     Returns:
-        (StepInfo as NumPy arrays, Metrics, seconds spent in IPOPT).
+        (dict of per-step NumPy arrays x, u, status, iterations, active, keepout_margin;
+        :class:`~rvdjax.loop.Metrics` of NumPy values; seconds spent in IPOPT).
     """
     import time
 
     import casadi as ca
-    import jax
-    import jax.numpy as jnp
 
-    config = config or LoopConfig()
-    if config.truth != "linear":
+    if loop.config.truth != "linear":
         raise ValueError("run_nmpc_loop supports the linear truth only")
-    N, n_steps = config.N, config.n_steps
+    N, n_steps = loop.N, loop.config.n_steps
     A, B = np.asarray(p.A), np.asarray(p.B)
     nx, nu = B.shape
     Q, R, Q_f = np.asarray(p.Q), np.asarray(p.R), np.asarray(p.Q_f)
@@ -68,7 +69,8 @@ def run_nmpc_loop(p: LoopParams, x0, config: LoopConfig | None = None, ipopt_tol
         guess_x[:, t] = xd
     guess_u = np.zeros((nu, N))
     t_now, active, solve_s = 0.0, np.linalg.norm(x[:d]) > float(p.stop_radius), 0.0
-    rec = {k: [] for k in StepInfo._fields}
+    fields = ("x", "u", "status", "iterations", "objective", "active", "keepout_margin")
+    rec = {k: [] for k in fields}
     for _ in range(n_steps):
         centres_now = obstacles[:, :d] + t_now * obstacles[:, d:]
         margin = np.linalg.norm(x[:d][None] - centres_now, axis=-1) - radii
@@ -98,12 +100,37 @@ def run_nmpc_loop(p: LoopParams, x0, config: LoopConfig | None = None, ipopt_tol
             u = Us[:, 0]
             guess_x = np.concatenate([Xs[:, 1:], Xs[:, -1:]], axis=1)
             guess_u = np.concatenate([Us[:, 1:], Us[:, -1:]], axis=1)
-        for k, v in zip(StepInfo._fields, (x, u, status, its, obj, active, margin), strict=True):
+        for k, v in zip(fields, (x, u, status, its, obj, active, margin), strict=True):
             rec[k].append(np.asarray(v))
         if active:
             x = A @ x + B @ u
             t_now += ts
             active = np.linalg.norm(x[:d]) > float(p.stop_radius)
-    infos = StepInfo(*(np.stack(rec[k]) for k in StepInfo._fields))
-    last = _Carry(jnp.asarray(x), jnp.asarray(t_now), None, jnp.asarray(active))
-    return infos, jax.tree.map(np.asarray, _metrics(p, infos, last)), solve_s
+    infos = {k: np.stack(rec[k]) for k in fields}
+    act = infos["active"].astype(bool)
+    n = int(act.sum())
+    docked = not active
+    u_all = infos["u"][act]
+    impulse = float(np.sum(np.linalg.norm(u_all, axis=1))) * ts
+    margins = np.where(act[:, None], infos["keepout_margin"], np.inf)
+    counts = np.bincount(np.asarray(infos["status"])[act].astype(int), minlength=4)[:4]
+    hist = np.zeros(HIST_BINS, int)
+    metrics = Metrics(
+        status=np.int32(RunStatus.DOCKED if docked else RunStatus.TIMEOUT),
+        docked=np.bool_(docked),
+        steps=np.int32(n),
+        time_to_dock_s=np.float64(n * ts if docked else np.inf),
+        total_impulse_N_s=np.float64(impulse),
+        effort_l1_N_s=np.float64(np.sum(np.abs(u_all)) * ts),
+        delta_v_m_s=np.float64(impulse / float(p.mass)),
+        delta_v_l1_m_s=np.float64(np.sum(np.abs(u_all)) * ts / float(p.mass)),
+        torque_l1_N_m_s=np.float64(0.0),
+        phase_delta_v_m_s=np.array([impulse / float(p.mass)]),
+        phase_time_s=np.array([n * ts]),
+        max_violation_m=np.float64(max(0.0, -float(np.min(margins, initial=np.inf)))),
+        margins_m={"keep_out": np.float64(np.min(margins, initial=np.inf))},
+        status_counts=counts,
+        mean_iterations=np.float64(np.asarray(infos["iterations"])[act].mean() if n else 0.0),
+        iteration_histogram=hist,
+    )
+    return infos, metrics, solve_s

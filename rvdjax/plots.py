@@ -32,10 +32,10 @@ def plot_plan(path, ocp, solutions: dict, obstacles: dict | None = None, clarabe
         x = np.vstack([x0, np.asarray(clarabel_x)])
         ax.plot(x[:, 1], x[:, 0], "k--", lw=1, label="Clarabel (optimum)")
     if obstacles is not None:
-        from rvdjax.problems import obstacle_centres
-
         ts = obstacles["ts"]
-        centres = np.asarray(obstacle_centres(np.asarray(obstacles["obstacles"]), N, ts))
+        o = np.asarray(obstacles["obstacles"])
+        times = ts * np.arange(1, N + 1)
+        centres = o[None, :, :3] + times[:, None, None] * o[None, :, 3:]
         for j, radius in enumerate(obstacles["radii"]):
             for t in range(0, N, 5):
                 alpha = 0.15 + 0.6 * t / N
@@ -92,14 +92,14 @@ def _finish_lvlh_axes(ax, title):
     ax.set_title(title)
 
 
-def plot_run(path, scenario, params, infos, title: str | None = None):
-    """Draw one closed-loop run: path with keep-out snapshots, thrust, range and margins.
+def plot_rendezvous(path, scenario, params, infos, title: str | None = None):
+    """Draw one rendezvous run: path with keep-out snapshots, thrust, range and margins.
 
     Args:
         path: output file.
         scenario: the :class:`rvdjax.scenarios.Scenario` (for the title).
-        params: its :class:`rvdjax.sim.LoopParams`.
-        infos: the run's :class:`rvdjax.sim.StepInfo` (leading axis: step).
+        params: its :class:`rvdjax.families.rendezvous.Params`.
+        infos: the run's :class:`rvdjax.loop.StepInfo` (leading axis: step).
     """
     import matplotlib
 
@@ -150,7 +150,7 @@ def plot_run(path, scenario, params, infos, title: str | None = None):
 
     ax_r = fig.add_subplot(2, 2, 4)
     ax_r.semilogy(t, np.linalg.norm(x[:, :d], axis=1), color="k", label="range to target")
-    margins = np.asarray(infos.keepout_margin)[: len(x)]
+    margins = np.asarray(infos.margins["keep_out"])[: len(x)]
     for j in np.flatnonzero(mask):
         ax_r.semilogy(
             t, np.maximum(margins[:, j], 1e-3), label=f"keep-out margin {j + 1} (floored at 1 mm)"
@@ -178,7 +178,7 @@ def plot_docking(path, scenario, params, infos, title: str | None = None):
     n = min(int(active.sum()) + 1, len(active))
     x = np.asarray(infos.x)[:n]
     u = np.asarray(infos.u)[: n - 1]
-    r_hold = np.asarray(infos.r_hold)[:n]
+    r_hold = np.asarray(infos.guidance.r_hold)[:n]
     ts = float(params.ts)
     t = np.arange(n) * ts
     c0, v_t = np.asarray(params.target)[:2], np.asarray(params.target_vel)
@@ -236,7 +236,12 @@ def plot_docking(path, scenario, params, infos, title: str | None = None):
     ax_r = fig.add_subplot(2, 2, 4)
     ax_r.plot(t, r_hold, label="r_hold [m]")
     ax_r.plot(t, np.linalg.norm(x[:, :2] - centres, axis=1), label="distance to target [m]")
-    ax_r.step(t, np.asarray(infos.phase)[:n], where="post", label="final phase / cone active")
+    ax_r.step(
+        t,
+        np.asarray(infos.guidance.cone_on)[:n].astype(float),
+        where="post",
+        label="entry cone active",
+    )
     ax_r.axhline(r_t, color="k", lw=0.8, ls="--")
     ax_r.set_xlabel("time [s]")
     ax_r.grid(alpha=0.3)
@@ -264,7 +269,9 @@ def plot_poseidyn(path, scenario, params, infos, title: str | None = None):
     fig = plt.figure(figsize=(13, 6))
     ax = fig.add_subplot(1, 2, 1)
     ax.add_patch(plt.Circle(obs, r_obs, color="tab:blue", alpha=0.3, label="keep-out zone"))
-    phis = np.asarray(infos.phi)[:n]
+    from rvdjax.families.poseidyn import plane_angle
+
+    phis = np.asarray(plane_angle(params, np.asarray(infos.t)[:n]))
     for k, s in enumerate(np.linspace(0, n - 1, 6).astype(int)):
         e = np.array([np.cos(phis[s]), np.sin(phis[s])])
         p0 = obs + r_obs * e
@@ -373,14 +380,19 @@ def plot_phases(path, scenario, params, infos, title: str | None = None):
     ax_z.set_xlim(-1.6 * r1, 1.6 * r1)
     ax_z.set_ylim(-1.6 * r1, 1.6 * r1)
     ax_d = fig.add_subplot(grid[0, 2])
-    ax_d.semilogy(t, np.maximum(np.asarray(infos.port_distance)[:n], 1e-3), color="k")
+    from rvdjax.families.phases import target_state
+
+    port_t = np.asarray(target_state(params, t[:, None])[0])[:, 0] if len(t) else np.zeros((0, 3))
+    port_distance = np.linalg.norm(x[:, :3] - port_t, axis=1)
+    ax_d.semilogy(t, np.maximum(port_distance, 1e-3), color="k")
     ax_d.set_ylabel("distance to port [m]")
     ax_d.grid(alpha=0.3, which="both")
     ax_u = fig.add_subplot(grid[1, 2])
     dv = np.linalg.norm(u, axis=1)
     for k in range(3):
         sel = phase == k
-        ax_u.bar(t[sel], dv[sel], width=np.asarray(infos.ts)[:n][sel] * 0.8, color=colors[k])
+        width = np.asarray(params.ts)[phase[sel]] * 0.8
+        ax_u.bar(t[sel], dv[sel], width=width, color=colors[k])
     ax_u.set_xlabel("time [s]")
     ax_u.set_ylabel("|delta-v| per step [m/s]")
     ax_u.grid(alpha=0.3)

@@ -36,6 +36,9 @@ __all__ = [
     "riccati_solve",
     "dense_solve",
     "KKT_SOLVERS",
+    "KKT",
+    "kkt_factor",
+    "kkt_solve",
 ]
 
 
@@ -205,3 +208,28 @@ def dense_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
 
 
 KKT_SOLVERS = {"riccati": riccati_solve, "dense": dense_solve}
+
+
+class KKT(NamedTuple):
+    """A Newton (KKT) matrix ready for right-hand sides: the stage data and, for the Riccati
+    method, its factorisation (computed once, applied to every right-hand side: predictor,
+    corrector and the implicit derivative's adjoint solve)."""
+
+    A: jnp.ndarray
+    B: jnp.ndarray
+    Phi_u: jnp.ndarray
+    Phi_x: jnp.ndarray
+    factor: RiccatiFactor | None
+
+
+def kkt_factor(A, B, Phi_u, Phi_x, method: str) -> KKT:
+    """Factorise (Riccati) or keep (dense) the Newton matrix of the given Hessian blocks."""
+    factor = riccati_factor(A, B, Phi_u, Phi_x) if method == "riccati" else None
+    return KKT(A, B, Phi_u, Phi_x, factor)
+
+
+def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str) -> NewtonStep:
+    """Solve the Newton system of ``kkt`` for one right-hand side (g_u, g_x, rp)."""
+    if method == "riccati":
+        return riccati_apply(kkt.factor, g_u, g_x, rp)
+    return KKT_SOLVERS[method](kkt.A, kkt.B, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp)

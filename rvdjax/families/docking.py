@@ -1,0 +1,435 @@
+"""Planar docking to a rotating (and translating) target: paper 002's two-phase switching and
+paper 000's holding-radius logic (LQ-MPC versions).
+
+The chaser is a planar 3-DOF air-bearing vehicle (x, y, theta, vx, vy, omega; inputs Fx, Fy,
+torque). The target rotates at a constant rate about its centre, which may translate; its
+docking port sits on its keep-out circle and points outward along the body axis. At every MPC
+step (paper 002 Fig. 4):
+
+1. Free-flying phase: track the holding position (on the dynamic circle r_hold, plus a small
+   gap, straight in front of the port), staying outside the fixed keep-out circle r_t and the
+   dynamic circle r_hold (both linearised about the previous plan, paper 000 Eqs. 8-9).
+2. When the distance error alpha_1 < c_alpha1 and the attitude error alpha_2 < c_alpha2, the
+   final docking phase starts: the entry cone (two hyperplanes through the docking point,
+   paper 002 Eqs. 5-6) is enforced over the horizon, and each step with both errors below
+   their thresholds shrinks r_hold by gamma, down to r_min.
+3. Docked when r_hold has reached r_min and the chaser is within ``dock_tol`` of the holding
+   position at the port with the attitude error below c_alpha2.
+
+Paper 000's 2-D SPOT cases (``Config(logic="holding-radius")``): two obstacles move on
+straight lines (circular keep-out zones), r_hold shrinks whenever the position error < eta
+(``c_pos``) and the attitude error < zeta (``c_att``), and the entry cone is active whenever
+the chaser is within r_cone of the docking point (paper 000 Sec. IV.B).
+
+The target's attitude and holding position are predicted over the horizon (paper 002: "the
+holding position is predictable with the given radius ... and the constant angular velocity").
+Paper 002 solves this with NMPC (IPOPT); rvdjax solves the linearised (LQ) problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from rvdjax import checks
+from rvdjax.constraints import (
+    entry_cone,
+    holding_radius,
+    holding_radius_update,
+    sphere_keep_out,
+    stack,
+    thrust_box,
+)
+from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
+from rvdjax.disturbances import disturbances as make_disturbances
+from rvdjax.loop.family import Family, Layout
+from rvdjax.ocp import OCP
+from rvdjax.solver import drift_plan
+
+__all__ = ["Params", "Config", "make_params", "FAMILY"]
+
+POS = (0, 1)
+LAYOUT = Layout(
+    nx=6,
+    nu=3,
+    pos=POS,
+    vel=(3, 4),
+    att=(2,),
+    force=POS,
+    input="force",
+    names=("x", "y", "theta", "vx", "vy", "omega"),
+)
+
+
+class Params(NamedTuple):
+    """Traced parameters (SI units, angles in rad).
+
+    Attributes:
+        A, B: (6, 6), (6, 3) discrete planar 3-DOF model (ZOH), also the truth.
+        Q, R, Q_f: weights (Q_f: DARE solution).
+        u_max: (3,) limits on Fx, Fy [N] and torque [N m].
+        target: (3,) target centre x, y [m] and initial attitude [rad] (port direction).
+        target_rate: () target angular rate [rad/s].
+        target_vel: (2,) target translational velocity [m/s].
+        r_t: () fixed keep-out radius about the target centre [m].
+        r_hold0: () initial dynamic keep-out radius [m].
+        r_min: () smallest holding radius (docked) [m].
+        r_port: () distance of the docking point (entry-cone apex) from the target centre [m].
+        cone_radius: () "holding-radius" logic: the entry cone is active within this distance
+            of the docking point [m].
+        obstacles: (k, 4) obstacle x, y, vx, vy at t = 0; obstacle_radii: (k,);
+            obstacle_mask: (k,) 1.0 for an obstacle that exists.
+        gap: () holding position distance outside the dynamic circle [m].
+        gamma: () shrink factor of r_hold per qualifying step, in (0, 1).
+        c_pos: () alpha_1 threshold [m]; c_att: () alpha_2 threshold [rad].
+        half_angle: () entry-cone half angle [rad].
+        rho: () exact penalty of the soft state rows [per metre].
+        ts: () sample time [s]; dock_tol: () docked position tolerance [m].
+        mass: () chaser mass [kg].
+    """
+
+    A: jnp.ndarray
+    B: jnp.ndarray
+    Q: jnp.ndarray
+    R: jnp.ndarray
+    Q_f: jnp.ndarray
+    u_max: jnp.ndarray
+    target: jnp.ndarray
+    target_rate: jnp.ndarray
+    target_vel: jnp.ndarray
+    r_t: jnp.ndarray
+    r_hold0: jnp.ndarray
+    r_min: jnp.ndarray
+    r_port: jnp.ndarray
+    cone_radius: jnp.ndarray
+    obstacles: jnp.ndarray
+    obstacle_radii: jnp.ndarray
+    obstacle_mask: jnp.ndarray
+    gap: jnp.ndarray
+    gamma: jnp.ndarray
+    c_pos: jnp.ndarray
+    c_att: jnp.ndarray
+    half_angle: jnp.ndarray
+    rho: jnp.ndarray
+    ts: jnp.ndarray
+    dock_tol: jnp.ndarray
+    mass: jnp.ndarray
+    orbit: None = None
+    drag: None = None
+    disturbances: Disturbances | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static configuration.
+
+    Attributes:
+        N: horizon.
+        logic: "two-phase" (paper 002 Fig. 4) or "holding-radius" (paper 000 Sec. II.C.3).
+    """
+
+    N: int = 40
+    logic: str = "two-phase"
+
+    def __post_init__(self):
+        checks.integer("N", self.N)
+        checks.choice("logic", self.logic, ("two-phase", "holding-radius"))
+
+
+class Guidance(NamedTuple):
+    """Guidance state: holding radius, phase (0 free flying, 1 final approach), cone on."""
+
+    r_hold: jnp.ndarray
+    phase: jnp.ndarray
+    cone_on: jnp.ndarray
+
+
+def make_params(
+    *,
+    mass: float,
+    inertia: float,
+    ts: float,
+    Q,
+    R,
+    u_max,
+    target,
+    target_rate_deg_s: float,
+    r_t: float,
+    r_hold0: float,
+    gap: float,
+    gamma: float,
+    c_pos: float,
+    c_att_deg: float,
+    half_angle_deg: float,
+    r_min: float | None = None,
+    r_port: float | None = None,
+    target_vel=(0.0, 0.0),
+    cone_radius: float = float("inf"),
+    obstacles=None,
+    obstacle_radii=None,
+    obstacles_on: bool = True,
+    rho: float = 1e5,
+    dock_tol: float = 0.05,
+    x0=None,
+    disturbances: dict | None = None,
+) -> Params:
+    """Check physical values and build :class:`Params` (once, before any jit).
+
+    Angles in degrees (``target`` = x, y [m] and the port direction [rad]); radii must satisfy
+    r_t <= r_min < r_hold0 and 0 < r_port <= r_min; ``x0`` (if given) must be finite and
+    outside the target keep-out circle and every obstacle.
+    """
+    from rvdjax.dynamics import dare, discretize_zoh, planar3dof_continuous
+
+    for name, v, unit in (
+        ("mass", mass, "kg"),
+        ("inertia", inertia, "kg m^2"),
+        ("ts", ts, "s"),
+        ("r_t", r_t, "m"),
+        ("r_hold0", r_hold0, "m"),
+        ("c_pos", c_pos, "m"),
+        ("c_att_deg", c_att_deg, "deg"),
+        ("rho", rho, ""),
+        ("dock_tol", dock_tol, "m"),
+    ):
+        checks.positive(name, v, unit)
+    checks.in_range("gamma (holding-radius shrink factor)", gamma, 0.0, 1.0)
+    checks.in_range("half_angle_deg (entry cone)", half_angle_deg, 0.0, 90.0, unit="deg")
+    checks.nonnegative("gap", gap, "m")
+    checks.finite("target_rate_deg_s", target_rate_deg_s, "deg/s")
+    r_min = r_t if r_min is None else r_min
+    r_port = r_t if r_port is None else r_port
+    if not r_t <= r_min < r_hold0:
+        raise ValueError(
+            f"radii must satisfy r_t <= r_min < r_hold0, got r_t={r_t}, r_min={r_min}, "
+            f"r_hold0={r_hold0} m"
+        )
+    checks.in_range("r_port", r_port, 0.0, r_min, hi_open=False, unit="m")
+    if not cone_radius > 0:
+        raise ValueError(f"cone_radius must be > 0 m, got {cone_radius}")
+    if obstacles is None or len(obstacles) == 0:  # one inactive placeholder: fixed shapes
+        obstacles, obstacle_radii, obstacles_on = np.zeros((1, 4)), np.ones(1), False
+    obstacles = np.asarray(obstacles, float).reshape(-1, 4)
+    obstacle_radii = np.asarray(obstacle_radii, float).reshape(-1)
+    checks.finite("obstacles", obstacles, "m, m/s")
+    checks.positive("obstacle_radii", obstacle_radii, "m")
+    obstacle_mask = np.full(len(obstacle_radii), 1.0 if obstacles_on else 0.0)
+    Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
+    R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
+    checks.shape("Q", Q, (6, 6))
+    checks.shape("R", R, (3, 3))
+    checks.pos_semidef("Q", Q)
+    checks.pos_def("R", R)
+    u_max = checks.shape("u_max", u_max, (3,))
+    checks.positive("u_max", u_max, "N, N, N m")
+    target = checks.shape("target", target, (3,))
+    target_vel = checks.shape("target_vel", target_vel, (2,))
+    if x0 is not None:
+        x0 = checks.shape("x0", x0, (6,))
+        checks.outside("the target keep-out zone", x0[:2], target[:2], r_t)
+        for j in np.flatnonzero(obstacle_mask):
+            checks.outside(
+                f"obstacle keep-out zone {j + 1}", x0[:2], obstacles[j, :2], obstacle_radii[j]
+            )
+    A, B = discretize_zoh(*planar3dof_continuous(mass, inertia), ts)
+    P = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
+    f = jnp.asarray
+    return Params(
+        A=A,
+        B=B,
+        Q=f(Q),
+        R=f(R),
+        Q_f=P,
+        u_max=f(u_max),
+        target=f(target),
+        target_rate=f(np.deg2rad(target_rate_deg_s)),
+        target_vel=f(target_vel),
+        r_t=f(float(r_t)),
+        r_hold0=f(float(r_hold0)),
+        r_min=f(float(r_min)),
+        r_port=f(float(r_port)),
+        cone_radius=f(float(cone_radius)),
+        obstacles=f(obstacles),
+        obstacle_radii=f(obstacle_radii),
+        obstacle_mask=f(obstacle_mask),
+        gap=f(float(gap)),
+        gamma=f(float(gamma)),
+        c_pos=f(float(c_pos)),
+        c_att=f(np.deg2rad(c_att_deg)),
+        half_angle=f(np.deg2rad(half_angle_deg)),
+        rho=f(float(rho)),
+        ts=f(float(ts)),
+        dock_tol=f(float(dock_tol)),
+        mass=f(float(mass)),
+        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
+    )
+
+
+def _wrap(a):
+    return (a + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
+
+
+def _unit(phi):
+    return jnp.stack([jnp.cos(phi), jnp.sin(phi)], axis=-1)
+
+
+def target_at(p: Params, times):
+    """Target centre (..., 2) and port axis angle (...) at the given times."""
+    centre = p.target[:2] + times[..., None] * p.target_vel
+    return centre, p.target[2] + p.target_rate * times
+
+
+def _obstacle_centres(p: Params, times):
+    return p.obstacles[..., :2] + times[..., None, None] * p.obstacles[..., 2:]
+
+
+def init(p: Params, fc: Config, x0):
+    return Guidance(r_hold=p.r_hold0, phase=jnp.asarray(0, jnp.int32), cone_on=jnp.asarray(False))
+
+
+def initial_plan(p: Params, fc: Config, g, x0):
+    return drift_plan(p.A, x0, fc.N, LAYOUT.nu)
+
+
+def observe(p: Params, fc: Config, g: Guidance, x, t, plan):
+    """Entry-cone activation at the step start: from the phase switch on (paper 002), or
+    within r_cone of the docking point (paper 000)."""
+    if fc.logic == "two-phase":
+        return g._replace(cone_on=g.phase > 0)
+    centre, phi = target_at(p, t)
+    dock = centre + p.r_port * _unit(phi)
+    return g._replace(cone_on=jnp.linalg.norm(x[:2] - dock) < p.cone_radius)
+
+
+def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
+    """Blocks: target keep-out r_t, holding circle r_hold (both about the plan), entry cone
+    (when on), obstacles."""
+    N, nx, nu = fc.N, LAYOUT.nx, LAYOUT.nu
+    times = t + p.ts * jnp.arange(1, N + 1, dtype=x.dtype)
+    centre, phi = target_at(p, times)
+    e = _unit(phi)
+    dock = centre + p.r_port * e
+    hold_r = g.r_hold + p.gap
+    hold = centre + hold_r * e
+    # holding point velocity: target velocity + omega x (hold - centre)
+    v_hold = p.target_vel + p.target_rate * hold_r * jnp.stack([-e[:, 1], e[:, 0]], -1)
+    # attitude facing the port (theta = phi + pi, unwrapped near the current attitude)
+    theta_ref = x[2] + _wrap(phi + jnp.pi - x[2])
+    x_ref = jnp.concatenate(
+        [hold, theta_ref[:, None], v_hold, jnp.full((N, 1), p.target_rate)], axis=-1
+    )
+    guess = plan.x[:, :2]
+    blocks = [
+        holding_radius(guess, centre, p.r_t, nx, POS, rho=p.rho, name="target_keep_out"),
+        holding_radius(guess, centre, g.r_hold, nx, POS, rho=p.rho, name="holding_radius"),
+        entry_cone(dock, phi, p.half_angle, nx, POS, rho=p.rho).masked(g.cone_on),
+        sphere_keep_out(
+            guess,
+            _obstacle_centres(p, times),
+            p.obstacle_radii,
+            nx,
+            POS,
+            rho=p.rho,
+            name="obstacles",
+        ).masked(jnp.broadcast_to(p.obstacle_mask, (N, p.obstacle_radii.shape[0]))),
+    ]
+    Fx, fx, rho, x_mask = stack(blocks)
+    box = thrust_box(p.u_max, N)
+    zeros = jnp.zeros((N, nx), x.dtype)
+    problem = OCP(
+        A=jnp.broadcast_to(p.A, (N, nx, nx)),
+        B=jnp.broadcast_to(p.B, (N, nx, nu)),
+        c=zeros,
+        x0=x,
+        Q=jnp.broadcast_to(p.Q, (N, nx, nx)).at[-1].set(p.Q_f),
+        R=jnp.broadcast_to(p.R, (N, nu, nu)),
+        x_ref=x_ref,
+        q=zeros,
+        r=jnp.zeros((N, nu), x.dtype),
+        Fu=box.F,
+        fu=box.f,
+        u_mask=box.mask,
+        Fx=Fx,
+        fx=fx,
+        rho=rho,
+        x_mask=x_mask,
+    )
+    return problem, blocks
+
+
+def control(p, fc, g, sol):
+    return sol.u[0]
+
+
+def sample_time(p: Params, g):
+    return p.ts
+
+
+def truth_model(p: Params, g):
+    return p.A, p.B
+
+
+def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
+    """Phase switch, shrink rule and docking on the state reached (errors to the current
+    holding state)."""
+    centre, phi = target_at(p, t + ts)
+    hold = centre + (g.r_hold + p.gap) * _unit(phi)
+    alpha1 = jnp.linalg.norm(x_next[:2] - hold)
+    alpha2 = jnp.abs(_wrap(phi + jnp.pi - x_next[2]))
+    # paper 002: shrink only in the final phase; paper 000: whenever both errors are small
+    gate = (g.phase > 0) if fc.logic == "two-phase" else True
+    r_hold, close = holding_radius_update(
+        g.r_hold, alpha1, alpha2, p.gamma, p.c_pos, p.c_att, p.r_min, gate
+    )
+    at_port = g.r_hold <= p.r_min + 1e-9
+    docked = at_port & (alpha1 < p.dock_tol) & (alpha2 < p.c_att)
+    phase = jnp.where(close, 1, g.phase).astype(jnp.int32)
+    return g._replace(r_hold=r_hold, phase=phase), docked, ts, jnp.zeros(samples[0].shape, bool)
+
+
+def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
+    """Target keep-out and obstacles (judged), entry cone when on (reported)."""
+    t = jnp.asarray(t)
+    centre, phi = target_at(p, t[None])
+    r = x[None, :2]
+    k = p.obstacle_radii.shape[0]
+    return [
+        sphere_keep_out(r, centre, p.r_t, LAYOUT.nx, POS, name="target_keep_out"),
+        sphere_keep_out(
+            r, _obstacle_centres(p, t[None]), p.obstacle_radii, LAYOUT.nx, POS, name="obstacles"
+        ).masked(p.obstacle_mask.reshape(1, k)),
+        entry_cone(
+            centre + p.r_port * _unit(phi), phi, p.half_angle, LAYOUT.nx, POS, kind="monitor"
+        ).masked(g.cone_on),
+    ]
+
+
+def _plot(path, scenario, params, infos):
+    from rvdjax.plots import plot_docking
+
+    plot_docking(path, scenario, params, infos)
+
+
+FAMILY = Family(
+    name="planar-docking",
+    description="planar 3-DOF docking to a rotating, translating target: holding radius, "
+    "entry cone, moving obstacles (papers 000, 002)",
+    layout=LAYOUT,
+    n_phases=2,
+    config_type=Config,
+    make_params=make_params,
+    horizon=lambda fc: fc.N,
+    init=init,
+    initial_plan=initial_plan,
+    observe=observe,
+    ocp=ocp,
+    control=control,
+    sample_time=sample_time,
+    truth_model=truth_model,
+    update=update,
+    truth_blocks=truth_blocks,
+    plot=_plot,
+)

@@ -1,0 +1,285 @@
+"""3-D CW rendezvous to a holding point around moving spherical keep-out zones (paper 000
+Sec. IV.A).
+
+Every MPC step solves (paper 000 Eqs. 1-2, 5-8): the CW model at a zero-order hold, quadratic
+cost to the holding point with the DARE terminal weight, the thrust box, and one keep-out row
+per obstacle and stage, linearised about the previous plan's position at that stage (paper
+000: expansion points from "the reference trajectory of the chaser from the previous
+iteration"; the first step uses the unforced drift). The obstacles move on straight lines at
+constant velocity in the LVLH frame. The run ends when the chaser is within ``stop_radius`` of
+the target (paper 000: 2.3 m).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from rvdjax import checks
+from rvdjax.constraints import sphere_keep_out, stack, thrust_box
+from rvdjax.disturbances import Disturbances
+from rvdjax.disturbances import disturbances as make_disturbances
+from rvdjax.loop.family import Family, Layout
+from rvdjax.ocp import OCP
+from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.solver import drift_plan
+
+__all__ = ["Params", "Config", "make_params", "FAMILY"]
+
+LAYOUT = Layout(
+    nx=6,
+    nu=3,
+    pos=(0, 1, 2),
+    vel=(3, 4, 5),
+    force=(0, 1, 2),
+    input="force",
+    names=("x", "y", "z", "vx", "vy", "vz"),
+)
+
+
+class Params(NamedTuple):
+    """Traced parameters (SI units).
+
+    Attributes:
+        A, B: (6, 6), (6, 3) discrete CW model at the sample time (ZOH; also the linear truth).
+        Q, R, Q_f: weights (Q_f: the DARE solution).
+        u_max: (3,) thrust box [N].
+        x_ref: (6,) holding state (the target sits at the origin).
+        obstacles: (k, 6) obstacle states (position, velocity) at t = 0 [m, m/s].
+        radii: (k,) spherical keep-out radii [m].
+        obstacle_mask: (k,) 1.0 for an obstacle that exists, 0.0 to switch it off.
+        rho: () exact penalty of the keep-out rows [per metre of penetration].
+        ts: () sample time [s].
+        mass: () chaser mass [kg].
+        stop_radius: () the run ends when |r| <= stop_radius [m].
+        orbit: the target's inertial state (nonlinear truths).
+        drag: unused (no drag model for this family).
+        disturbances: navigation noise, thrust error, minimum impulse bit (disturbed runs).
+    """
+
+    A: jnp.ndarray
+    B: jnp.ndarray
+    Q: jnp.ndarray
+    R: jnp.ndarray
+    Q_f: jnp.ndarray
+    u_max: jnp.ndarray
+    x_ref: jnp.ndarray
+    obstacles: jnp.ndarray
+    radii: jnp.ndarray
+    obstacle_mask: jnp.ndarray
+    rho: jnp.ndarray
+    ts: jnp.ndarray
+    mass: jnp.ndarray
+    stop_radius: jnp.ndarray
+    orbit: Orbit | None = None
+    drag: Drag | None = None
+    disturbances: Disturbances | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static configuration: the horizon."""
+
+    N: int = 30
+
+    def __post_init__(self):
+        checks.integer("N", self.N)
+
+
+class Guidance(NamedTuple):
+    """No guidance state: one phase, fixed constraints."""
+
+
+def make_params(
+    *,
+    altitude_m: float,
+    mass: float,
+    ts: float,
+    Q,
+    R,
+    u_max,
+    stop_radius: float,
+    obstacles=None,
+    radii=None,
+    obstacles_on: bool = True,
+    rho: float = 1e8,
+    x_ref=None,
+    x0=None,
+    inclination_deg: float = 0.0,
+    disturbances: dict | None = None,
+) -> Params:
+    """Check physical values and build :class:`Params` (once, before any jit).
+
+    Args:
+        altitude_m: circular target orbit altitude [m] (CW mean motion; nonlinear truth).
+        mass: chaser mass [kg]. ts: sample time [s] (zero-order hold).
+        Q, R: diagonals (6, 3 entries) or full weights; Q_f is the DARE solution.
+        u_max: per-axis thrust bound [N] (scalar or 3).
+        stop_radius: distance to the target that ends the run [m].
+        obstacles: (k, 6) initial obstacle states; radii: (k,) keep-out radii [m].
+        obstacles_on: False keeps the shapes but switches every obstacle off.
+        rho: exact penalty of the keep-out rows [per metre].
+        x0: initial state, checked to be finite and outside every zone and the stop radius.
+        inclination_deg: target orbit inclination (nonlinear truths).
+        disturbances: keyword values for :func:`rvdjax.disturbances.disturbances`.
+    """
+    from rvdjax.dynamics import cw_continuous, dare, discretize_zoh, mean_motion
+
+    checks.positive("altitude_m", altitude_m, "m")
+    checks.positive("mass", mass, "kg")
+    checks.positive("ts", ts, "s")
+    checks.positive("stop_radius", stop_radius, "m")
+    checks.positive("rho", rho)
+    checks.in_range("inclination_deg", inclination_deg, 0.0, 180.0, False, False, "deg")
+    Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
+    R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
+    checks.shape("Q", Q, (6, 6))
+    checks.shape("R", R, (3, 3))
+    checks.pos_semidef("Q", Q)
+    checks.pos_def("R", R)
+    u_max = np.broadcast_to(np.asarray(u_max, float), (3,)).copy()
+    checks.positive("u_max", u_max, "N")
+    if obstacles is None or len(obstacles) == 0:  # one inactive placeholder: fixed shapes
+        obstacles, radii, obstacles_on = np.zeros((1, 6)), np.ones(1), False
+    obstacles = np.asarray(obstacles, float).reshape(-1, 6)
+    radii = np.asarray(radii, float).reshape(-1)
+    checks.finite("obstacles", obstacles, "m, m/s")
+    if radii.shape != (len(obstacles),):
+        raise ValueError(f"radii must give one radius per obstacle ({len(obstacles)})")
+    checks.positive("radii", radii, "m")
+    x_ref = np.zeros(6) if x_ref is None else checks.shape("x_ref", x_ref, (6,))
+    if x0 is not None:
+        x0 = checks.shape("x0", x0, (6,))
+        checks.outside("the stop radius (it has already arrived)", x0[:3], x_ref[:3], stop_radius)
+        if obstacles_on:
+            for j, (o, r) in enumerate(zip(obstacles, radii, strict=True)):
+                checks.outside(f"keep-out zone {j + 1}", x0[:3], o[:3], r)
+    n = mean_motion(altitude_m=altitude_m)
+    A, B = discretize_zoh(*cw_continuous(n, mass), ts)
+    P = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
+    f = jnp.asarray
+    return Params(
+        A=A,
+        B=B,
+        Q=f(Q),
+        R=f(R),
+        Q_f=P,
+        u_max=f(u_max),
+        x_ref=f(x_ref),
+        obstacles=f(obstacles),
+        radii=f(radii),
+        obstacle_mask=f(np.full(len(radii), 1.0 if obstacles_on else 0.0)),
+        rho=f(float(rho)),
+        ts=f(float(ts)),
+        mass=f(float(mass)),
+        stop_radius=f(float(stop_radius)),
+        orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
+        disturbances=make_disturbances(**(disturbances or {})),
+    )
+
+
+def _centres(p: Params, times):
+    """Obstacle centres (..., k, 3) at the given times: straight lines at constant velocity."""
+    return p.obstacles[..., :3] + times[..., None, None] * p.obstacles[..., 3:]
+
+
+def init(p: Params, fc: Config, x0):
+    return Guidance()
+
+
+def initial_plan(p: Params, fc: Config, g, x0):
+    # the unforced drift: a straight line to the target can cross an obstacle and leave no
+    # feasible plan
+    return drift_plan(p.A, x0, fc.N, LAYOUT.nu)
+
+
+def observe(p, fc, g, x, t, plan):
+    return g
+
+
+def ocp(p: Params, fc: Config, g, x, t, plan):
+    """The OCP at the measured state x and time t, keep-out rows about the plan's positions."""
+    N, nx, nu = fc.N, LAYOUT.nx, LAYOUT.nu
+    times = t + p.ts * jnp.arange(1, N + 1, dtype=x.dtype)
+    keep_out = sphere_keep_out(
+        plan.x[:, :3], _centres(p, times), p.radii, nx, rho=p.rho, name="keep_out"
+    ).masked(jnp.broadcast_to(p.obstacle_mask, (N, p.radii.shape[0])))
+    box = thrust_box(p.u_max, N)
+    Fx, fx, rho, x_mask = stack([keep_out])
+    zeros_x = jnp.zeros((N, nx), x.dtype)
+    problem = OCP(
+        A=jnp.broadcast_to(p.A, (N, nx, nx)),
+        B=jnp.broadcast_to(p.B, (N, nx, nu)),
+        c=zeros_x,
+        x0=x,
+        Q=jnp.broadcast_to(p.Q, (N, nx, nx)).at[-1].set(p.Q_f),
+        R=jnp.broadcast_to(p.R, (N, nu, nu)),
+        x_ref=jnp.broadcast_to(p.x_ref, (N, nx)),
+        q=zeros_x,
+        r=jnp.zeros((N, nu), x.dtype),
+        Fu=box.F,
+        fu=box.f,
+        u_mask=box.mask,
+        Fx=Fx,
+        fx=fx,
+        rho=rho,
+        x_mask=x_mask,
+    )
+    return problem, [keep_out]
+
+
+def control(p, fc, g, sol):
+    return sol.u[0]
+
+
+def sample_time(p: Params, g):
+    return p.ts
+
+
+def truth_model(p: Params, g):
+    return p.A, p.B
+
+
+def update(p: Params, fc, g, x, u, x_next, t, ts, samples):
+    docked = jnp.linalg.norm(x_next[:3] - p.x_ref[:3]) <= p.stop_radius
+    return g, docked, ts, jnp.zeros(samples[0].shape, bool)
+
+
+def truth_blocks(p: Params, fc, g, x, t):
+    """The keep-out spheres linearised at the truth itself: slack = |r - o| - radius."""
+    k = p.radii.shape[0]
+    centres = _centres(p, jnp.asarray(t)[None])
+    keep_out = sphere_keep_out(x[None, :3], centres, p.radii, LAYOUT.nx, name="keep_out")
+    return [keep_out.masked(p.obstacle_mask.reshape(1, k))]
+
+
+def _plot(path, scenario, params, infos):
+    from rvdjax.plots import plot_rendezvous
+
+    plot_rendezvous(path, scenario, params, infos)
+
+
+FAMILY = Family(
+    name="rendezvous",
+    description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
+    layout=LAYOUT,
+    n_phases=1,
+    config_type=Config,
+    make_params=make_params,
+    horizon=lambda fc: fc.N,
+    init=init,
+    initial_plan=initial_plan,
+    observe=observe,
+    ocp=ocp,
+    control=control,
+    sample_time=sample_time,
+    truth_model=truth_model,
+    update=update,
+    truth_blocks=truth_blocks,
+    truths=("linear", "two-body", "two-body-j2"),
+    plot=_plot,
+    baselines=("nmpc",),
+)

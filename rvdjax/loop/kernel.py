@@ -1,0 +1,520 @@
+"""The closed-loop kernel shared by every guidance family: ``init``, ``step``, ``fly``, metrics.
+
+One ``step`` is one MPC decision (DESIGN §4): the family observes the truth (cone
+activation), the guidance sees the measured state (navigation noise), the family builds the
+OCP, the solver answers (warm-started from the shifted previous plan, or cold after a phase
+change), the command goes through the actuator (minimum impulse bit, thrust-amplitude error)
+and the plant, the family updates its guidance state (phase, holding radius, docking) on the
+truth, and the step's figures are accumulated. A finished run (docked, out of steps or failed)
+keeps stepping as a no-op, so a batch has one shape. The shape follows blackjax's kernels:
+``init(loop, params, x0, key) -> LoopState`` and ``step(loop, params, state) -> (state,
+StepInfo)``, the per-step PRNG key derived from the run's key and the step index, so a run is
+reproducible from its key whatever batch it is flown in.
+
+``step`` is :func:`prepare` (observe, measure, build the OCP and the warm start), a solve and
+:func:`advance` (command, actuator, plant, guidance update, accumulation); the batch engine
+(:mod:`rvdjax.loop.engine`) runs the same two halves with the solver iterations in between
+spread over several calls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from rvdjax.constraints import hard_mask, margins
+from rvdjax.disturbances import gm_init, gm_step, measure, minimum_impulse_bit, thrust_factor
+from rvdjax.loop.family import Family
+from rvdjax.loop.plant import TRUTHS, impulse_per_unit, truth_step
+from rvdjax.ocp import OCP
+from rvdjax.solver import (
+    Plan,
+    Solution,
+    SolverParams,
+    SolverSettings,
+    Status,
+    drift_plan,
+    shift_solution,
+    solve_if,
+)
+
+__all__ = [
+    "LoopConfig",
+    "Loop",
+    "LoopState",
+    "Accumulator",
+    "Prepared",
+    "StepInfo",
+    "Metrics",
+    "RunStatus",
+    "init",
+    "prepare",
+    "advance",
+    "step",
+    "fly",
+    "metrics",
+]
+
+HIST_BINS = 32  # per-step solver iteration histogram: bins 0 .. 30 and >= 31
+
+
+class RunStatus:
+    """How a run ended (``Metrics.status``)."""
+
+    DOCKED = 0
+    TIMEOUT = 1  # out of MPC steps without docking
+    FAILED = 2  # the truth became non-finite (the run stops; its figures stay finite)
+
+    names = ("docked", "timeout", "failed")
+
+    @classmethod
+    def name(cls, code: int) -> str:
+        return cls.names[int(code)]
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Static configuration of a closed loop (a change recompiles).
+
+    Attributes:
+        family: the family's own static configuration (horizon, options).
+        n_steps: MPC steps per run at most; a run not docked by then ends as TIMEOUT.
+        settings: solver settings (mode, method, iteration caps).
+        truth: "linear" or a nonlinear truth (:data:`rvdjax.loop.plant.TRUTHS`).
+        truth_substeps: RK4 steps per sample time for the nonlinear truths.
+        disturbed: the guidance sees a noisy state and the thrusters apply (1 + w) u with the
+            Gauss-Markov error w, dropping pulses shorter than the minimum impulse bit
+            (``params.disturbances``).
+    """
+
+    family: Any
+    n_steps: int = 200
+    settings: SolverSettings = SolverSettings()
+    truth: str = "linear"
+    truth_substeps: int = 3
+    disturbed: bool = False
+
+    def __post_init__(self):
+        if self.truth not in TRUTHS:
+            raise ValueError(f"truth must be one of {TRUTHS}, got {self.truth!r}")
+        for name in ("n_steps", "truth_substeps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Loop:
+    """A family with its static loop configuration: everything that shapes the program."""
+
+    family: Family
+    config: LoopConfig
+
+    def __post_init__(self):
+        if self.config.truth not in self.family.truths:
+            raise ValueError(
+                f"truth={self.config.truth!r} is not available for the {self.family.name} "
+                f"family; choose one of {self.family.truths}"
+            )
+
+    @property
+    def N(self) -> int:
+        return self.family.horizon(self.config.family)
+
+    def replace(self, **changes) -> Loop:
+        """A copy with LoopConfig fields changed (``settings=..., truth=..., n_steps=...``)."""
+        return Loop(self.family, dataclasses.replace(self.config, **changes))
+
+
+class Accumulator(NamedTuple):
+    """Running figures of a run (reduced by :func:`metrics`)."""
+
+    steps: jnp.ndarray  # () MPC steps flown
+    time_s: jnp.ndarray  # () time flown [s]
+    impulse_l2: jnp.ndarray  # () sum ||impulse||_2 [N s] (force axes)
+    impulse_l1: jnp.ndarray  # () sum ||impulse||_1 [N s]
+    dv_l2: jnp.ndarray  # () sum ||dv||_2 [m/s]
+    dv_l1: jnp.ndarray  # () sum ||dv||_1 [m/s]
+    torque_l1: jnp.ndarray  # () sum |torque| dt [N m s]
+    phase_dv: jnp.ndarray  # (P,) L2 delta-v per phase [m/s]
+    phase_time: jnp.ndarray  # (P,) time per phase [s]
+    margins: dict  # name -> () smallest truth margin so far [m]
+    status_counts: jnp.ndarray  # (4,) solver statuses
+    iterations: jnp.ndarray  # () solver iterations
+    histogram: jnp.ndarray  # (HIST_BINS,) MPC steps per iteration count
+
+
+class LoopState(NamedTuple):
+    """State of one run between MPC steps.
+
+    Attributes:
+        x: (nx,) true state.
+        t: () time [s].
+        k: () MPC steps taken.
+        plan: the warm start (the previous plan, shifted) and linearisation guess.
+        guidance: the family's guidance state.
+        fresh: () the next solve starts cold (start of the run, phase change).
+        active: () the run is in progress.
+        docked: () the run docked.
+        failed: () the truth became non-finite.
+        orbit: the target's inertial state (nonlinear truths) or None.
+        gm: (nu, 2) Gauss-Markov thrust-error states (zeros when undisturbed).
+        key: the run's PRNG key (step keys are ``fold_in(key, k)``).
+        acc: the :class:`Accumulator`.
+    """
+
+    x: jnp.ndarray
+    t: jnp.ndarray
+    k: jnp.ndarray
+    plan: Plan
+    guidance: Any
+    fresh: jnp.ndarray
+    active: jnp.ndarray
+    docked: jnp.ndarray
+    failed: jnp.ndarray
+    orbit: Any
+    gm: jnp.ndarray
+    key: jnp.ndarray
+    acc: Accumulator
+
+
+class Prepared(NamedTuple):
+    """A step between its two halves: the observed guidance state, the OCP, the rows that
+    stand for hard constraints (for the INFEASIBLE status) and the warm start."""
+
+    guidance: Any
+    ocp: OCP
+    hard: jnp.ndarray  # (N, m) 1.0 on hard rows
+    warm: Plan
+
+
+class StepInfo(NamedTuple):
+    """Per-step record (leading axis: step when stacked by :func:`fly`)."""
+
+    x: jnp.ndarray  # (nx,) true state at the step start
+    u: jnp.ndarray  # (nu,) applied input (zero once finished; disturbed: after the errors)
+    u_cmd: jnp.ndarray  # (nu,) commanded input
+    t: jnp.ndarray  # () time at the step start [s]
+    dt: jnp.ndarray  # () time the input acted [s] (0 once finished)
+    phase: jnp.ndarray  # () guidance phase of the step
+    status: jnp.ndarray  # solver status; INFEASIBLE only for hard rows (-1 once finished)
+    solver_status: jnp.ndarray  # raw solver status (INFEASIBLE also for penalty rows)
+    hard_violation: jnp.ndarray  # largest planned violation of the hard rows
+    iterations: jnp.ndarray
+    objective: jnp.ndarray
+    active: jnp.ndarray  # the run was in progress at this step
+    margins: dict  # name -> (m,) truth row slacks over the step [m] (+inf: row inactive)
+    guidance: Any  # the family's guidance state used by this step
+
+
+class Metrics(NamedTuple):
+    """Per-run figures of merit (DESIGN §4), one definition for every family.
+
+    Impulses count the translational axes (``Layout.force``): a force F acting dt gives F dt,
+    a delta-v dv gives m dv; delta-v is impulse / m.
+    """
+
+    status: jnp.ndarray  # RunStatus code
+    docked: jnp.ndarray
+    steps: jnp.ndarray  # MPC steps flown
+    time_to_dock_s: jnp.ndarray  # time flown until docking [s] (inf if not docked)
+    total_impulse_N_s: jnp.ndarray  # sum_k ||impulse_k||_2
+    effort_l1_N_s: jnp.ndarray  # sum_k ||impulse_k||_1 (paper 001 Eq. 14)
+    delta_v_m_s: jnp.ndarray  # sum_k ||dv_k||_2
+    delta_v_l1_m_s: jnp.ndarray  # sum_k ||dv_k||_1
+    torque_l1_N_m_s: jnp.ndarray  # sum_k |torque_k| dt (planar 3-DOF)
+    phase_delta_v_m_s: jnp.ndarray  # (P,) L2 delta-v per phase
+    phase_time_s: jnp.ndarray  # (P,) time per phase [s]
+    max_violation_m: jnp.ndarray  # largest violation of a hard constraint by the truth
+    margins_m: dict  # name -> smallest truth margin of that block over the run
+    status_counts: jnp.ndarray  # (4,) solver statuses over the steps flown
+    mean_iterations: jnp.ndarray
+    iteration_histogram: jnp.ndarray  # (HIST_BINS,) steps per solver iteration count
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _truth_kinds(loop: Loop, params, g, x, t) -> dict:
+    """{name: kind} of the family's truth blocks (static; the arrays are dead code)."""
+    blocks = loop.family.truth_blocks(params, loop.config.family, g, x, t)
+    return {b.name: b.kind for b in blocks}
+
+
+def _empty_acc(loop: Loop, params, x0, g, dtype) -> Accumulator:
+    P = loop.family.n_phases
+    zero = jnp.zeros((), dtype)
+    names = _truth_kinds(loop, params, g, x0, zero)
+    return Accumulator(
+        steps=jnp.zeros((), jnp.int32),
+        time_s=zero,
+        impulse_l2=zero,
+        impulse_l1=zero,
+        dv_l2=zero,
+        dv_l1=zero,
+        torque_l1=zero,
+        phase_dv=jnp.zeros(P, dtype),
+        phase_time=jnp.zeros(P, dtype),
+        margins={n: jnp.asarray(jnp.inf, dtype) for n in names},
+        status_counts=jnp.zeros(4, jnp.int32),
+        iterations=jnp.zeros((), jnp.int32),
+        histogram=jnp.zeros(HIST_BINS, jnp.int32),
+    )
+
+
+def init(loop: Loop, params, x0, key=None) -> LoopState:
+    """The state at the start of a run from ``x0`` (the PRNG ``key`` drives disturbances)."""
+    fam, fc = loop.family, loop.config.family
+    dtype = jnp.result_type(float)
+    x0 = jnp.asarray(x0, dtype)
+    key = jax.random.key(0) if key is None else key
+    g = fam.init(params, fc, x0)
+    plan = fam.initial_plan(params, fc, g, x0)
+    nu = fam.layout.nu
+    if loop.config.disturbed:
+        if params.disturbances is None:
+            raise ValueError("a disturbed run needs params.disturbances")
+        gm = gm_init(jax.random.fold_in(key, -1), params.disturbances, nu)
+    else:
+        gm = jnp.zeros((nu, 2), dtype)
+    orbit = params.orbit if loop.config.truth != "linear" else None
+    if loop.config.truth != "linear" and orbit is None:
+        raise ValueError(f"truth={loop.config.truth!r} needs params.orbit (the target's orbit)")
+    false = jnp.asarray(False)
+    return LoopState(
+        x=x0,
+        t=jnp.zeros((), dtype),
+        k=jnp.zeros((), jnp.int32),
+        plan=plan,
+        guidance=g,
+        fresh=jnp.asarray(True),
+        active=jnp.asarray(True),
+        docked=false,
+        failed=false,
+        orbit=orbit,
+        gm=gm,
+        key=key,
+        acc=_empty_acc(loop, params, x0, g, dtype),
+    )
+
+
+def _keys(state: LoopState):
+    k_nav, k_act = jax.random.split(jax.random.fold_in(state.key, state.k))
+    return k_nav, k_act
+
+
+def prepare(loop: Loop, params, state: LoopState) -> Prepared:
+    """First half of a step: observe, measure, build the OCP and the warm start."""
+    fam, fc, lay = loop.family, loop.config.family, loop.family.layout
+    g = fam.observe(params, fc, state.guidance, state.x, state.t, state.plan)
+    x_meas = state.x
+    if loop.config.disturbed:
+        k_nav, _ = _keys(state)
+        x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att)
+    ocp, blocks = fam.ocp(params, fc, g, x_meas, state.t, state.plan)
+    cold = drift_plan(ocp.A, ocp.x0, ocp.N, ocp.nu)
+    warm = jax.tree.map(lambda a, b: jnp.where(state.fresh, a, b), cold, state.plan)
+    return Prepared(g, ocp, hard_mask(blocks), warm)
+
+
+def _hard_violation(prep: Prepared, sol: Solution):
+    """Largest row-normalised violation of the hard rows by the plan."""
+    ocp = prep.ocp
+    g = jnp.einsum("tmn,tn->tm", ocp.Fx, sol.x) - ocp.fx
+    norm = jnp.maximum(jnp.linalg.norm(ocp.Fx, axis=-1), 1e-300)
+    return jnp.max(jnp.maximum(g / norm, 0.0) * ocp.x_mask * prep.hard)
+
+
+def _truth_margins(loop: Loop, params, g, xs, ts, mask):
+    """{name: (m,)} smallest slack over the masked samples of each truth block."""
+    fam, fc = loop.family, loop.config.family
+
+    def one(x, t):
+        return margins(fam.truth_blocks(params, fc, g, x, t), x)
+
+    per_sample = jax.vmap(one)(xs, ts)
+    return {n: jnp.min(jnp.where(mask[:, None], m, jnp.inf), axis=0) for n, m in per_sample.items()}
+
+
+def advance(
+    loop: Loop, params, sp: SolverParams, state: LoopState, prep: Prepared, sol: Solution
+) -> tuple[LoopState, StepInfo]:
+    """Second half of a step: command, actuator, plant, guidance update, accumulation."""
+    fam, fc, cfg, lay = loop.family, loop.config.family, loop.config, loop.family.layout
+    g = prep.guidance
+    dtype = state.x.dtype
+    active = state.active
+    u_cmd = jnp.where(active, fam.control(params, fc, g, sol), 0.0)
+    dt = fam.sample_time(params, g)
+    u = u_cmd
+    gm = state.gm
+    if cfg.disturbed:
+        _, k_act = _keys(state)
+        d = params.disturbances
+        per_u = impulse_per_unit(lay, params.mass, dt)
+        idx = jnp.asarray(lay.force, int)
+        u = u.at[idx].set(minimum_impulse_bit(u[idx] * per_u, d) / per_u)
+        u = u * thrust_factor(gm)
+        gm = gm_step(k_act, gm, d, dt)
+
+    # INFEASIBLE from the solver means "a soft row is violated at the optimum"; penalty rows
+    # (external costs of the paper) are not constraints, so only hard rows count.
+    hard_violation = _hard_violation(prep, sol)
+    status = jnp.where(
+        (sol.status == Status.INFEASIBLE) & (hard_violation <= sp.violation_tol),
+        Status.CONVERGED,
+        sol.status,
+    )
+
+    A, B = fam.truth_model(params, g)
+    x_next, orbit_next = truth_step(
+        lay, cfg.truth, cfg.truth_substeps, A, B, params, state.orbit, state.x, u, dt
+    )
+    if fam.subsamples is not None:
+        taus, subs = fam.subsamples(params, fc, state.x, u)
+    else:
+        taus, subs = jnp.zeros((0,), dtype), jnp.zeros((0, lay.nx), dtype)
+    t_next = state.t + dt
+    g_next, docked, dt_flown, sub_mask = fam.update(
+        params, fc, g, state.x, u, x_next, state.t, dt, (taus, subs)
+    )
+    finite = jnp.all(jnp.isfinite(x_next))
+    x_next = jnp.where(finite, x_next, state.x)
+
+    # truth margins: the step start, and the sub-samples flown before docking
+    xs = jnp.concatenate([state.x[None], subs], axis=0)
+    ts_ = jnp.concatenate([state.t[None], state.t + taus])
+    mask = jnp.concatenate([jnp.ones(1, bool), sub_mask])
+    m = _truth_margins(loop, params, g, xs, ts_, mask)
+
+    dt_flown = jnp.where(active, dt_flown, 0.0)
+    info = StepInfo(
+        x=state.x,
+        u=u,
+        u_cmd=u_cmd,
+        t=state.t,
+        dt=dt_flown,
+        phase=jnp.asarray(getattr(g, "phase", 0), jnp.int32),
+        status=jnp.where(active, status, -1),
+        solver_status=jnp.where(active, sol.status, -1),
+        hard_violation=jnp.where(active, hard_violation, 0.0),
+        iterations=jnp.where(active, sol.iterations, 0),
+        objective=sol.objective,
+        active=active,
+        margins=m,
+        guidance=g,
+    )
+    acc = _accumulate(loop, params, state.acc, info)
+    k_next = state.k + 1
+    ended = docked | ~finite | (k_next >= cfg.n_steps)
+    nxt = LoopState(
+        x=x_next,
+        t=t_next,
+        k=k_next,
+        plan=shift_solution(sol),
+        guidance=g_next,
+        fresh=getattr(g_next, "phase", 0) != getattr(g, "phase", 0),
+        active=active & ~ended,
+        docked=state.docked | docked,
+        failed=state.failed | ~finite,
+        orbit=orbit_next,
+        gm=gm,
+        key=state.key,
+        acc=acc,
+    )
+    nxt = nxt._replace(fresh=jnp.asarray(nxt.fresh))
+    # A finished run idles: its state stops changing.
+    nxt = jax.tree.map(lambda a, b: jnp.where(active, a, b), nxt, state)
+    return nxt, info
+
+
+def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo) -> Accumulator:
+    lay = loop.family.layout
+    act = info.active
+    idx = jnp.asarray(lay.force, int)
+    dv = info.u[idx] * (info.dt / params.mass if lay.input == "force" else 1.0)
+    imp = dv * params.mass if lay.input == "delta-v" else info.u[idx] * info.dt
+    dv2 = jnp.linalg.norm(dv)
+    tq = jnp.asarray(lay.torque, int)
+    torque = jnp.sum(jnp.abs(info.u[tq])) * info.dt if lay.torque else 0.0
+    P = loop.family.n_phases
+    in_phase = (info.phase == jnp.arange(P)) & act
+    hist_bin = jnp.minimum(info.iterations, HIST_BINS - 1)
+    return Accumulator(
+        steps=acc.steps + act.astype(jnp.int32),
+        time_s=acc.time_s + info.dt,
+        impulse_l2=acc.impulse_l2 + jnp.where(act, jnp.linalg.norm(imp), 0.0),
+        impulse_l1=acc.impulse_l1 + jnp.where(act, jnp.sum(jnp.abs(imp)), 0.0),
+        dv_l2=acc.dv_l2 + jnp.where(act, dv2, 0.0),
+        dv_l1=acc.dv_l1 + jnp.where(act, jnp.sum(jnp.abs(dv)), 0.0),
+        torque_l1=acc.torque_l1 + jnp.where(act, torque, 0.0),
+        phase_dv=acc.phase_dv + jnp.where(in_phase, dv2, 0.0),
+        phase_time=acc.phase_time + jnp.where(in_phase, info.dt, 0.0),
+        margins={
+            n: jnp.minimum(low, jnp.where(act, jnp.min(info.margins[n]), jnp.inf))
+            for n, low in acc.margins.items()
+        },
+        status_counts=acc.status_counts + Status.counts(info.status, act).astype(jnp.int32),
+        iterations=acc.iterations + jnp.where(act, info.iterations, 0).astype(jnp.int32),
+        histogram=acc.histogram.at[hist_bin].add(act.astype(jnp.int32)),
+    )
+
+
+def metrics(loop: Loop, params, state: LoopState) -> Metrics:
+    """The run's :class:`Metrics` from its final state (the one reduction for every family)."""
+    acc = state.acc
+    kinds = _truth_kinds(loop, params, state.guidance, state.x, state.t)
+    judged = [acc.margins[n] for n, kind in kinds.items() if kind == "hard"]
+    worst = jnp.min(jnp.stack([*judged, jnp.asarray(jnp.inf, state.x.dtype)]))
+    docked = state.docked
+    status = jnp.where(
+        docked, RunStatus.DOCKED, jnp.where(state.failed, RunStatus.FAILED, RunStatus.TIMEOUT)
+    )
+    mass = params.mass
+    return Metrics(
+        status=status.astype(jnp.int32),
+        docked=docked,
+        steps=acc.steps,
+        time_to_dock_s=jnp.where(docked, acc.time_s, jnp.inf),
+        total_impulse_N_s=acc.impulse_l2,
+        effort_l1_N_s=acc.impulse_l1,
+        delta_v_m_s=acc.impulse_l2 / mass if loop.family.layout.input == "force" else acc.dv_l2,
+        delta_v_l1_m_s=acc.dv_l1,
+        torque_l1_N_m_s=acc.torque_l1,
+        phase_delta_v_m_s=acc.phase_dv,
+        phase_time_s=acc.phase_time,
+        max_violation_m=jnp.maximum(0.0, -worst),
+        margins_m=acc.margins,
+        status_counts=acc.status_counts,
+        mean_iterations=acc.iterations / jnp.maximum(acc.steps, 1),
+        iteration_histogram=acc.histogram,
+    )
+
+
+def step(loop: Loop, params, sp: SolverParams, state: LoopState):
+    """One MPC decision: :func:`prepare`, a solve (skipped once the run has finished: a
+    single run takes the cheap branch of ``lax.cond``), :func:`advance`."""
+    prep = prepare(loop, params, state)
+    sol = solve_if(state.active, prep.ocp, loop.config.settings, init=prep.warm, params=sp)
+    return advance(loop, params, sp, state, prep, sol)
+
+
+def fly(loop: Loop, params, x0, key=None, solver_params: SolverParams | None = None):
+    """Fly one maneuver: ``n_steps`` MPC steps in one ``lax.scan``. Pure in (params, x0, key,
+    solver_params): jit it, vmap it, differentiate it.
+
+    Returns:
+        (StepInfo with a leading step axis, Metrics).
+    """
+    sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
+    state = init(loop, params, x0, key)
+
+    def body(s, _):
+        return step(loop, params, sp, s)
+
+    last, infos = lax.scan(body, state, None, length=loop.config.n_steps)
+    return infos, metrics(loop, params, last)

@@ -1,0 +1,52 @@
+"""The truth: one step of the plant for a family's layout (DESIGN §4).
+
+* ``linear``: the discrete model of the current phase itself, exact (matrix exponential; ZOH
+  for force inputs, impulsive for delta-v inputs).
+* ``two-body``, ``two-body-j2``, ``two-body-j2-drag``: both spacecraft integrated in the
+  inertial frame (RK4, :mod:`rvdjax.propagate`) — model mismatch. A force is held constant in
+  the LVLH frame over the step; a delta-v is applied at the start of the step, then both bodies
+  coast for Ts.
+
+The actuator (:mod:`rvdjax.disturbances`) sits in front: minimum impulse bit on the force
+axes, then the Gauss-Markov thrust-amplitude error on every axis.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from rvdjax.propagate import propagate_step
+
+__all__ = ["TRUTHS", "truth_step", "impulse_per_unit"]
+
+TRUTHS = ("linear", "two-body", "two-body-j2", "two-body-j2-drag")
+
+
+def impulse_per_unit(layout, mass, dt):
+    """Impulse [N s] per unit of a force-axis command: dt for a force, m for a delta-v."""
+    return dt if layout.input == "force" else mass
+
+
+def truth_step(layout, truth: str, substeps: int, A, B, params, orbit, x, u, dt):
+    """(x_next, orbit_next) of the truth after applying ``u`` for one step of ``dt`` [s].
+
+    Args:
+        layout: the family's :class:`~rvdjax.loop.family.Layout`.
+        truth: one of :data:`TRUTHS` (static).
+        substeps: RK4 steps per sample for the nonlinear truths (static).
+        A, B: the discrete model of the step (linear truth).
+        params: the family parameters (``mass``, ``drag``).
+        orbit: the target's inertial state (nonlinear truths) or None.
+    """
+    if truth == "linear":
+        return A @ x + B @ u, orbit
+    j2 = truth != "two-body"
+    drag = params.drag if truth == "two-body-j2-drag" else None
+    if layout.input == "force":
+        orbit_next, x_next = propagate_step(orbit, x, u, params.mass, dt, substeps, j2, drag)
+    else:  # impulse at the step start (paper 003 Eq. 3.1), then both bodies coast for Ts
+        vel = jnp.asarray(layout.vel)
+        orbit_next, x_next = propagate_step(
+            orbit, x.at[vel].add(u), jnp.zeros_like(u), params.mass, dt, substeps, j2, drag
+        )
+    return x_next, orbit_next

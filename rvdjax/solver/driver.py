@@ -1,0 +1,315 @@
+"""Driving a solve: start, iterate, finish — and the public :func:`solve` built from them.
+
+A solve is ``start`` (sanitise the data, choose the first iterate and kappa), iterations until
+the stopping test or ``max_iter``, and ``finish`` (statuses, multipliers, clean-up). The
+three are exposed separately so that a batch engine can run a fixed number of iterations per
+call and continue unfinished problems later (:mod:`rvdjax.loop.engine`): an iterate that has
+finished is frozen by :func:`iterate`, so any number of extra calls leaves it unchanged and
+the answer does not depend on how the iterations were grouped.
+
+:func:`solve` runs the iterations in a ``lax.while_loop`` and differentiates implicitly
+(:mod:`rvdjax.solver.implicit`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from rvdjax.ocp import OCP
+from rvdjax.solver.barrier import (
+    all_finite,
+    dyn_residual,
+    gradient,
+    m_eff,
+    max_violation,
+    objective,
+    residual_norms,
+    rows_of,
+    u_slack,
+)
+from rvdjax.solver.clarabel import solve_clarabel_backend
+from rvdjax.solver.implicit import implicit_bwd, kkt_at
+from rvdjax.solver.kkt import kkt_solve
+from rvdjax.solver.newton import NewtonState, newton_iteration
+from rvdjax.solver.primal_dual import PDState, pd_iteration, pd_start
+from rvdjax.solver.start import drift, pull_inside, track_plan
+from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
+
+__all__ = [
+    "SolveState",
+    "start",
+    "iterate",
+    "finished",
+    "finish",
+    "solve",
+    "solve_batch",
+    "solve_if",
+    "with_objective",
+]
+
+
+class SolveState(NamedTuple):
+    """A solve in progress (one problem).
+
+    Attributes:
+        core: the iterate: :class:`~rvdjax.solver.newton.NewtonState` (paper, barrier mode) or
+            :class:`~rvdjax.solver.primal_dual.PDState` (accurate mode).
+        x_scale: () 1 + the largest state entry at the start (scale of the primal residual).
+    """
+
+    core: NewtonState | PDState
+    x_scale: jnp.ndarray
+
+
+def _prepared(params: SolverParams, dtype) -> SolverParams:
+    params = params.astype(dtype)
+    # Tolerances below ~1e3 machine epsilon are unreachable (float32: 1.2e-4).
+    return params._replace(tol=jnp.maximum(params.tol, 1e3 * jnp.finfo(dtype).eps))
+
+
+def start(ocp: OCP, settings: SolverSettings, params: SolverParams, init: Plan | None = None):
+    """Sanitise ``ocp`` and build the first iterate.
+
+    Returns:
+        (the OCP to iterate on, :class:`SolveState`). Non-finite data would poison every
+        iterate: the returned OCP is then a neutral copy and the state is finished with status
+        NONFINITE.
+    """
+    dtype = ocp.B.dtype
+    params = _prepared(params, dtype)
+    inputs_ok = all_finite(ocp) & (True if init is None else all_finite(init))
+    ocp_safe = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), ocp)
+    ocp = ocp_safe._replace(
+        R=jnp.where(inputs_ok, ocp.R, jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)),
+        fu=jnp.where(inputs_ok, ocp.fu, 1.0),
+        fx=jnp.where(inputs_ok, ocp.fx, 1.0),
+        rho=jnp.where(inputs_ok, ocp.rho, 1.0),
+    )
+    rows = rows_of(ocp)
+    if init is None:
+        u0 = jnp.zeros((ocp.N, ocp.nu), dtype)
+        nu0 = jnp.zeros((ocp.N, ocp.nx), dtype)
+        x_start = None
+    else:
+        init = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), init)
+        u0, nu0, x_start = init.u, init.nu, init.x
+    if x_start is not None and settings.mode == "paper" and settings.paper_start == "track":
+        u0 = track_plan(ocp, u0, x_start, settings.method)
+    u0 = pull_inside(rows, u0)
+    # The accurate mode is a feasible-start method; so is paper mode by default (``paper_start
+    # = "feasible"``): a run cut at max_iter then still flies a plan that obeys the dynamics.
+    # Algorithm 1's literal infeasible start keeps the warm start's states (``"warm"``).
+    warm_states = (
+        x_start is not None and settings.mode == "paper" and settings.paper_start == "warm"
+    )
+    x0s = x_start if warm_states else drift(ocp, u0)
+    start_ok = jnp.all(jnp.where(rows.wu > 0, u_slack(rows, u0) > 0, True))
+    start_status = jnp.where(
+        ~inputs_ok, Status.NONFINITE, jnp.where(start_ok, Status.MAX_ITER, Status.INFEASIBLE)
+    )
+    done = ~(start_ok & inputs_ok)
+    x_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(x0s)), jnp.max(jnp.abs(ocp.x0)))
+    if settings.mode == "paper":
+        kappa0 = params.kappa
+    else:
+        J0 = objective(ocp, u0, x0s)
+        kappa0 = params.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(m_eff(rows), 1.0)
+    if settings.mode == "accurate":
+        core = pd_start(rows, u0, x0s, nu0, kappa0, done, start_status)
+    else:
+        inf = jnp.asarray(jnp.inf, dtype)
+        core = NewtonState(u0, x0s, nu0, kappa0, jnp.asarray(0), done, start_status, inf)
+    return ocp, SolveState(core, x_scale)
+
+
+def finished(state: SolveState, settings: SolverSettings):
+    """() bool: the solve has met its stopping test, failed, or used its iterations."""
+    return state.core.done | (state.core.it >= settings.max_iter)
+
+
+def iterate(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
+    """One iteration from ``state``; a finished state is returned unchanged."""
+    params = _prepared(params, ocp.B.dtype)
+    rows = rows_of(ocp)
+    if settings.mode == "accurate":
+        new = pd_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
+    else:
+        new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
+    stop = finished(state, settings)
+    core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
+    return state._replace(core=core)
+
+
+def finish(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
+    """The :class:`Solution` of a finished state (its objective is left at 0: see
+    :func:`with_objective`)."""
+    params = _prepared(params, ocp.B.dtype)
+    rows = rows_of(ocp)
+    dtype = ocp.B.dtype
+    core = state.core
+    u, x, nu, it, status = core.u, core.x, core.nu, core.it, core.status
+    if settings.mode == "accurate":
+        # kappa of the returned point: its mean complementarity (the barrier weight of the
+        # central-path point it approximates; used by the implicit derivative).
+        kappa = core.gap / jnp.maximum(m_eff(rows), 1.0)
+        residual = core.res  # the primal-dual loop's relative dual residual
+    else:
+        kappa = core.kappa
+        if settings.mode == "barrier":
+            # The multipliers of the KKT solve at the returned point (the loop's last
+            # estimate belongs to the pre-step point).
+            kkt = kkt_at(ocp, u, x, kappa, settings)
+            g_u, g_x = gradient(ocp, rows, u, x, kappa)
+            step = kkt_solve(kkt, g_u, g_x, dyn_residual(ocp, u, x), settings.method)
+            nu = jnp.where(jnp.all(jnp.isfinite(step.nu)), step.nu, nu)
+        _, rel_d, rel_p = residual_norms(ocp, rows, u, x, nu, kappa)
+        residual = jnp.maximum(rel_d, rel_p)
+
+    # Converged, but the soft state rows are violated: the hard problem is infeasible.
+    violated = max_violation(ocp, u, x) > params.violation_tol
+    status = jnp.where((status == Status.CONVERGED) & violated, Status.INFEASIBLE, status)
+
+    def clean(a):
+        return jnp.where(jnp.isfinite(a), a, jnp.zeros_like(a))
+
+    return Solution(
+        u=clean(u),
+        x=clean(x),
+        nu=clean(nu),
+        objective=jnp.zeros((), dtype),
+        kappa=kappa,
+        iterations=it,
+        residual=jnp.where(jnp.isfinite(residual), residual, jnp.inf),
+        status=status,
+    )
+
+
+def with_objective(ocp: OCP, sol: Solution) -> Solution:
+    """Fill in the objective; a failed solve (non-finite data or step) reports +inf."""
+    J = objective(ocp, sol.u, sol.x)
+    failed = (sol.status == Status.NONFINITE) | ~jnp.isfinite(J)
+    return sol._replace(objective=jnp.where(failed, jnp.inf, J))
+
+
+def _forward(ocp, params, init, settings):
+    ocp_safe, state = start(ocp, settings, params, init)
+
+    def cond(st):
+        return ~finished(st, settings)
+
+    def body(st):
+        return iterate(ocp_safe, st, settings, params)
+
+    state = lax.while_loop(cond, body, state)
+    return finish(ocp_safe, state, settings, params)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _solve_core(ocp: OCP, params: SolverParams, init: Plan | None, settings: SolverSettings):
+    return _forward(ocp, params, init, settings)
+
+
+def _solve_core_fwd(ocp, params, init, settings):
+    sol = _forward(ocp, params, init, settings)
+    # Factorised once here, only when differentiating; the backward pass reuses it.
+    kkt = kkt_at(ocp, sol.u, sol.x, sol.kappa, settings)
+    return sol, (ocp, params, init, sol, kkt)
+
+
+_solve_core.defvjp(_solve_core_fwd, implicit_bwd)
+
+
+def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None, params: SolverParams):
+    if settings.backend == "clarabel":
+        sol = solve_clarabel_backend(ocp)
+    else:
+        sol = _solve_core(ocp, params.astype(ocp.B.dtype), init, settings)
+    return with_objective(ocp, sol)
+
+
+_solve_jit = jax.jit(_solve, static_argnums=(1,))
+
+
+def solve(
+    ocp: OCP,
+    settings: SolverSettings = SolverSettings(),
+    init: Plan | None = None,
+    params: SolverParams | None = None,
+) -> Solution:
+    """Solve one OCP by the barrier / infeasible-start Newton method.
+
+    Args:
+        ocp: the problem (one, unbatched; batch with ``jax.vmap``).
+        settings: static :class:`SolverSettings` (``SolverSettings.paper()`` for paper 000's
+            algorithm, the default for the accurate mode).
+        init: optional warm start (e.g. :func:`shift_solution` of the previous step's
+            solution). Its inputs are pulled strictly inside the input rows if needed.
+        params: traced :class:`SolverParams` (kappa, alpha, beta, tolerances); default: the
+            defaults of ``settings.mode``. Changing them does not recompile.
+
+    Returns:
+        :class:`Solution` (plan, multipliers, objective, iterations, residual, status). Never
+        raises on a numerical failure and never returns NaN: see :class:`Status`. With
+        non-finite data the plan is zero, the objective +inf and the status NONFINITE.
+
+    Differentiation: reverse mode (``jax.grad``/``jax.vjp``) w.r.t. every float field of the
+    OCP by the implicit function theorem at the returned barrier point (kappa fixed at its
+    final value; in paper mode also w.r.t. ``params.kappa``); ``u``, ``x`` and ``nu`` carry
+    derivatives, ``objective`` too (computed from them). The custom VJP blocks forward mode
+    (``jax.jvp``/``jacfwd``). In paper mode the derivative is that of the barrier solution,
+    evaluated at the returned iterate, so it is approximate when the 10 iterations have not
+    converged.
+    """
+    if params is None:
+        params = SolverParams.for_settings(settings)
+    else:
+        params.checked()
+    return _solve_jit(ocp, settings, init, params)
+
+
+def solve_if(active, ocp: OCP, settings: SolverSettings, init=None, params=None):
+    """``solve`` when ``active`` (a traced bool), else the warm start returned untouched.
+
+    For closed loops whose finished runs idle under a mask: a single run skips the solve
+    (``lax.cond``); under ``vmap`` the predicate is batched and both branches run (the batch
+    engine, :mod:`rvdjax.loop.engine`, avoids that). The idle branch returns ``init``'s plan
+    (or zeros) with status 0 and zero iterations.
+    """
+    params = SolverParams.for_settings(settings) if params is None else params
+
+    def fly(ocp):
+        return solve(ocp, settings, init=init, params=params)
+
+    def idle(ocp):
+        shapes = jax.eval_shape(fly, ocp)
+        sol = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        return sol if init is None else sol._replace(u=init.u, x=init.x, nu=init.nu)
+
+    return lax.cond(active, fly, idle, ocp)
+
+
+def solve_batch(
+    ocps: OCP,
+    settings: SolverSettings = SolverSettings(),
+    init: Plan | None = None,
+    chunk=32,
+    params: SolverParams | None = None,
+):
+    """Solve a batch of OCPs (leading axis on every field) in vmapped chunks of ``chunk``.
+
+    ``jax.lax.map(..., batch_size=chunk)``: one ``vmap`` over thousands of problems streams
+    every intermediate through memory, while chunks of ~32 keep a chunk's working set in cache
+    (docs/benchmark.md). Results equal ``jax.vmap(solve)``. Jit the caller, e.g.
+    ``jax.jit(solve_batch, static_argnames=("settings", "chunk"))``.
+    """
+    params = SolverParams.for_settings(settings) if params is None else params
+    if init is None:
+        return lax.map(lambda o: solve(o, settings, params=params), ocps, batch_size=chunk)
+    return lax.map(
+        lambda a: solve(a[0], settings, a[1], params=params), (ocps, init), batch_size=chunk
+    )

@@ -1,0 +1,84 @@
+"""Starting points: warm starts, the input pull-in, the drift of the inputs through the model.
+
+Only the hard input rows need a strictly feasible start (the soft state rows' penalty is
+defined everywhere, :mod:`rvdjax.solver.barrier`); u = 0 is one (``validate_ocp`` checks
+fu > 0), and a warm start is pulled towards 0 until it is one.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import lax
+
+from rvdjax.ocp import OCP
+from rvdjax.solver.barrier import Rows
+from rvdjax.solver.kkt import KKT_SOLVERS
+from rvdjax.solver.types import Plan, Solution
+
+__all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan"]
+
+
+def drift(ocp: OCP, u):
+    """States from propagating x0 with inputs u (a primal-feasible x for the start)."""
+
+    def step(x, stage):
+        A_t, B_t, c_t, u_t = stage
+        x_next = A_t @ x + B_t @ u_t + c_t
+        return x_next, x_next
+
+    _, x = lax.scan(step, ocp.x0, (ocp.A, ocp.B, ocp.c, u))
+    return x
+
+
+def drift_plan(A, x0, N: int, nu: int) -> Plan:
+    """Cold-start plan: zero inputs and the unforced drift x_{t+1} = A x_t from x0.
+
+    ``A`` is one (nx, nx) matrix or a stage-wise (N, nx, nx) stack.
+    """
+    if A.ndim == 2:
+
+        def step(x, _):
+            x = A @ x
+            return x, x
+
+        _, x = lax.scan(step, x0, None, length=N)
+    else:
+
+        def step(x, A_t):
+            x = A_t @ x
+            return x, x
+
+        _, x = lax.scan(step, x0, A)
+    return Plan(jnp.zeros((N, nu), x0.dtype), x, jnp.zeros((N, x0.shape[-1]), x0.dtype))
+
+
+def shift_solution(sol: Solution | Plan) -> Plan:
+    """Shift a plan one stage forward for the next MPC step, repeating the last stage."""
+
+    def shift(a):
+        return jnp.concatenate([a[1:], a[-1:]], axis=0)
+
+    return Plan(shift(sol.u), shift(sol.x), shift(sol.nu))
+
+
+def pull_inside(rows: Rows, u, margin=0.99):
+    """Scale each stage's u towards 0 (strictly feasible) until strictly feasible."""
+    Fu_u = jnp.einsum("tij,tj->ti", rows.Fu, u)
+    ratio = jnp.where((rows.wu > 0) & (Fu_u > 0), rows.fu / jnp.where(Fu_u > 0, Fu_u, 1.0), 2.0)
+    theta = jnp.minimum(1.0, margin * jnp.min(ratio, axis=-1))
+    return u * theta[:, None]
+
+
+def track_plan(ocp: OCP, u_prev, x_prev, method: str):
+    """Inputs that follow a previous plan from the new x0: the minimiser of
+    sum (x - x_prev)' Q (x - x_prev) + (u - u_prev)' R (u - u_prev) subject to the dynamics
+    (one Riccati solve: the plan's own weights turn the deviation of x0 into the LQR
+    correction). Its states stay near the previous plan, which met the state rows, while
+    obeying the dynamics from the measured x0."""
+    x_drift = drift(ocp, u_prev)
+    Phi_u = 2.0 * ocp.R
+    Phi_x = 2.0 * ocp.Q
+    g_u = jnp.zeros_like(u_prev)
+    g_x = 2.0 * jnp.einsum("tij,tj->ti", ocp.Q, x_drift - x_prev)
+    step = KKT_SOLVERS[method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, jnp.zeros_like(x_prev))
+    return jnp.where(jnp.all(jnp.isfinite(step.du)), u_prev + step.du, u_prev)
