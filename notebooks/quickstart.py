@@ -43,7 +43,7 @@ from rvdjax.problems import (
     perturbed_x0,
 )
 from rvdjax.qp import to_qp
-from rvdjax.solver import SolverSettings, Status, max_violation, solve
+from rvdjax.solver import SolverParams, SolverSettings, Status, max_violation, solve
 
 # %% [markdown]
 # ## 1. The problem
@@ -70,7 +70,8 @@ print("x0 =", np.asarray(ocp.x0))
 #
 # * `SolverSettings()` (accurate): barrier continuation until the duality gap is below 1e-9
 #   relative; matches an interior-point QP solver.
-# * `SolverSettings.paper()`: the published algorithm, fixed kappa = 0.05 and at most 10 Newton
+# * `SolverSettings.paper()`: the published algorithm, fixed kappa = 0.05 (a traced
+#   `SolverParams` value) and at most 10 Newton
 #   steps; fast, feasible, but not optimal.
 #
 # `solve` is jitted (the settings are static); the first call per setting compiles.
@@ -148,17 +149,18 @@ print(
 
 # %%
 ts, mass = FASTMPC3D["ts"], FASTMPC3D["mass"]
-fixed_kappa = SolverSettings(mode="paper", kappa=0.05, max_iter=200, tol=1e-12)
+fixed_kappa = SolverSettings(mode="paper", max_iter=200)
+kappa = SolverParams(kappa=0.05, tol=1e-12).checked()  # traced: no recompile on change
 EPS = 1e-3  # [N] smoothing of |u|
 
 
 def planned_dv(log_r_scale):
     scaled = ocp._replace(R=ocp.R * jnp.exp(log_r_scale))
-    sol = solve(scaled, fixed_kappa)
+    sol = solve(scaled, fixed_kappa, params=kappa)
     return jnp.sum(jnp.sqrt(sol.u**2 + EPS**2)) * ts / mass, sol.status
 
 
-sol_fixed = solve(ocp, fixed_kappa)
+sol_fixed = solve(ocp, fixed_kappa, params=kappa)
 print(
     f"fixed-kappa solve: status {Status.name(int(sol_fixed.status))}, "
     f"{int(sol_fixed.iterations)} iterations"

@@ -48,9 +48,6 @@ __all__ = [
     "thrust_factor",
     "minimum_impulse_bit",
     "DISTURBANCE_NOTES",
-    "start",
-    "sense",
-    "actuate",
 ]
 
 
@@ -204,40 +201,3 @@ def minimum_impulse_bit(impulse, d: Disturbances):
     """
     pulse = jnp.abs(impulse) / d.thrust_max
     return jnp.where(pulse < d.mib_s, 0.0, impulse)
-
-
-# ------------------------------------------------------------------ closed-loop plumbing
-# The four closed loops share these three steps; with ``disturbed`` False (static) they are
-# the identity and draw no random numbers.
-
-
-def start(disturbed: bool, d: Disturbances | None, key, n_axes: int, owner: str):
-    """(key, Gauss-Markov states) at t = 0; (None, None) for an undisturbed run.
-
-    Raises ValueError (before any jit work) when a disturbed run lacks its parameters or key.
-    """
-    if not disturbed:
-        return None, None
-    if d is None or key is None:
-        raise ValueError(f"a disturbed run needs {owner}.disturbances and a PRNG key")
-    key, k0 = jax.random.split(key)
-    return key, gm_init(k0, d, n_axes)
-
-
-def sense(disturbed: bool, key, x, d: Disturbances | None, pos, vel, att=()):
-    """(next key, actuator key, the state the guidance sees) for one step."""
-    if not disturbed:
-        return None, None, x
-    key, k_nav, k_act = jax.random.split(key, 3)
-    return key, k_act, measure(k_nav, x, d, pos, vel, att)
-
-
-def actuate(disturbed: bool, key, gm, u, d: Disturbances | None, impulse_per_u, dt, mib_axes):
-    """(applied input, next Gauss-Markov states): the minimum impulse bit on the axes
-    ``mib_axes`` (impulse = ``impulse_per_u`` * u), then the amplitude error (1 + w) on every
-    axis (paper 003 Eqs. 2.6, 5.2); w advances by ``dt``."""
-    if not disturbed:
-        return u, None
-    idx = jnp.asarray(mib_axes, int)
-    u = u.at[idx].set(minimum_impulse_bit(u[idx] * impulse_per_u, d) / impulse_per_u)
-    return u * thrust_factor(gm), gm_step(key, gm, d, dt)

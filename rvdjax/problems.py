@@ -24,6 +24,7 @@ __all__ = [
     "DEFAULT_RHO",
     "fastmpc3d_params",
     "fastmpc3d_first_step",
+    "fastmpc3d_step",
     "fastmpc3d_first_step_batch",
     "perturbed_x0",
     "stack_ocps",
@@ -32,28 +33,34 @@ __all__ = [
 #: Paper 000 Sec. IV.A and Table 1 (the scenario's physical values and initial state).
 FASTMPC3D = {**_PHYSICAL, "x0": FASTMPC3D_X0, "N": 30}
 
-#: Exact L1 penalty of the keep-out rows [per metre]: the multiplier of the active keep-out
-#: row of the first-step QP is ~5e4 per metre for the Table 1 state and its perturbations.
+#: Exact L1 penalty of the keep-out rows [per metre, per obstacle]: 1e8 per unit of relative
+#: penetration; the multiplier of the active keep-out row of the first-step QP is ~100x
+#: smaller for the Table 1 state and its perturbations.
 DEFAULT_RHO = _PHYSICAL["rho"]
 
 
 @functools.lru_cache(maxsize=16)
-def fastmpc3d_params(obstacles: bool = True, rho: float = DEFAULT_RHO) -> rv.Params:
+def fastmpc3d_params(obstacles: bool = True, rho=DEFAULT_RHO) -> rv.Params:
     """The rendezvous family's parameters of ``fastmpc-3d`` (obstacles on or off)."""
     return rv.make_params(**{**_PHYSICAL, "obstacles_on": obstacles, "rho": rho})
 
 
-def _first_step(params, x0, N):
+def _first_step(params, x0, N, t=0.0):
     config = rv.Config(N=N)
     guidance = rv.init(params, config, x0)
     plan = rv.initial_plan(params, config, guidance, x0)
-    ocp, _ = rv.ocp(params, config, guidance, x0, jnp.zeros((), x0.dtype), plan)
+    ocp, _ = rv.ocp(params, config, guidance, x0, jnp.asarray(t, x0.dtype), plan)
     return ocp
 
 
-def fastmpc3d_first_step(
-    x0=None, obstacles: bool = True, N: int = 30, rho: float = DEFAULT_RHO
-) -> OCP:
+def fastmpc3d_step(x, t: float, obstacles: bool = True, N: int = 30) -> OCP:
+    """The ``fastmpc-3d`` OCP at state ``x`` and time ``t`` [s], keep-out rows linearised
+    about the unforced drift of ``x`` (the first step is ``t = 0`` from the Table 1 state)."""
+    x = jnp.asarray(x, dtype=float)
+    return _first_step(fastmpc3d_params(obstacles, DEFAULT_RHO), x, N, t)
+
+
+def fastmpc3d_first_step(x0=None, obstacles: bool = True, N: int = 30, rho=DEFAULT_RHO) -> OCP:
     """The first-step OCP of the ``fastmpc-3d`` scenario (paper 000 §IV.A, Table 1).
 
     CW at 705 km altitude, m = 6500 kg, ZOH at Ts = 15 s, Q = diag(1,1,1,100,100,100),
@@ -68,12 +75,16 @@ def fastmpc3d_first_step(
         x0: (6,) chaser state [m, m/s]; default Table 1, (50, -1000, 10, 0, 0, 0).
         obstacles: keep-out rows active or not.
         N: horizon, default 30.
-        rho: exact L1 penalty of the keep-out rows [per metre].
+        rho: exact L1 penalty of the keep-out rows [per metre], one value or one per obstacle.
     """
     x0 = jnp.asarray(FASTMPC3D_X0 if x0 is None else x0, dtype=float)
-    ocp = _first_step(fastmpc3d_params(obstacles, float(rho)), x0, N)
+    ocp = _first_step(fastmpc3d_params(obstacles, _hashable(rho)), x0, N)
     validate_ocp(ocp)
     return ocp
+
+
+def _hashable(rho):
+    return tuple(float(r) for r in rho) if hasattr(rho, "__len__") else float(rho)
 
 
 def perturbed_x0(key_or_seed, batch: int, scale_pos: float = 20.0, scale_vel: float = 0.05):
@@ -99,9 +110,7 @@ def stack_ocps(ocps) -> OCP:
     return jax.tree.map(lambda *a: jnp.stack(a), *ocps)
 
 
-def fastmpc3d_first_step_batch(
-    x0s, obstacles: bool = True, N: int = 30, rho: float = DEFAULT_RHO
-) -> OCP:
+def fastmpc3d_first_step_batch(x0s, obstacles: bool = True, N: int = 30, rho=DEFAULT_RHO) -> OCP:
     """Batched :func:`fastmpc3d_first_step` for states x0s (batch, 6): every field gains a
     leading batch axis (built with ``jax.vmap``)."""
     x0s = jnp.asarray(x0s, dtype=float)
@@ -109,7 +118,7 @@ def fastmpc3d_first_step_batch(
         raise ValueError(f"x0s must have shape (batch, 6), got {x0s.shape}")
     if not bool(jnp.all(jnp.isfinite(x0s))):
         raise ValueError("x0s must be finite")
-    return _batch_builder(N)(fastmpc3d_params(obstacles, float(rho)), x0s)
+    return _batch_builder(N)(fastmpc3d_params(obstacles, _hashable(rho)), x0s)
 
 
 @functools.lru_cache(maxsize=8)

@@ -1,8 +1,7 @@
-"""The command line (``rvdjax demo``, ``rvdjax bench``) and the benchmark driver, on tiny runs.
+"""The command line (``rvdjax run``, ``list``, ``demo``, ``bench``) on tiny runs.
 
-Most of the time here is XLA compilation (every ``demo`` call and every benchmark row jits a
-fresh N = 30 solve, ~3-5 s each), so the demo runs once with both ``--json`` and ``--plot``
-and the benchmark's memory column (a second compile per row) is stubbed out.
+Most of the time here is XLA compilation, so the demo runs once with both ``--json`` and
+``--plot``, and the closed-loop commands use the POSEIDYN scenario (the cheapest to compile).
 """
 
 from __future__ import annotations
@@ -60,7 +59,7 @@ def test_demo_plot(demo_run):
     _, out, png = demo_run
     assert png.exists() and png.stat().st_size > 1000
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert f"plot written to {png}" in out
+    json.loads(out)  # with --json, stdout holds the JSON document only
 
 
 def test_demo_rejects_unknown_flag(capsys):
@@ -99,11 +98,120 @@ def test_run_benchmark_tiny():
 @pytest.mark.parametrize("bad", ["0", "-3", "4,x", ""])
 def test_bench_rejects_bad_batches(bad, capsys):
     with pytest.raises(SystemExit) as exc:
-        main(["bench", "--batches", bad])
+        main(["bench", "--batch", bad])
     assert exc.value.code == 2
-    assert "--batches" in capsys.readouterr().err
+    assert "--batch" in capsys.readouterr().err
 
 
-def test_no_command_is_an_error(capsys):
-    with pytest.raises(SystemExit):
-        main([])
+def test_closed_loop_bench_json(tmp_path, capsys):
+    """``rvdjax bench --closed-loop --json`` on a tiny run: the rows the issue asks for."""
+    out = tmp_path / "bench.json"
+    args = [
+        "bench",
+        "--closed-loop",
+        "--scenarios",
+        "poseidyn-lqmpc",
+        "--batch",
+        "2",
+        "--runs",
+        "2",
+        "--single-runs",
+        "1",
+        "--json",
+        "--out",
+        str(out),
+    ]
+    assert main(args) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["batch"] for r in rows] == [1, 2]
+    for r in rows:
+        for key in (
+            "scenario",
+            "family",
+            "batch",
+            "runs",
+            "maneuvers_per_s",
+            "peak_memory_mb",
+            "docked_fraction",
+            "mean_iterations",
+        ):
+            assert key in r, key
+        assert r["scenario"] == "poseidyn-lqmpc" and r["family"] == "poseidyn"
+        assert r["docked_fraction"] == 1.0 and r["maneuvers_per_s"] > 0
+    assert rows[1]["peak_memory_mb"] > 0
+    assert json.loads(out.read_text())["rows"][0]["scenario"] == "poseidyn-lqmpc"
+
+
+@pytest.mark.parametrize(
+    "args, word",
+    [
+        (["run", "--plot", "/no/such/dir/p.png"], "does not exist"),
+        (["run", "--plot", "plot.txt"], "must end in"),
+        (["demo", "--plot", "/no/such/dir/p.png"], "does not exist"),
+        (["bench", "--closed-loop", "--out", "/no/such/dir/b.json"], "does not exist"),
+        (["run", "no-such-scenario"], "unknown scenario"),
+        (["bench", "--closed-loop", "--scenarios", "nope"], "unknown scenario"),
+    ],
+)
+def test_bad_output_paths_fail_before_any_work(args, word, capsys):
+    """Output paths and names are checked before anything is flown or compiled."""
+    import time
+
+    t0 = time.perf_counter()
+    assert main(args) == 2
+    assert word in capsys.readouterr().err
+    assert time.perf_counter() - t0 < 5.0
+
+
+def test_output_path_that_is_a_directory(tmp_path, capsys):
+    d = tmp_path / "plot.png"
+    d.mkdir()
+    assert main(["run", "--plot", str(d)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+
+
+def test_list_names_every_scenario(capsys):
+    from rvdjax.scenarios import SCENARIOS
+
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    # one line per scenario, its name as the first word (long names stay separate)
+    assert [line.split()[0] for line in out.splitlines()] == list(SCENARIOS)
+
+
+def test_run_command_json_and_plot(capsys, tmp_path):
+    plot = tmp_path / "run.png"
+    assert main(["run", "poseidyn-lqmpc", "--json", "--plot", str(plot)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in (
+        "scenario",
+        "family",
+        "status",
+        "docked",
+        "delta_v_m_s",
+        "total_impulse_N_s",
+        "effort_l1_N_s",
+        "time_to_dock_s",
+        "max_violation_m",
+        "margins_m",
+        "solver_status_counts",
+        "mean_solve_ms",
+        "published",
+        "assumptions",
+        "comparison",
+    ):
+        assert key in out, key
+    assert out["scenario"] == "poseidyn-lqmpc" and out["docked"] is True
+    assert out["status"] == "docked" and out["family"] == "poseidyn"
+    assert {c["figure"] for c in out["comparison"]} >= {"effort_l1_N_s vs LQ-MPC (sim)"}
+    assert plot.stat().st_size > 10_000 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_run_disturbed_json(capsys):
+    """`rvdjax run NAME --disturbed --seed S`: noise and thrust error from PRNG key S; the
+    JSON says so and lists the disturbance assumptions."""
+    assert main(["run", "poseidyn-lqmpc", "--disturbed", "--seed", "4", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["disturbed"] is True and out["seed"] == 4
+    assert out["docked"] is True and np.isfinite(out["effort_l1_N_s"])
+    assert any("Gauss-Markov" in a for a in out["assumptions"])

@@ -56,20 +56,17 @@ def test_same_problem_same_answer(rows):
 def test_clarabel_backend_flies_the_same_loop(name):
     """SolverSettings(backend="clarabel") puts Clarabel inside any jitted closed loop (host
     callback); rvdjax's accurate mode flies the same trajectory (measured <= 5e-6 m)."""
-    import dataclasses
-
     import jax
     import numpy as np
+    from flights import first, flight
 
-    from rvdjax.solver import SolverSettings
+    from rvdjax.loop.reference import fly_clarabel
 
     sc = get_scenario(name)
     params, x0 = sc.build()
-    out = {}
-    for backend in ("rvdjax", "clarabel"):
-        config = dataclasses.replace(sc.config, settings=SolverSettings(backend=backend))
-        out[backend] = jax.jit(lambda p, x, c=config: sc.fly(p, x, c))(params, x0)
-    (ia, ma), (ib, mb) = out["rvdjax"], out["clarabel"]
+    loop, _, ia, ma = flight((name,))
+    ia, ma = first(ia), first(ma)
+    ib, mb = jax.jit(lambda p, x: fly_clarabel(loop, p, x))(params, x0)
     assert bool(ma.docked) and bool(mb.docked)
     assert float(ma.time_to_dock_s) == float(mb.time_to_dock_s)
     assert np.max(np.abs(np.asarray(ia.x) - np.asarray(ib.x))) <= 1e-4

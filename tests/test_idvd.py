@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("casadi")
 
 from rvdjax.idvd import PUBLISHED_IDVD, run_idvd  # noqa: E402
-from rvdjax.poseidyn import poseidyn_params  # noqa: E402
+from rvdjax.scenarios import SCENARIOS  # noqa: E402
 
 
 @pytest.fixture(scope="module", params=["initial", "retuned"])
@@ -24,7 +24,7 @@ def test_ipopt_converges(run):
 
 
 def test_docks_within_poseidyn_tolerance(run):
-    p = poseidyn_params()
+    p, _ = SCENARIOS["poseidyn-lqmpc"].build()
     assert run["docked"]
     assert run["final_pos_err_m"] < float(p.dock_tol)
     assert run["final_speed_m_s"] < float(p.dock_speed_tol)

@@ -1,14 +1,16 @@
-"""Three-phase CubeSat rendezvous and docking (rvdjax.phases, paper 003 Sec. 3.6)."""
+"""The three-phase family (paper 003 Sec. 3.6) through the closed-loop kernel."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from flights import flight
 
-from rvdjax import phases as ph
+from rvdjax.families import phases as ph
+from rvdjax.scenarios import SCENARIOS
+from rvdjax.scenarios import paper003 as thesis
 from rvdjax.solver import Status, solve
 
 CASES = ("vbar", "rbar", "rotating")
@@ -19,29 +21,16 @@ ENTRY_STEPS = 6  # docking-phase steps (30 s) allowed for the entry transient
 
 @pytest.fixture(scope="module")
 def runs():
-    """The three cases and the V-bar case without set point differ only in traced data
-    (target attitude and rate, rendezvous reference): one program."""
-    built = [ph.thesis_build(c)() for c in CASES] + [ph.thesis_build("vbar", setpoint=False)()]
-    params = jax.tree.map(lambda *a: np.stack(a), *[b[0] for b in built])
-    x0 = np.stack([b[1] for b in built])
-    config = ph.PhaseConfig(N=ph.THESIS["N"], n_steps=200)
-    fly = jax.jit(jax.vmap(lambda p, x: ph.fly_phases(p, x, config)))
-    infos, m = fly(params, x0)
-    return params, jax.tree.map(np.asarray, infos), jax.tree.map(np.asarray, m)
+    """The three cases and the V-bar case without set point share one program."""
+    _, params, infos, m = flight(tuple(f"thesis-{c}" for c in RUNS), n_steps=200)
+    return params, infos, m
 
 
 @pytest.fixture(scope="module")
 def lp_run():
-    """V-bar with the LP rendezvous (Table 3.6), the registered configuration with fewer
-    steps; a leading batch axis of one so the checks below apply unchanged."""
-    reg = {}
-    ph.register(reg)
-    sc = reg["thesis-vbar-lp"]
-    params, x0 = sc.build()
-    sc.validate(params, x0, sc.config)
-    config = dataclasses.replace(sc.config, n_steps=150)
-    infos, m = jax.jit(lambda p, x: ph.fly_phases(p, x, config))(params, x0)
-    return jax.tree.map(lambda a: np.asarray(a)[None], (params, infos, m))
+    """V-bar with the LP rendezvous (Table 3.6), a leading batch axis of one."""
+    _, params, infos, m = flight(("thesis-vbar-lp",), n_steps=150)
+    return params, infos, m
 
 
 @pytest.fixture(params=["runs", "lp_run"])
@@ -59,14 +48,14 @@ def test_every_case_docks_at_the_port(any_run):
         assert phase[0] == 0 and phase[-1] == 2 and np.all(np.diff(phase) >= 0)
         assert set(phase.tolist()) == {0, 1, 2}
         # time is the sum of the per-step sample times, and of the per-phase times
-        assert m.time_to_dock_s[i] == pytest.approx(infos.ts[i, :n].sum())
+        assert m.time_to_dock_s[i] == pytest.approx(infos.dt[i, :n].sum())
         assert m.time_to_dock_s[i] == pytest.approx(m.phase_time_s[i].sum())
         assert np.allclose(m.phase_time_s[i] / params.ts[i], np.bincount(phase, minlength=3))
         # the docked state: propagate the last step and compare with the port (r3 = 0.1 m)
         k = 2
         x_end = params.A[i, k] @ infos.x[i, n - 1] + params.B[i, k] @ infos.u[i, n - 1]
         p_i = jax.tree.map(lambda a, i=i: a[i], params)
-        port, _, _ = ph._target(p_i, m.time_to_dock_s[i])
+        port, _, _ = ph.target_state(p_i, m.time_to_dock_s[i])
         assert np.linalg.norm(x_end[:3] - np.asarray(port)) <= float(params.r3[i])
         # delta-v bookkeeping
         assert m.delta_v_m_s[i] == pytest.approx(m.phase_delta_v_m_s[i].sum())
@@ -84,8 +73,8 @@ def test_constraints_of_the_truth(any_run):
         settled = dock_steps[ENTRY_STEPS:]
         assert len(settled) > 10
         # after the entry transient: inside the 8 deg docking cone, below v_max
-        assert np.min(infos.cone_margin[i, settled]) >= -1e-6
-        assert np.min(infos.speed_margin[i, settled]) >= -1e-6
+        assert np.min(infos.margins["docking_cone"][i, settled]) >= -1e-6
+        assert np.min(infos.margins["speed"][i, settled]) >= -1e-6
         # every hard-row violation of a plan is either a planned (not flown) keep-out plane
         # violation far from the sphere, or the docking entry transient. Without set point
         # the chaser is pulled at the sphere and its plans cannot brake in time against the
@@ -94,8 +83,9 @@ def test_constraints_of_the_truth(any_run):
         bad = np.flatnonzero(act & (infos.hard_violation[i] > 1e-6))
         far = bad[infos.phase[i, bad] == 0]
         setpoint = float(params.setpoint[i]) == 1.0
-        assert np.all(infos.keepout_margin[i, far] > (100.0 if setpoint else 30.0))
-        assert np.all(infos.hard_violation[i, far] < 0.1 * infos.keepout_margin[i, far])
+        keep_out = infos.margins["keep_out"][i, far, 0]
+        assert np.all(keep_out > (100.0 if setpoint else 30.0))
+        assert np.all(infos.hard_violation[i, far] < 0.1 * keep_out)
         assert set(bad[infos.phase[i, bad] == 2]) <= set(dock_steps[:ENTRY_STEPS])
         assert not np.any(infos.phase[i, bad] == 1)
 
@@ -119,11 +109,11 @@ def test_compare_with_thesis(runs):
     asserted (see the module report). The phase structure of the thesis holds in all cases."""
     _, _, m = runs
     i = CASES.index("rbar")
-    _, _, dv, tf, _, _ = ph.THESIS_CASES["rbar"]
+    _, _, dv, tf, _, _ = thesis.CASES["rbar"]
     assert m.delta_v_m_s[i] == pytest.approx(dv, rel=0.15)
     assert m.time_to_dock_s[i] == pytest.approx(tf, rel=0.15)
     for i, case in enumerate(CASES):
-        _, _, dv, tf, dv_phase, _ = ph.THESIS_CASES[case]
+        _, _, dv, tf, dv_phase, _ = thesis.CASES[case]
         pdv = m.phase_delta_v_m_s[i]
         # far range dominates the delta-v, final approach is the cheapest phase (< 0.5 m/s)
         assert pdv[0] > pdv[1] > pdv[2] and pdv[2] < 0.5
@@ -143,7 +133,7 @@ def test_compare_with_table_3_6(runs, lp_run):
     _, infos, m = runs
     _, lp_infos, lp = lp_run
     qp, nosp = CASES.index("vbar"), RUNS.index("vbar-nosetpoint")
-    _, _, dv_lp, tf_lp = ph.THESIS_COST_VARIANTS["vbar-lp"]
+    _, _, dv_lp, tf_lp = thesis.COST_VARIANTS["vbar-lp"]
     assert lp.time_to_dock_s[0] == pytest.approx(tf_lp, rel=0.15)
     t = {"qp": m.time_to_dock_s[qp], "nosp": m.time_to_dock_s[nosp], "lp": lp.time_to_dock_s[0]}
     dv = {"qp": m.delta_v_m_s[qp], "nosp": m.delta_v_m_s[nosp], "lp": lp.delta_v_m_s[0]}
@@ -152,7 +142,7 @@ def test_compare_with_table_3_6(runs, lp_run):
     assert dv["nosp"] < dv["lp"] < dv["qp"]
     # same order of magnitude as the thesis: within 30 % on delta-v and time
     for key, name in (("nosp", "vbar-nosetpoint"), ("lp", "vbar-lp")):
-        _, _, dv_t, tf_t = ph.THESIS_COST_VARIANTS[name]
+        _, _, dv_t, tf_t = thesis.COST_VARIANTS[name]
         assert 0.7 < dv[key] / dv_t < 1.3 and 0.7 < t[key] / tf_t < 1.3
     # the rendezvous phase stays the dominant one
     assert m.phase_delta_v_m_s[nosp, 0] / dv["nosp"] > 0.6
@@ -162,11 +152,11 @@ def test_compare_with_table_3_6(runs, lp_run):
 def test_padding_equals_unpadded_phase():
     """A docking-phase OCP (N3 = 12) padded to 30 stages with identity dynamics and zero cost
     has the same solution as the unpadded one."""
-    p, x0 = ph.thesis_build("vbar")()
-    x = np.array([0.4, 9.0, 0.5, 0.01, -0.05, 0.0])
-    t, phase = np.asarray(100.0), np.asarray(2)
-    padded = ph._build_ocp(p, ph.PhaseConfig(N=(30, 15, 12)), x, t, phase)
-    plain = ph._build_ocp(p, ph.PhaseConfig(N=(12, 12, 12)), x, t, phase)
+    p, x0 = SCENARIOS["thesis-vbar"].build()
+    x = jnp.array([0.4, 9.0, 0.5, 0.01, -0.05, 0.0])
+    t, g = jnp.asarray(100.0), ph.Guidance(phase=jnp.asarray(2))
+    padded, _ = ph.ocp(p, ph.Config(N=(30, 15, 12)), g, x, t, None)
+    plain, _ = ph.ocp(p, ph.Config(N=(12, 12, 12)), g, x, t, None)
     assert padded.N == 30 and plain.N == 12
     sp, s0 = solve(padded), solve(plain)
     assert int(sp.status) == Status.CONVERGED and int(s0.status) == Status.CONVERGED
@@ -176,33 +166,11 @@ def test_padding_equals_unpadded_phase():
     assert np.allclose(sp.objective, s0.objective, rtol=1e-6)
 
 
-def _kw(**over):
-    a = ph.ASSUMED
-    kw = dict(
-        mass=14.0,
-        altitude_m=a["altitude_m"],
-        ts=ph.THESIS["ts"],
-        Q=ph.THESIS["Q"],
-        R=ph.THESIS["R"],
-        u_max=ph.THESIS["u_max"],
-        lam=ph.THESIS["lam"],
-        los_deg=ph.THESIS["los_deg"],
-        r1=a["r1"],
-        r2=a["r2"],
-        r3=a["r3"],
-        v_max=a["v_max"],
-        port_body=ph.THESIS["port_body"],
-        x0=ph.THESIS["x0"],
-    )
-    kw.update(over)
-    return kw
-
-
 @pytest.mark.parametrize(
     "over, match",
     [
-        (dict(ts=(30.0, 0.0, 5.0)), r"ts\[1\]"),
-        (dict(ts=(30.0, 20.0, -5.0)), r"ts\[2\]"),
+        (dict(ts=(30.0, 0.0, 5.0)), "ts"),
+        (dict(ts=(30.0, 20.0, -5.0)), "ts"),
         (dict(ts=(30.0, 20.0)), "one value per phase"),
         (dict(mass=0.0), "mass"),
         (dict(mass=-14.0), "mass"),
@@ -211,7 +179,7 @@ def _kw(**over):
         (dict(r3=0.0), "r3"),
         (dict(r2=200.0), "r3 < r2 < r1"),
         (dict(v_max=0.0), "v_max"),
-        (dict(u_max=(0.1, 0.1, 0.0)), r"u_max\[2\]"),
+        (dict(u_max=(0.1, 0.1, 0.0)), "u_max"),
         (dict(los_deg=(15.0, 90.0, 8.0)), "los_deg"),
         (dict(altitude_m=-1.0), "altitude_m"),
         (dict(R=(np.eye(3), np.eye(3), -np.eye(3))), r"R\[2\]"),
@@ -224,55 +192,52 @@ def _kw(**over):
 )
 def test_bad_inputs(over, match):
     with pytest.raises(ValueError, match=match):
-        ph.phase_params(**_kw(**over))
+        SCENARIOS["thesis-vbar"].build(**over)
 
 
 def test_bad_config():
     with pytest.raises(ValueError, match="N"):
-        ph.PhaseConfig(N=(30, 0, 12))
+        ph.Config(N=(30, 0, 12))
     with pytest.raises(ValueError, match="N"):
-        ph.PhaseConfig(N=(30, 15))
+        ph.Config(N=(30, 15))
+    with pytest.raises(ValueError, match="rendezvous_cost"):
+        ph.Config(rendezvous_cost="l2")
     with pytest.raises(ValueError, match="n_steps"):
-        ph.PhaseConfig(n_steps=0)
+        SCENARIOS["thesis-vbar"].loop(n_steps=0)
     with pytest.raises(ValueError, match="truth"):
-        ph.PhaseConfig(truth="sgp4")
-    with pytest.raises(ValueError, match="substeps"):
-        ph.PhaseConfig(substeps=0)
+        SCENARIOS["thesis-vbar"].loop(truth="sgp4")
 
 
-def test_register_and_validate():
-    reg = {}
-    ph.register(reg)
-    assert set(reg) == {
+def test_scenario_records():
+    names = {n for n, sc in SCENARIOS.items() if sc.source.startswith("paper 003")}
+    assert names == {
         "thesis-vbar",
         "thesis-rbar",
         "thesis-rotating",
         "thesis-vbar-nosetpoint",
         "thesis-vbar-lp",
     }
-    assert reg["thesis-vbar-nosetpoint"].published == {
+    assert SCENARIOS["thesis-vbar-nosetpoint"].published == {
         "delta_v_m_s": {"thesis": 12.65},
         "time_to_dock_s": {"thesis": 71.23 * 60},
     }
-    assert reg["thesis-vbar-lp"].published == {
+    assert SCENARIOS["thesis-vbar-lp"].published == {
         "delta_v_m_s": {"thesis": 12.74},
         "time_to_dock_s": {"thesis": 40.57 * 60},
     }
     for name in ("thesis-vbar-nosetpoint", "thesis-vbar-lp"):
-        v = reg[name]
-        assert v.kind == "phases" and v.fly is ph.fly_phases and v.validate is ph.validate_phases
-        assert len(v.assumptions) > len(reg["thesis-vbar"].assumptions)
-    assert float(reg["thesis-vbar-nosetpoint"].build()[0].setpoint) == 0.0
-    assert reg["thesis-vbar-lp"].config.rendezvous_cost == "lp"
-    sc = reg["thesis-vbar"]
+        assert len(SCENARIOS[name].assumptions) > len(SCENARIOS["thesis-vbar"].assumptions)
+    assert float(SCENARIOS["thesis-vbar-nosetpoint"].build()[0].setpoint) == 0.0
+    lp = SCENARIOS["thesis-vbar-lp"]
+    assert lp.loop().config.family.rendezvous_cost == "lp"
+    assert lp.loop().config.settings.max_iter == 300
+    sc = SCENARIOS["thesis-vbar"]
     assert sc.published == {"delta_v_m_s": {"thesis": 13.28}, "time_to_dock_s": {"thesis": 1744.0}}
-    assert sc.kind == "phases" and sc.fly is ph.fly_phases and sc.assumptions
-    params, x0 = sc.build()
-    sc.validate(params, x0, sc.config)
-    with pytest.raises(ValueError, match="keep-out"):
-        sc.validate(params, np.zeros(6), sc.config)
-    with pytest.raises(ValueError, match="ts"):
-        sc.validate(params._replace(ts=params.ts.at[1].set(-1.0)), x0, sc.config)
+    # the LP cost needs a diagonal rendezvous R
+    params, x0 = lp.build()
+    bad = params._replace(R=params.R.at[0, 0, 1].set(1.0).at[0, 1, 0].set(1.0))
+    with pytest.raises(ValueError, match="diagonal"):
+        lp.check(bad, x0, lp.loop())
 
 
 def test_nonlinear_truth_with_j2_and_drag():
@@ -282,17 +247,23 @@ def test_nonlinear_truth_with_j2_and_drag():
     impulses (applied at the step start, then a coast of Ts)."""
     from rvdjax.propagate import propagate_relative
 
-    params, x0 = ph.thesis_build("vbar")()
-    config = ph.PhaseConfig(N=ph.THESIS["N"], n_steps=200, truth="two-body-j2-drag")
-    infos, m = jax.jit(lambda p, x: ph.fly_phases(p, x, config))(params, x0)
+    loop, params, infos, m = flight(("thesis-vbar",), n_steps=200, truth="two-body-j2-drag")
+    params, infos, m = jax.tree.map(lambda a: a[0], (params, infos, m))
     assert bool(m.docked) and float(m.max_violation_m) == 0.0
     orbit, x = params.orbit, np.asarray(infos.x[0])
     for k in range(3):
-        dv, ts = np.asarray(infos.u[k]), float(infos.ts[k])
+        dv, ts = np.asarray(infos.u[k]), float(infos.dt[k])
         x_kick = x.copy()
         x_kick[3:] += dv
         orbit, x = propagate_relative(
-            orbit, x_kick, np.zeros(3), 14.0, ts, config.substeps, j2=True, drag=params.drag
+            orbit,
+            x_kick,
+            np.zeros(3),
+            14.0,
+            ts,
+            loop.config.truth_substeps,
+            j2=True,
+            drag=params.drag,
         )
         x = np.asarray(x)
         np.testing.assert_allclose(np.asarray(infos.x[k + 1]), x, rtol=0, atol=1e-9)
@@ -320,14 +291,3 @@ def test_keep_out_planes_turn_with_the_natural_motion():
         n_fast = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, fast, v0))
         np.testing.assert_allclose(n_fast[-1], np.asarray(a_final), atol=1e-12)
         assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
-
-
-def test_plot_phases_writes_a_figure(runs, tmp_path):
-    from rvdjax import plots
-    from rvdjax.scenarios import SCENARIOS
-
-    params, infos, _ = runs
-    first = lambda tree: jax.tree.map(lambda a: np.asarray(a)[0], tree)  # noqa: E731
-    out = tmp_path / "phases.png"
-    plots.plot_phases(out, SCENARIOS["thesis-vbar"], first(params), first(infos))
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000

@@ -9,13 +9,11 @@ import scipy.linalg as sl
 import scipy.sparse as sp
 
 import rvdjax  # noqa: F401  (enables x64)
+from rvdjax.constraints import sphere_keep_out
 from rvdjax.problems import (
     FASTMPC3D,
-    drift_positions,
     fastmpc3d_first_step,
     fastmpc3d_first_step_batch,
-    obstacle_centres,
-    obstacle_rows,
     perturbed_x0,
     stack_ocps,
 )
@@ -73,15 +71,24 @@ def test_weights_and_terminal_dare(ocp):
     np.testing.assert_array_equal(ocp.fu, 20.0)
 
 
-def test_obstacle_rows_match_eq8_geometry():
+def _centres(t_s):
+    """Obstacle centres (len(t_s), 2, 3) of Table 1 at the given times (straight lines)."""
+    o = np.asarray(FASTMPC3D["obstacles"])
+    return o[None, :, :3] + np.asarray(t_s)[:, None, None] * o[None, :, 3:]
+
+
+def test_keepout_rows_match_eq8_geometry():
+    """Rows of paper 000 Eq. 8 with a unit normal: F r - f = R (1 - eq8) / 2 (in metres)."""
     rng = np.random.default_rng(0)
     N, n_obs = 4, 2
     p = rng.normal(size=(N, 3)) * 100
     o = rng.normal(size=(N, n_obs, 3)) * 100
     radii = np.array([20.0, 50.0])
-    Fx, fx = (np.asarray(a) for a in obstacle_rows(p, o, radii))
+    block = sphere_keep_out(p, o, radii, 6)
+    Fx, fx = np.asarray(block.F), np.asarray(block.f)
     assert Fx.shape == (N, n_obs, 6) and fx.shape == (N, n_obs)
     assert np.all(Fx[..., 3:] == 0)
+    np.testing.assert_allclose(np.linalg.norm(Fx, axis=-1), 1.0, rtol=1e-14)
     for t in range(N):
         for j in range(n_obs):
             S = np.eye(3) / radii[j] ** 2
@@ -91,27 +98,30 @@ def test_obstacle_rows_match_eq8_geometry():
             for r in rng.normal(size=(20, 3)) * 150 + o[t, j]:
                 eq8 = 2 * (r0 - o[t, j]) @ S @ (r - o[t, j]) - (r0 - o[t, j]) @ S @ (r0 - o[t, j])
                 lhs = Fx[t, j, :3] @ r - fx[t, j]  # <= 0 means feasible
-                assert lhs == pytest.approx((1 - eq8) / 2, abs=1e-12)
+                assert lhs == pytest.approx(radii[j] * (1 - eq8) / 2, abs=1e-9)
             # r0 lies on the boundary of the half-space; the whole ball is on the wrong side
-            assert Fx[t, j, :3] @ r0 == pytest.approx(fx[t, j], abs=1e-12)
+            assert Fx[t, j, :3] @ r0 == pytest.approx(fx[t, j], abs=1e-9)
             u = rng.normal(size=(50, 3))
             sphere = o[t, j] + radii[j] * u / np.linalg.norm(u, axis=1, keepdims=True)
-            assert np.all(sphere @ Fx[t, j, :3] >= fx[t, j] - 1e-12)
-    # jittable and vmappable
-    Fj, fj = jax.jit(obstacle_rows)(p, o, radii)
-    np.testing.assert_allclose(Fj, Fx, rtol=1e-15)
-    np.testing.assert_allclose(fj, fx, rtol=1e-15)
+            assert np.all(sphere @ Fx[t, j, :3] >= fx[t, j] - 1e-9)
+    # jittable
+    bj = jax.jit(lambda p, o, r: sphere_keep_out(p, o, r, 6))(p, o, radii)
+    np.testing.assert_allclose(bj.F, Fx, rtol=1e-15)
+    np.testing.assert_allclose(bj.f, fx, rtol=1e-15)
 
 
 def test_drift_guess_and_obstacle_motion(ocp):
-    p = np.asarray(drift_positions(ocp.A[0], ocp.x0, 3))
+    """The first step's keep-out rows are linearised about the unforced drift of x0, at the
+    obstacles' positions at the stage instants (t + 1) Ts."""
     x = np.asarray(FASTMPC3D["x0"])
-    for t in range(3):
-        x = np.asarray(ocp.A[0]) @ x
-        np.testing.assert_allclose(p[t], x[:3], rtol=1e-14)
-    c = np.asarray(obstacle_centres(np.asarray(FASTMPC3D["obstacles"]), 30, 15.0))
-    obs1 = np.asarray(FASTMPC3D["obstacles"][0])
-    np.testing.assert_allclose(c[9, 0], obs1[:3] + 150.0 * obs1[3:], rtol=1e-14)
+    A = np.asarray(ocp.A[0])
+    drift = []
+    for _ in range(ocp.N):
+        x = A @ x
+        drift.append(x[:3])
+    ref = sphere_keep_out(np.asarray(drift), _centres(15.0 * np.arange(1, 31)), (20.0, 50.0), 6)
+    np.testing.assert_allclose(ocp.Fx, ref.F, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(ocp.fx, ref.f, rtol=1e-10)
 
 
 def test_hard_qp_solved_and_keepout_respected(ocp, hard_solution):
@@ -121,12 +131,13 @@ def test_hard_qp_solved_and_keepout_respected(ocp, hard_solution):
     assert np.max(np.abs(u)) <= 20.0 + 1e-6
     assert np.max(np.abs(u)) > 19.0  # the thrust limit is active on the first step
     # the linearised rows are conservative: the true spheres are avoided too
-    centres = np.asarray(obstacle_centres(np.asarray(FASTMPC3D["obstacles"]), 30, 15.0))
+    centres = _centres(15.0 * np.arange(1, 31))
     dist = np.linalg.norm(xs[:, None, :3] - centres, axis=-1)
     assert np.all(dist >= np.asarray(FASTMPC3D["radii"]) - 1e-6)
     # some keep-out row is active (the obstacle matters), with a multiplier well below rho
+    # (rows in metres: multipliers per metre of penetration)
     lam_obs = z[qp.A_eq.shape[0] :].reshape(30, 8)[:, 6:]
-    assert np.max(lam_obs) > 1e3
+    assert np.max(lam_obs) > 1e2
     assert np.max(lam_obs) < 1e-1 * float(np.min(ocp.rho))
 
 
@@ -170,6 +181,6 @@ def test_batch_matches_individual_builds():
         assert a.shape == b.shape, name
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, err_msg=name)
     free = fastmpc3d_first_step_batch(x0s, obstacles=False)
-    assert free.Fx.shape == (3, 30, 1, 6) and float(jnp.sum(free.x_mask)) == 0.0
+    assert free.Fx.shape == (3, 30, 2, 6) and float(jnp.sum(free.x_mask)) == 0.0
     with pytest.raises(ValueError, match="x0s"):
         fastmpc3d_first_step_batch(jnp.zeros((3, 4)))

@@ -14,6 +14,8 @@ report the plan difference relative to u_max (measured <= ~2e-4; asserted <= 1e-
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,15 +25,14 @@ from ocp_factory import SHAPE_CLASSES, random_ocp
 from rvdjax.ocp import OCP, make_ocp
 from rvdjax.problems import (
     FASTMPC3D,
-    drift_positions,
     fastmpc3d_first_step,
-    obstacle_centres,
-    obstacle_rows,
+    fastmpc3d_step,
     stack_ocps,
 )
 from rvdjax.qp import split_solution, to_qp
 from rvdjax.solver import (
     Solution,
+    SolverParams,
     SolverSettings,
     Status,
     max_violation,
@@ -305,7 +306,7 @@ def test_fastmpc3d_paper_mode_gap(fastmpc_pair, clarabel_solve):
 def test_dense_isnm_matches_riccati(settings):
     """The dense KKT solve gives the same iterates as the Riccati recursion."""
     ocp = random_ocp(1, SHAPE_CLASSES["small"], time_varying=True)
-    dense = SolverSettings(**{**settings.__dict__, "method": "dense"})
+    dense = dataclasses.replace(settings, method="dense")
     a, b = solve(ocp, settings), solve(ocp, dense)
     assert int(a.iterations) == int(b.iterations)
     assert int(a.status) == int(b.status)
@@ -473,12 +474,8 @@ def test_make_ocp_rejects_bad_inputs(change, word):
     [
         (dict(mode="x"), "mode"),
         (dict(method="lu"), "method"),
-        (dict(beta=1.5), "beta"),
-        (dict(alpha=0.7), "alpha"),
-        (dict(kappa=0.0), "kappa"),
         (dict(max_iter=0), "max_iter"),
-        (dict(tol=-1.0), "tol"),
-        (dict(kappa_factor=1.0), "kappa_factor"),
+        (dict(line_search_batch=0), "line_search_batch"),
         (dict(paper_start="cold"), "paper_start"),
         (dict(backend="osqp"), "backend"),
     ],
@@ -486,6 +483,22 @@ def test_make_ocp_rejects_bad_inputs(change, word):
 def test_settings_reject_bad_values(kw, word):
     with pytest.raises(ValueError, match=word):
         SolverSettings(**kw)
+
+
+@pytest.mark.parametrize(
+    "kw, word",
+    [
+        (dict(beta=1.5), "beta"),
+        (dict(alpha=0.7), "alpha"),
+        (dict(kappa=0.0), "kappa"),
+        (dict(tol=-1.0), "tol"),
+        (dict(kappa_factor=1.0), "kappa_factor"),
+        (dict(kappa=float("nan")), "kappa"),
+    ],
+)
+def test_solver_params_reject_bad_values(kw, word):
+    with pytest.raises(ValueError, match=word):
+        SolverParams.paper(**kw)
 
 
 # --------------------------------------------------------------------------------------------
@@ -500,14 +513,11 @@ def test_warm_start_next_step(fastmpc_pair, fastmpc_accurate, clarabel_solve):
     """
     p = FASTMPC3D
     run, sols = fastmpc_accurate
-    first = fastmpc_pair[0][0]
+    fastmpc_pair[0][0]
     sol1 = Solution(*_index(sols, 0))
     assert int(sol1.status) == Status.CONVERGED
     x1 = np.asarray(sol1.x[0])  # the state after applying u_0
-    N, ts = first.N, p["ts"]
-    centres = obstacle_centres(np.asarray(p["obstacles"]), N, ts, t0=ts)
-    Fx, fx = obstacle_rows(drift_positions(first.A[0], x1, N), centres, np.asarray(p["radii"]))
-    nxt = first._replace(x0=jnp.asarray(x1), Fx=Fx, fx=fx)
+    nxt = fastmpc3d_step(x1, p["ts"])
     warm = solve(nxt, ACCURATE, init=shift_solution(sol1))
     cold = _index(run(stack_ocps([nxt, fastmpc_pair[0][1]])), 0)  # no new compile
     ref = _reference(nxt, clarabel_solve)
@@ -523,7 +533,7 @@ def test_paper_start_feasible_keeps_the_dynamics(fastmpc_pair, fastmpc_accurate)
     start returns a plan that obeys the dynamics to rounding; Algorithm 1's literal infeasible
     start ("warm") still carries part of the initial dynamics residual (it shrinks by the
     factor (1 - t) of each step), so its u_0 belongs to no flyable plan."""
-    from rvdjax.solver import _dyn_residual
+    from rvdjax.solver.barrier import dyn_residual
 
     _, sols = fastmpc_accurate
     first = fastmpc_pair[0][0]
@@ -537,7 +547,7 @@ def test_paper_start_feasible_keeps_the_dynamics(fastmpc_pair, fastmpc_accurate)
         settings = SolverSettings.paper(max_iter=2, paper_start=start)
         sol = solve(nxt, settings, init=init)
         assert int(sol.status) in (Status.CONVERGED, Status.MAX_ITER)
-        res[start] = float(jnp.max(jnp.abs(_dyn_residual(nxt, sol.u, sol.x)))) / scale
+        res[start] = float(jnp.max(jnp.abs(dyn_residual(nxt, sol.u, sol.x)))) / scale
     assert res["feasible"] < 1e-12
     assert res["warm"] > 1e-6
 
@@ -547,7 +557,7 @@ def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate)
     (u - u_prev)'R(u - u_prev) under the dynamics from the new x0 — checked against the dense
     equality-constrained least-squares solution (NumPy KKT solve), and its states are closer
     to the previous plan (in that weighted measure) than the drift of the shifted inputs."""
-    from rvdjax.solver import _drift, _track_plan
+    from rvdjax.solver.start import drift, track_plan
 
     _, sols = fastmpc_accurate
     first = fastmpc_pair[0][0]
@@ -555,7 +565,7 @@ def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate)
     init = shift_solution(sol1)
     x1 = np.asarray(sol1.x[0]) + np.array([5.0, -5.0, 2.0, 0.01, 0.0, -0.01])
     ocp = first._replace(x0=jnp.asarray(x1))
-    u = np.asarray(_track_plan(ocp, init.u, init.x, PAPER))
+    u = np.asarray(track_plan(ocp, init.u, init.x, "riccati"))
     # dense reference: z = (u_0, x_1, ..., u_{N-1}, x_N)
     N, nx, nu = ocp.N, ocp.nx, ocp.nu
     A, B = np.asarray(ocp.A), np.asarray(ocp.B)
@@ -580,7 +590,7 @@ def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate)
     np.testing.assert_allclose(u, u_ref, rtol=0, atol=1e-8 * FASTMPC3D["u_max"])
 
     def tracking(uu):
-        e = np.asarray(_drift(ocp, jnp.asarray(uu))) - np.asarray(init.x)
+        e = np.asarray(drift(ocp, jnp.asarray(uu))) - np.asarray(init.x)
         du = np.asarray(uu) - np.asarray(init.u)
         return np.einsum("ti,tij,tj->", e, np.asarray(ocp.Q), e) + np.einsum(
             "ti,tij,tj->", du, np.asarray(ocp.R), du

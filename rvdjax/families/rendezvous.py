@@ -51,7 +51,7 @@ class Params(NamedTuple):
         obstacles: (k, 6) obstacle states (position, velocity) at t = 0 [m, m/s].
         radii: (k,) spherical keep-out radii [m].
         obstacle_mask: (k,) 1.0 for an obstacle that exists, 0.0 to switch it off.
-        rho: () exact penalty of the keep-out rows [per metre of penetration].
+        rho: (k,) exact penalty of each obstacle's keep-out rows [per metre of penetration].
         ts: () sample time [s].
         mass: () chaser mass [kg].
         stop_radius: () the run ends when |r| <= stop_radius [m].
@@ -121,7 +121,8 @@ def make_params(
         stop_radius: distance to the target that ends the run [m].
         obstacles: (k, 6) initial obstacle states; radii: (k,) keep-out radii [m].
         obstacles_on: False keeps the shapes but switches every obstacle off.
-        rho: exact penalty of the keep-out rows [per metre].
+        rho: exact penalty of the keep-out rows [per metre of penetration], one value or one
+            per obstacle.
         x0: initial state, checked to be finite and outside every zone and the stop radius.
         inclination_deg: target orbit inclination (nonlinear truths).
         disturbances: keyword values for :func:`rvdjax.disturbances.disturbances`.
@@ -132,7 +133,7 @@ def make_params(
     checks.positive("mass", mass, "kg")
     checks.positive("ts", ts, "s")
     checks.positive("stop_radius", stop_radius, "m")
-    checks.positive("rho", rho)
+    checks.positive("rho", rho, "per metre")
     checks.in_range("inclination_deg", inclination_deg, 0.0, 180.0, False, False, "deg")
     Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
     R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
@@ -172,7 +173,7 @@ def make_params(
         obstacles=f(obstacles),
         radii=f(radii),
         obstacle_mask=f(np.full(len(radii), 1.0 if obstacles_on else 0.0)),
-        rho=f(float(rho)),
+        rho=f(np.broadcast_to(np.asarray(rho, float), radii.shape).copy()),
         ts=f(float(ts)),
         mass=f(float(mass)),
         stop_radius=f(float(stop_radius)),

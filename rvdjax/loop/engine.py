@@ -175,7 +175,8 @@ def arrays_source(x0s, keys=None, params=None, solver=None) -> Source:
     x0s = jnp.asarray(x0s)
     n = x0s.shape[0]
     keys = jax.random.split(jax.random.key(0), n) if keys is None else keys
-    return Source(_pick_arrays, (x0s, keys, params, solver))
+    as_jax = lambda tree: None if tree is None else jax.tree.map(jnp.asarray, tree)  # noqa: E731
+    return Source(_pick_arrays, (x0s, keys, as_jax(params), as_jax(solver)))
 
 
 def _where(c, a, b):

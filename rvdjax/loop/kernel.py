@@ -163,7 +163,7 @@ class LoopState(NamedTuple):
         failed: () the truth became non-finite.
         orbit: the target's inertial state (nonlinear truths) or None.
         gm: (nu, 2) Gauss-Markov thrust-error states (zeros when undisturbed).
-        key: the run's PRNG key (step keys are ``fold_in(key, k)``).
+        key: the run's PRNG key (step keys derive from it and the step index).
         acc: the :class:`Accumulator`.
     """
 
@@ -278,7 +278,7 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
     if loop.config.disturbed:
         if params.disturbances is None:
             raise ValueError("a disturbed run needs params.disturbances")
-        gm = gm_init(jax.random.fold_in(key, -1), params.disturbances, nu)
+        gm = gm_init(jax.random.fold_in(key, 0), params.disturbances, nu)
     else:
         gm = jnp.zeros((nu, 2), dtype)
     orbit = params.orbit if loop.config.truth != "linear" else None
@@ -303,8 +303,10 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
 
 
 def _keys(state: LoopState):
-    k_nav, k_act = jax.random.split(jax.random.fold_in(state.key, state.k))
-    return k_nav, k_act
+    """(navigation, actuator) keys of step k: fold_in(fold_in(run key, 1), k) (stream 0 of
+    the run key seeds the initial thrust-error state)."""
+    steps = jax.random.fold_in(state.key, 1)
+    return jax.random.split(jax.random.fold_in(steps, state.k))
 
 
 def prepare(loop: Loop, params, state: LoopState) -> Prepared:
@@ -471,15 +473,24 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
     judged = [acc.margins[n] for n, kind in kinds.items() if kind == "hard"]
     worst = jnp.min(jnp.stack([*judged, jnp.asarray(jnp.inf, state.x.dtype)]))
     docked = state.docked
+    # a NaN anywhere in the figures (a non-finite truth) fails the run; no NaN is returned
+    nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(a)) for a in jax.tree.leaves(acc)]))
+    failed = state.failed | nan
     status = jnp.where(
-        docked, RunStatus.DOCKED, jnp.where(state.failed, RunStatus.FAILED, RunStatus.TIMEOUT)
+        docked & ~failed,
+        RunStatus.DOCKED,
+        jnp.where(failed, RunStatus.FAILED, RunStatus.TIMEOUT),
     )
     mass = params.mass
-    return Metrics(
+
+    def clean(a):  # NaN -> +inf ("unknown"), never NaN in a batch's results
+        return jnp.where(jnp.isnan(a), jnp.inf, a)
+
+    out = Metrics(
         status=status.astype(jnp.int32),
-        docked=docked,
+        docked=docked & ~failed,
         steps=acc.steps,
-        time_to_dock_s=jnp.where(docked, acc.time_s, jnp.inf),
+        time_to_dock_s=jnp.where(docked & ~failed, acc.time_s, jnp.inf),
         total_impulse_N_s=acc.impulse_l2,
         effort_l1_N_s=acc.impulse_l1,
         delta_v_m_s=acc.impulse_l2 / mass if loop.family.layout.input == "force" else acc.dv_l2,
@@ -493,6 +504,7 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
         mean_iterations=acc.iterations / jnp.maximum(acc.steps, 1),
         iteration_histogram=acc.histogram,
     )
+    return jax.tree.map(lambda a: clean(a) if jnp.issubdtype(a.dtype, jnp.floating) else a, out)
 
 
 def step(loop: Loop, params, sp: SolverParams, state: LoopState):

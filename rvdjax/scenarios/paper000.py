@@ -21,7 +21,9 @@ FASTMPC3D = dict(
         (-100.0, 0.0, -40.0, 0.07, -0.16, 0.01),
     ),
     radii=(20.0, 50.0),
-    rho=1e8,
+    # exact penalty 1e8 per unit of relative penetration |x - o| / r - 1 (the row scaling of
+    # paper 000 Eq. 8): 1e8 / r per metre
+    rho=(1e8 / 20.0, 1e8 / 50.0),
     # disturbed runs only: paper 003 Ch. 5's noise and thrust error on paper 000's chaser
     disturbances=dict(sigma_pos=0.05, sigma_vel=1e-3, thrust_max=20.0),
 )
@@ -31,8 +33,8 @@ _FASTMPC_ASSUMPTIONS = (
     "obstacles move on straight lines at their Table 1 velocities (paper: 'constant "
     "translational velocity')",
     "keep-out rows re-linearised each step about the previous plan (first step: unforced drift)",
-    "keep-out rows are soft with exact L1 penalty rho = 1e8 per metre of penetration (the "
-    "active keep-out multiplier is ~1e4-1e5 per metre)",
+    "keep-out rows are soft with exact L1 penalty rho = 1e8 per unit of relative penetration "
+    "(|r - o| / r_j - 1; 5e6 and 2e6 per metre), ~100x the largest keep-out multiplier",
     "'total impulse' compared as sum_k ||u_k||_1 Ts (per-axis thrusters); the L2 sum is also "
     "reported",
     "Earth mu = 3.986004418e14 m^3/s^2, radius 6378.137 km; the truth is the CW model itself "
