@@ -25,7 +25,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["OCP", "make_ocp", "validate_ocp"]
+__all__ = ["OCP", "make_ocp", "validate_ocp", "time_invariant_model"]
 
 
 class OCP(NamedTuple):
@@ -262,3 +262,16 @@ def validate_ocp(ocp: OCP) -> None:
             "fu must be > 0 on active input rows (u = 0 must be strictly feasible: actuator "
             "limits that exclude zero input are not supported)"
         )
+
+
+def time_invariant_model(A, B, Q, R, Q_f, N: int):
+    """Stage-wise (A, B, c, Q, R) of a time-invariant model over N stages, with the terminal
+    weight Q_f on the last stage (jit-friendly; the arrays broadcast)."""
+    nx, nu = B.shape
+    return (
+        jnp.broadcast_to(A, (N, nx, nx)),
+        jnp.broadcast_to(B, (N, nx, nu)),
+        jnp.zeros((N, nx), A.dtype),
+        jnp.broadcast_to(Q, (N, nx, nx)).at[-1].set(Q_f),
+        jnp.broadcast_to(R, (N, nu, nu)),
+    )

@@ -46,7 +46,7 @@ from rvdjax.constraints import (
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP
+from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -339,13 +339,14 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     Fx, fx, rho, x_mask = stack(blocks)
     box = thrust_box(p.u_max, N)
     zeros = jnp.zeros((N, nx), x.dtype)
+    A, B, c, Q, R = model(p, fc)
     problem = OCP(
-        A=jnp.broadcast_to(p.A, (N, nx, nx)),
-        B=jnp.broadcast_to(p.B, (N, nx, nu)),
-        c=zeros,
+        A=A,
+        B=B,
+        c=c,
         x0=x,
-        Q=jnp.broadcast_to(p.Q, (N, nx, nx)).at[-1].set(p.Q_f),
-        R=jnp.broadcast_to(p.R, (N, nu, nu)),
+        Q=Q,
+        R=R,
         x_ref=x_ref,
         q=zeros,
         r=jnp.zeros((N, nu), x.dtype),
@@ -358,6 +359,11 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         x_mask=x_mask,
     )
     return problem, blocks
+
+
+def model(p: Params, fc: Config):
+    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
+    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
 
 
 def control(p, fc, g, sol):
@@ -431,5 +437,6 @@ FAMILY = Family(
     truth_model=truth_model,
     update=update,
     truth_blocks=truth_blocks,
+    model=model,
     plot=_plot,
 )

@@ -38,7 +38,7 @@ from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out,
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP
+from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -279,13 +279,14 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     box = thrust_box(p.u_max, N)
     x_ref = jnp.broadcast_to(jnp.concatenate([p.dock, jnp.zeros(2, x.dtype)]), (N, NX))
     zeros = jnp.zeros((N, NX), x.dtype)
+    A, B, c, Q, R = model(p, fc)
     problem = OCP(
-        A=jnp.broadcast_to(p.A, (N, NX, NX)),
-        B=jnp.broadcast_to(p.B, (N, NX, NU)),
-        c=zeros,
+        A=A,
+        B=B,
+        c=c,
         x0=x,
-        Q=jnp.broadcast_to(p.Q, (N, NX, NX)).at[-1].set(p.Q_f),
-        R=jnp.broadcast_to(p.R, (N, NU, NU)),
+        Q=Q,
+        R=R,
         x_ref=x_ref,
         q=zeros,
         r=jnp.zeros((N, NU), x.dtype),
@@ -298,6 +299,11 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         x_mask=x_mask,
     )
     return problem, blocks
+
+
+def model(p: Params, fc: Config):
+    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
+    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
 
 
 def control(p, fc, g, sol):
@@ -374,6 +380,7 @@ FAMILY = Family(
     truth_model=truth_model,
     update=update,
     truth_blocks=truth_blocks,
+    model=model,
     subsamples=subsamples,
     plot=_plot,
     baselines=("idvd",),

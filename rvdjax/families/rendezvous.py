@@ -23,7 +23,7 @@ from rvdjax.constraints import sphere_keep_out, stack, thrust_box
 from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP
+from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.propagate import Drag, Orbit, circular_orbit
 from rvdjax.solver import drift_plan
 
@@ -211,13 +211,14 @@ def ocp(p: Params, fc: Config, g, x, t, plan):
     box = thrust_box(p.u_max, N)
     Fx, fx, rho, x_mask = stack([keep_out])
     zeros_x = jnp.zeros((N, nx), x.dtype)
+    A, B, c, Q, R = model(p, fc)
     problem = OCP(
-        A=jnp.broadcast_to(p.A, (N, nx, nx)),
-        B=jnp.broadcast_to(p.B, (N, nx, nu)),
-        c=zeros_x,
+        A=A,
+        B=B,
+        c=c,
         x0=x,
-        Q=jnp.broadcast_to(p.Q, (N, nx, nx)).at[-1].set(p.Q_f),
-        R=jnp.broadcast_to(p.R, (N, nu, nu)),
+        Q=Q,
+        R=R,
         x_ref=jnp.broadcast_to(p.x_ref, (N, nx)),
         q=zeros_x,
         r=jnp.zeros((N, nu), x.dtype),
@@ -230,6 +231,11 @@ def ocp(p: Params, fc: Config, g, x, t, plan):
         x_mask=x_mask,
     )
     return problem, [keep_out]
+
+
+def model(p: Params, fc: Config):
+    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
+    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
 
 
 def control(p, fc, g, sol):
@@ -280,6 +286,7 @@ FAMILY = Family(
     truth_model=truth_model,
     update=update,
     truth_blocks=truth_blocks,
+    model=model,
     truths=("linear", "two-body", "two-body-j2"),
     plot=_plot,
     baselines=("nmpc",),

@@ -130,7 +130,8 @@ class Slot(NamedTuple):
     live: jnp.ndarray  # () a run is in progress
     state: LoopState
     guidance: Any  # the observed guidance state of the current step
-    ocp: OCP  # the (sanitised) OCP of the current step
+    ocp: OCP  # the (sanitised) OCP of the current step; without its model (A, B, c, Q, R:
+    #           empty placeholders) when the family rebuilds it from the parameters
     hard: jnp.ndarray  # (N, m) hard rows of the current step
     solve: SolveState
     params: Any  # the run's parameters (None when shared)
@@ -183,6 +184,22 @@ def _where(c, a, b):
     return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
 
 
+_MODEL = ("A", "B", "c", "Q", "R")
+
+
+def _strip_model(loop: Loop, ocp: OCP) -> OCP:
+    """The OCP without the model a family rebuilds from its parameters (stored per slot)."""
+    if loop.family.model is None:
+        return ocp
+    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in _MODEL})
+
+
+def _with_model(loop: Loop, ocp: OCP, model) -> OCP:
+    if loop.family.model is None:
+        return ocp
+    return ocp._replace(**dict(zip(_MODEL, model, strict=True)))
+
+
 def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) -> Slot:
     """A free slot with the right shapes (built from run 0, then marked free)."""
     run = source(jnp.asarray(0))
@@ -190,7 +207,10 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
     s = run.solver if per_run_solver else sp
     state = init(loop, p, run.x0, run.key)
     prep = prepare(loop, p, state)
-    ocp, solve_state = start(prep.ocp, loop.config.settings, s, prep.warm)
+    ocp, solve_state = start(
+        prep.ocp, loop.config.settings, s, prep.warm, trusted_model=loop.family.model is not None
+    )
+    ocp = _strip_model(loop, ocp)
     solve_state = solve_state._replace(core=solve_state.core._replace(done=jnp.asarray(True)))
     return Slot(
         run=jnp.asarray(-1, jnp.int32),
@@ -205,59 +225,99 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
     )
 
 
-def _slot_tick(loop, cfg: EngineConfig, shared_params, shared_sp, source, slot: Slot, assign, idx):
-    # ``source``: run index -> RunInputs (the queue's function bound to its data)
-    """One tick of one slot (module docstring); returns (slot, ended, run, metrics)."""
-    settings = loop.config.settings
-    old_run = slot.run
-    params = shared_params if slot.params is None else slot.params
-    sp = shared_sp if slot.solver is None else slot.solver
+def _chunk_tick(
+    loop, cfg: EngineConfig, shared_params, shared_sp, source, slots: Slot, assign, idx
+):
+    """One tick of a chunk of slots (module docstring); returns (slots, ended, run, metrics).
 
-    # 1. the step whose solve has finished
-    solved = slot.live & finished(slot.solve, settings)
-    sol = finish(slot.ocp, slot.solve, settings, sp)
-    prep = Prepared(slot.guidance, slot.ocp, slot.hard, None)
-    stepped, _ = advance(loop, params, sp, slot.state, prep, sol)
-    state = _where(solved, stepped, slot.state)
-    ended = solved & ~state.active
-    result = metrics(loop, params, state)
+    Each phase is vmapped over the chunk; the phases that only some slots need (a new run, a
+    new solve) are skipped for the whole chunk when no slot needs them (a real branch)."""
+    settings = loop.config.settings
+    fam = loop.family
+    per_run_params = slots.params is not None
+    per_run_solver = slots.solver is not None
+    trusted = fam.model is not None
+    # the model shared by the chunk (unbatched: one large product per stage for all slots)
+    shared_model = (
+        fam.model(shared_params, loop.config.family) if trusted and not per_run_params else None
+    )
+
+    def params_of(slot):
+        return (slot.params if per_run_params else shared_params), (
+            slot.solver if per_run_solver else shared_sp
+        )
+
+    def ocp_of(slot, params):
+        if not trusted:
+            return slot.ocp
+        model = shared_model if shared_model is not None else fam.model(params, loop.config.family)
+        return _with_model(loop, slot.ocp, model)
+
+    # 1. the MPC step whose solve has finished
+    def step_done(slot):
+        params, sp = params_of(slot)
+        solved = slot.live & finished(slot.solve, settings)
+        ocp = ocp_of(slot, params)
+        sol = finish(ocp, slot.solve, settings, sp)
+        prep = Prepared(slot.guidance, ocp, slot.hard, None)
+        stepped, _ = advance(loop, params, sp, slot.state, prep, sol)
+        state = _where(solved, stepped, slot.state)
+        ended = solved & ~state.active
+        return slot._replace(state=state, live=slot.live & ~ended), solved, ended
+
+    old_run = slots.run
+    slots, solved, ended = jax.vmap(step_done)(slots)
+    result = jax.vmap(lambda s: metrics(loop, params_of(s)[0], s.state))(slots)
 
     # 2. a new run for a free slot
-    run = source(idx)
-    new_params = params if slot.params is None else run.params
-    new_sp = sp if slot.solver is None else run.solver
-    fresh_state = init(loop, new_params, run.x0, run.key)
-    state = _where(assign, fresh_state, state)
-    params = _where(assign, new_params, params) if slot.params is not None else params
-    sp = _where(assign, new_sp, sp) if slot.solver is not None else sp
-    live = assign | (slot.live & ~ended)
+    def load(slot, a, i):
+        run = source(i)
+        params = run.params if per_run_params else shared_params
+        fresh = init(loop, params, run.x0, run.key)
+        slot = slot._replace(
+            run=jnp.where(a, i, slot.run),
+            live=slot.live | a,
+            state=_where(a, fresh, slot.state),
+            params=_where(a, run.params, slot.params) if per_run_params else None,
+            solver=_where(a, run.solver, slot.solver) if per_run_solver else None,
+        )
+        return slot
+
+    slots = lax.cond(jnp.any(assign), lambda s: jax.vmap(load)(s, assign, idx), lambda s: s, slots)
 
     # 3. prepare the next solve
     need = assign | (solved & ~ended)
-    nxt = prepare(loop, params, state)
-    ocp, solve = start(nxt.ocp, settings, sp, nxt.warm)
-    slot = Slot(
-        run=jnp.where(assign, idx, slot.run),
-        live=live,
-        state=state,
-        guidance=_where(need, nxt.guidance, slot.guidance),
-        ocp=_where(need, ocp, slot.ocp),
-        hard=jnp.where(need, nxt.hard, slot.hard),
-        solve=_where(need, solve, slot.solve),
-        params=params if slot.params is not None else None,
-        solver=sp if slot.solver is not None else None,
-    )
-    # a freed slot's solve stays frozen
-    slot = slot._replace(
-        solve=slot.solve._replace(core=slot.solve.core._replace(done=slot.solve.core.done | ~live))
+
+    def prepare_solve(slot, n):
+        params, sp = params_of(slot)
+        nxt = prepare(loop, params, slot.state)
+        ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=trusted)
+        return slot._replace(
+            guidance=_where(n, nxt.guidance, slot.guidance),
+            ocp=_where(n, _strip_model(loop, ocp), slot.ocp),
+            hard=jnp.where(n, nxt.hard, slot.hard),
+            solve=_where(n, solve, slot.solve),
+        )
+
+    slots = lax.cond(jnp.any(need), lambda s: jax.vmap(prepare_solve)(s, need), lambda s: s, slots)
+    # a free slot's solve stays frozen
+    core = slots.solve.core
+    slots = slots._replace(
+        solve=slots.solve._replace(core=core._replace(done=core.done | ~slots.live))
     )
 
     # 4. solver iterations
-    def body(_, st):
-        return iterate(slot.ocp, st, settings, sp)
+    def iterations(slot):
+        params, sp = params_of(slot)
+        ocp = ocp_of(slot, params)
 
-    solve = lax.fori_loop(0, cfg.iterations, body, slot.solve)
-    return slot._replace(solve=solve), ended, old_run, result
+        def body(_, st):
+            return iterate(ocp, st, settings, sp)
+
+        return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
+
+    slots = jax.vmap(iterations)(slots)
+    return slots, ended, old_run, result
 
 
 @functools.lru_cache(maxsize=64)
@@ -287,10 +347,16 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
             ring_run = eng.ring_run.at[pos].set(idx, mode="drop")
 
             def process(chunk_slots, chunk_assign, chunk_idx):
-                f = jax.vmap(
-                    lambda s, a, i: _slot_tick(loop, cfg, shared_params, shared_sp, source, s, a, i)
+                return _chunk_tick(
+                    loop,
+                    cfg,
+                    shared_params,
+                    shared_sp,
+                    source,
+                    chunk_slots,
+                    chunk_assign,
+                    chunk_idx,
                 )
-                return f(chunk_slots, chunk_assign, chunk_idx)
 
             def one_chunk(carry, c):
                 slots, ring, ring_done = carry

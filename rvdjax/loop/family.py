@@ -23,7 +23,11 @@ options), and these pure functions of arrays:
   and ``sample_mask`` the sub-samples flown before docking;
 * ``truth_blocks(params, fconfig, G, x, t) -> blocks``: single-stage blocks built at the
   truth's own state and time; their slacks are the truth's constraint margins (kind "hard" is
-  judged in ``max_violation_m``, "monitor" is reported).
+  judged in ``max_violation_m``, "monitor" is reported);
+* optionally ``model(params, fconfig) -> (A, B, c, Q, R)``: the OCP's stage-wise model and
+  weights when they depend on the parameters alone (not on the guidance state). The batch
+  engine then keeps them out of its slots and, when the runs share their parameters, solves
+  every slot's Newton step with one model (larger matrix products, less memory).
 
 The plant (:mod:`rvdjax.loop.plant`) supplies the truth step for the family's :class:`Layout`.
 """
@@ -86,6 +90,7 @@ class Family:
         check: (params, x0, loop config) -> None: configuration-dependent checks (ValueError).
         subsamples: optional (params, fconfig, x, u) -> (taus (M,), states (M, nx)): the truth
             inside a step at M instants, for docking detection and margins between samples.
+        model: optional (params, fconfig) -> (A, B, c, Q, R) of the OCP (module docstring).
         plot: (path, scenario, params, infos) -> None, the run's figure.
     """
 
@@ -108,6 +113,7 @@ class Family:
     truths: tuple[str, ...] = ("linear",)
     check: Callable | None = None
     subsamples: Callable | None = None
+    model: Callable | None = None
     plot: Callable | None = None
     baselines: tuple[str, ...] = ()
 

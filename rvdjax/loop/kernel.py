@@ -318,7 +318,11 @@ def prepare(loop: Loop, params, state: LoopState) -> Prepared:
         k_nav, _ = _keys(state)
         x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att)
     ocp, blocks = fam.ocp(params, fc, g, x_meas, state.t, state.plan)
-    cold = drift_plan(ocp.A, ocp.x0, ocp.N, ocp.nu)
+    settings = loop.config.settings
+    if settings.mode == "paper" and settings.paper_start != "feasible":
+        cold = drift_plan(ocp.A, ocp.x0, ocp.N, ocp.nu)  # these starts use the plan's states
+    else:  # the solver starts from the drift of the inputs: zero inputs and multipliers
+        cold = Plan(jnp.zeros_like(state.plan.u), state.plan.x, jnp.zeros_like(state.plan.nu))
     warm = jax.tree.map(lambda a, b: jnp.where(state.fresh, a, b), cold, state.plan)
     return Prepared(g, ocp, hard_mask(blocks), warm)
 

@@ -25,6 +25,8 @@ from rvdjax.ocp import OCP
 __all__ = [
     "Rows",
     "rows_of",
+    "rows_in",
+    "neutralised",
     "soft_slack",
     "soft_penalty",
     "u_slack",
@@ -66,6 +68,18 @@ def rows_of(ocp: OCP) -> Rows:
         wx=ocp.x_mask,
         rho=jnp.where(on_x, ocp.rho, 1.0),
     )
+
+
+def neutralised(ocp: OCP) -> OCP:
+    """The OCP with its masked rows neutralised (zero row, offset 1, penalty 1): the same
+    problem, whose rows :func:`rows_in` can read without masking again."""
+    rows = rows_of(ocp)
+    return ocp._replace(Fu=rows.Fu, fu=rows.fu, Fx=rows.Fx, fx=rows.fx, rho=rows.rho)
+
+
+def rows_in(ocp: OCP) -> Rows:
+    """The rows of an OCP returned by :func:`neutralised` (no masking work)."""
+    return Rows(ocp.Fu, ocp.fu, ocp.u_mask, ocp.Fx, ocp.fx, ocp.x_mask, ocp.rho)
 
 
 def m_eff(rows: Rows):

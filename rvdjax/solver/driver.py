@@ -27,9 +27,10 @@ from rvdjax.solver.barrier import (
     gradient,
     m_eff,
     max_violation,
+    neutralised,
     objective,
     residual_norms,
-    rows_of,
+    rows_in,
     u_slack,
 )
 from rvdjax.solver.clarabel import solve_clarabel_backend
@@ -72,25 +73,50 @@ def _prepared(params: SolverParams, dtype) -> SolverParams:
     return params._replace(tol=jnp.maximum(params.tol, 1e3 * jnp.finfo(dtype).eps))
 
 
-def start(ocp: OCP, settings: SolverSettings, params: SolverParams, init: Plan | None = None):
+MODEL_FIELDS = ("A", "B", "c", "Q", "R")
+
+
+def start(
+    ocp: OCP,
+    settings: SolverSettings,
+    params: SolverParams,
+    init: Plan | None = None,
+    trusted_model: bool = False,
+):
     """Sanitise ``ocp`` and build the first iterate.
 
+    ``trusted_model`` (static): the model fields (A, B, c, Q, R) are known to be finite (checked
+    where they were built) and are passed through untouched. A batch engine uses it to keep a
+    model shared by every problem of a batch unbatched (one large matrix product for the whole
+    batch instead of one small one per problem).
+
     Returns:
-        (the OCP to iterate on, :class:`SolveState`). Non-finite data would poison every
-        iterate: the returned OCP is then a neutral copy and the state is finished with status
-        NONFINITE.
+        (the OCP to iterate on — the same problem with its masked rows neutralised, to pass to
+        :func:`iterate` and :func:`finish` —, :class:`SolveState`). Non-finite data would
+        poison every iterate: the returned OCP is then a neutral copy and the state is finished
+        with status NONFINITE.
     """
     dtype = ocp.B.dtype
     params = _prepared(params, dtype)
-    inputs_ok = all_finite(ocp) & (True if init is None else all_finite(init))
-    ocp_safe = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), ocp)
-    ocp = ocp_safe._replace(
-        R=jnp.where(inputs_ok, ocp.R, jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)),
-        fu=jnp.where(inputs_ok, ocp.fu, 1.0),
-        fx=jnp.where(inputs_ok, ocp.fx, 1.0),
-        rho=jnp.where(inputs_ok, ocp.rho, 1.0),
-    )
-    rows = rows_of(ocp)
+    checked = [
+        a
+        for name, a in zip(OCP._fields, ocp, strict=True)
+        if not (trusted_model and name in MODEL_FIELDS)
+    ]
+    inputs_ok = all_finite(checked) & (True if init is None else all_finite(init))
+    safe = {
+        name: jnp.where(inputs_ok, a, jnp.zeros_like(a))
+        for name, a in zip(OCP._fields, ocp, strict=True)
+        if not (trusted_model and name in MODEL_FIELDS)
+    }
+    if not trusted_model:
+        eye = jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)
+        safe["R"] = jnp.where(inputs_ok, ocp.R, eye)
+    for name in ("fu", "fx", "rho"):  # neutral values that keep the start well defined
+        safe[name] = jnp.where(inputs_ok, getattr(ocp, name), 1.0)
+    ocp = ocp._replace(**safe)
+    ocp = neutralised(ocp)
+    rows = rows_in(ocp)
     if init is None:
         u0 = jnp.zeros((ocp.N, ocp.nu), dtype)
         nu0 = jnp.zeros((ocp.N, ocp.nx), dtype)
@@ -133,9 +159,10 @@ def finished(state: SolveState, settings: SolverSettings):
 
 
 def iterate(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
-    """One iteration from ``state``; a finished state is returned unchanged."""
+    """One iteration from ``state`` on the OCP returned by :func:`start`; a finished state is
+    returned unchanged."""
     params = _prepared(params, ocp.B.dtype)
-    rows = rows_of(ocp)
+    rows = rows_in(ocp)
     if settings.mode == "accurate":
         new = pd_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     else:
@@ -149,7 +176,7 @@ def finish(ocp: OCP, state: SolveState, settings: SolverSettings, params: Solver
     """The :class:`Solution` of a finished state (its objective is left at 0: see
     :func:`with_objective`)."""
     params = _prepared(params, ocp.B.dtype)
-    rows = rows_of(ocp)
+    rows = rows_in(ocp)
     dtype = ocp.B.dtype
     core = state.core
     u, x, nu, it, status = core.u, core.x, core.nu, core.it, core.status
