@@ -398,7 +398,7 @@ def closed_loop_batch_benchmark(
     disturbed: bool = False,
     mode: str = "accurate",
     chunk: int = 32,
-    iterations: int = 2,
+    iterations: int = 3,
     progress=print,
 ) -> list[dict]:
     """Maneuvers per second flown one jitted maneuver at a time and by the batch engine.

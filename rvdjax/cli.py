@@ -463,7 +463,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--chunk", type=int, default=32, help="closed loop: slots per vmapped chunk")
     p.add_argument(
-        "--iterations", type=int, default=2, help="closed loop: solver iterations per slot per tick"
+        "--iterations", type=int, default=3, help="closed loop: solver iterations per slot per tick"
     )
     p.add_argument("--horizons", type=_ints, help="QP: horizons for the scaling rows, e.g. 15,30")
     p.add_argument("--peers", help="QP: comma-separated peers (default: all installed)")

@@ -96,7 +96,7 @@ class EngineConfig:
 
     slots: int = 256
     chunk: int = 32
-    iterations: int = 2
+    iterations: int = 3
     ticks_per_segment: int = 256
     ring: int = 0  # 0: 4 * slots
 
@@ -434,6 +434,9 @@ def _initial_state(loop, config: EngineConfig, source: Source, params, sp, n_run
     build = _slot_builder(loop, source.fn, probe.params is not None, probe.solver is not None)
     slot0, res0 = build(source.data, params, sp)
     B, R = config.n_slots, config.ring_size
+    # strong types: the segment's outputs must have exactly the types of its inputs, or every
+    # segment after the first would trace and compile again
+    slot0 = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), slot0)
     return EngineState(
         slots=jax.tree.map(lambda a: jnp.broadcast_to(a, (B, *a.shape)), slot0),
         next_run=jnp.asarray(0, jnp.int32),
