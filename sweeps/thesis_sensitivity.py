@@ -28,6 +28,9 @@ V_MAX = (0.1, 0.05, 0.02)  # m/s (rvdjax default 0.1 m/s)
 
 
 def main(out: str = "thesis_sensitivity.csv") -> int:
+    from rvdjax.cli import check_output
+
+    check_output(out, "out", (".csv",))
     grid = list(itertools.product(CASES, R2, V_MAX))
     # each run's parameters are built and checked from the scenario record with two values
     # changed (r2 < r1 and the speed bound are checked by the family)
@@ -35,10 +38,10 @@ def main(out: str = "thesis_sensitivity.csv") -> int:
     params = jax.tree.map(lambda *a: np.stack(a), *[b[0] for b in built])
     x0 = np.stack([b[1] for b in built])
     loop = SCENARIOS["thesis-vbar"].loop(n_steps=400)
-    out = run_batch(
+    result = run_batch(
         loop, arrays_source(x0, params=params), len(grid), config=EngineConfig(slots=16, chunk=8)
     )
-    m = out["metrics"]
+    m = result["metrics"]
     rows = []
     for i, (case, r2, v_max) in enumerate(grid):
         _, _, dv, tf, _, phase_t = THESIS_CASES[case]

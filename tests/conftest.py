@@ -2,12 +2,36 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+
 import clarabel
+import jax
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 import rvdjax  # noqa: F401  (enables jax_enable_x64 before any array is created)
+
+# One JAX compilation cache per test session, shared by the pytest-xdist workers (they
+# inherit the environment of the process that imported this file first): tests that jit the
+# same closed loop through different wrappers compile it once. A fresh directory every session,
+# so no test ever runs a program compiled by another version of the code.
+_CACHE_ENV = "RVDJAX_TEST_JAX_CACHE"
+if _CACHE_ENV not in os.environ:
+    os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="rvdjax-test-jax-cache-")
+    _OWN_CACHE = True
+else:
+    _OWN_CACHE = False
+jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE and not hasattr(config, "workerinput"):
+        shutil.rmtree(os.environ[_CACHE_ENV], ignore_errors=True)
 
 
 def _clarabel_solve(qp, tight: bool = True):

@@ -22,8 +22,8 @@ def test_every_solver_docks_without_violation(rows):
 
 
 def test_against_paper_000(rows):
-    """Paper 000: IPOPT NMPC 32.93, ISNM 33.80, Fast MPC 33.98 kN s. Measured: 33.03 (+0.3 %),
-    35.54 (+5.1 %), 35.53 (+4.6 %); accurate LQ-MPC and Clarabel 33.46."""
+    """Paper 000: IPOPT NMPC 32.93, ISNM 33.80, Fast MPC 33.98 kN s (the tables in
+    docs/reproduction.md give the measured figures)."""
     for label in (
         "rvdjax Fast MPC (paper mode)",
         "rvdjax ISNM (paper mode, dense)",
@@ -40,9 +40,9 @@ def test_same_problem_same_answer(rows):
     """Accurate mode and Clarabel solve identical QPs to 1e-9: the same closed loop.
 
     Fast MPC and ISNM run the same paper-mode iterations with different linear algebra; with
-    only 10 iterations per step (many steps end at max_iter) rounding differences grow through
-    the closed loop: measured 35.53 vs 35.54 kN s on 2 threads and 35.53 vs 34.64 kN s on one
-    core (2.5 %). Paper 000's own ISNM and Fast MPC differ by 0.5 %. Asserted: within 5 %."""
+    only 10 iterations per step (many steps end at max_iter) rounding differences can grow
+    through the closed loop. Paper 000's own ISNM and Fast MPC differ by 0.5 %. Asserted:
+    within 5 %."""
     a = rows["rvdjax accurate"]["effort_l1_N_s"]
     c = rows["Clarabel in the loop"]["effort_l1_N_s"]
     assert abs(a - c) <= 1e-6 * c
