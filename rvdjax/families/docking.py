@@ -40,13 +40,12 @@ from rvdjax.constraints import (
     holding_radius,
     holding_radius_update,
     sphere_keep_out,
-    stack,
     thrust_box,
 )
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
+from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -307,7 +306,7 @@ def observe(p: Params, fc: Config, g: Guidance, x, t, plan):
 def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     """Blocks: target keep-out r_t, holding circle r_hold (both about the plan), entry cone
     (when on), obstacles."""
-    N, nx, nu = fc.N, LAYOUT.nx, LAYOUT.nu
+    N, nx = fc.N, LAYOUT.nx
     times = t + p.ts * jnp.arange(1, N + 1, dtype=x.dtype)
     centre, phi = target_at(p, times)
     e = _unit(phi)
@@ -336,46 +335,8 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
             name="obstacles",
         ).masked(jnp.broadcast_to(p.obstacle_mask, (N, p.obstacle_radii.shape[0]))),
     ]
-    Fx, fx, rho, x_mask = stack(blocks)
-    box = thrust_box(p.u_max, N)
-    zeros = jnp.zeros((N, nx), x.dtype)
-    A, B, c, Q, R = model(p, fc)
-    problem = OCP(
-        A=A,
-        B=B,
-        c=c,
-        x0=x,
-        Q=Q,
-        R=R,
-        x_ref=x_ref,
-        q=zeros,
-        r=jnp.zeros((N, nu), x.dtype),
-        Fu=box.F,
-        fu=box.f,
-        u_mask=box.mask,
-        Fx=Fx,
-        fx=fx,
-        rho=rho,
-        x_mask=x_mask,
-    )
+    problem = tracking_ocp(model(p, fc), x, x_ref, blocks, thrust_box(p.u_max, N))
     return problem, blocks
-
-
-def model(p: Params, fc: Config):
-    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
-    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
-
-
-def control(p, fc, g, sol):
-    return sol.u[0]
-
-
-def sample_time(p: Params, g):
-    return p.ts
-
-
-def truth_model(p: Params, g):
-    return p.A, p.B
 
 
 def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):

@@ -34,11 +34,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out, stack, thrust_box
+from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out, thrust_box
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
+from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -275,47 +275,9 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
             rho=p.rho,
         ).masked(stage_on),
     ]
-    Fx, fx, rho, x_mask = stack(blocks)
-    box = thrust_box(p.u_max, N)
     x_ref = jnp.broadcast_to(jnp.concatenate([p.dock, jnp.zeros(2, x.dtype)]), (N, NX))
-    zeros = jnp.zeros((N, NX), x.dtype)
-    A, B, c, Q, R = model(p, fc)
-    problem = OCP(
-        A=A,
-        B=B,
-        c=c,
-        x0=x,
-        Q=Q,
-        R=R,
-        x_ref=x_ref,
-        q=zeros,
-        r=jnp.zeros((N, NU), x.dtype),
-        Fu=box.F,
-        fu=box.f,
-        u_mask=box.mask,
-        Fx=Fx,
-        fx=fx,
-        rho=rho,
-        x_mask=x_mask,
-    )
+    problem = tracking_ocp(model(p, fc), x, x_ref, blocks, thrust_box(p.u_max, N))
     return problem, blocks
-
-
-def model(p: Params, fc: Config):
-    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
-    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
-
-
-def control(p, fc, g, sol):
-    return sol.u[0]
-
-
-def sample_time(p: Params, g):
-    return p.ts
-
-
-def truth_model(p: Params, g):
-    return p.A, p.B
 
 
 def subsamples(p: Params, fc: Config, x, u):

@@ -19,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.constraints import sphere_keep_out, stack, thrust_box
+from rvdjax.constraints import sphere_keep_out, thrust_box
 from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
+from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
 from rvdjax.loop.family import Family, Layout
-from rvdjax.ocp import OCP, time_invariant_model
 from rvdjax.propagate import Drag, Orbit, circular_orbit
 from rvdjax.solver import drift_plan
 
@@ -203,51 +203,14 @@ def observe(p, fc, g, x, t, plan):
 
 def ocp(p: Params, fc: Config, g, x, t, plan):
     """The OCP at the measured state x and time t, keep-out rows about the plan's positions."""
-    N, nx, nu = fc.N, LAYOUT.nx, LAYOUT.nu
+    N, nx = fc.N, LAYOUT.nx
     times = t + p.ts * jnp.arange(1, N + 1, dtype=x.dtype)
     keep_out = sphere_keep_out(
         plan.x[:, :3], _centres(p, times), p.radii, nx, rho=p.rho, name="keep_out"
     ).masked(jnp.broadcast_to(p.obstacle_mask, (N, p.radii.shape[0])))
-    box = thrust_box(p.u_max, N)
-    Fx, fx, rho, x_mask = stack([keep_out])
-    zeros_x = jnp.zeros((N, nx), x.dtype)
-    A, B, c, Q, R = model(p, fc)
-    problem = OCP(
-        A=A,
-        B=B,
-        c=c,
-        x0=x,
-        Q=Q,
-        R=R,
-        x_ref=jnp.broadcast_to(p.x_ref, (N, nx)),
-        q=zeros_x,
-        r=jnp.zeros((N, nu), x.dtype),
-        Fu=box.F,
-        fu=box.f,
-        u_mask=box.mask,
-        Fx=Fx,
-        fx=fx,
-        rho=rho,
-        x_mask=x_mask,
-    )
+    x_ref = jnp.broadcast_to(p.x_ref, (N, nx))
+    problem = tracking_ocp(model(p, fc), x, x_ref, [keep_out], thrust_box(p.u_max, N))
     return problem, [keep_out]
-
-
-def model(p: Params, fc: Config):
-    """(A, B, c, Q, R) of the OCP: time invariant, the DARE weight on the last stage."""
-    return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
-
-
-def control(p, fc, g, sol):
-    return sol.u[0]
-
-
-def sample_time(p: Params, g):
-    return p.ts
-
-
-def truth_model(p: Params, g):
-    return p.A, p.B
 
 
 def update(p: Params, fc, g, x, u, x_next, t, ts, samples):
