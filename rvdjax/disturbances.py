@@ -122,7 +122,7 @@ def disturbances(
     return Disturbances(**{k: jnp.asarray(float(v)) for k, v in values.items()})
 
 
-# Paper 003 Table 5.1 and Sec. 5.4; thruster 0.5 N (the u_max reading of rvdjax.phases), no
+# Paper 003 Table 5.1 and Sec. 5.4; thruster 0.5 N (the u_max reading of rvdjax.families.phases), no
 # minimum impulse bit unless asked for.
 THESIS_DISTURBANCES = dict(sigma_pos=0.05, sigma_vel=1e-3, thrust_max=0.5)
 
