@@ -54,6 +54,7 @@ from rvdjax.loop.kernel import (
 )
 from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, finish, finished, iterate, start
+from rvdjax.solver.driver import MODEL_FIELDS
 
 __all__ = [
     "RunInputs",
@@ -184,20 +185,17 @@ def _where(c, a, b):
     return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
 
 
-_MODEL = ("A", "B", "c", "Q", "R")
-
-
 def _strip_model(loop: Loop, ocp: OCP) -> OCP:
     """The OCP without the model a family rebuilds from its parameters (stored per slot)."""
     if loop.family.model is None:
         return ocp
-    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in _MODEL})
+    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in MODEL_FIELDS})
 
 
 def _with_model(loop: Loop, ocp: OCP, model) -> OCP:
     if loop.family.model is None:
         return ocp
-    return ocp._replace(**dict(zip(_MODEL, model, strict=True)))
+    return ocp._replace(**dict(zip(MODEL_FIELDS, model, strict=True)))
 
 
 def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) -> Slot:
@@ -267,6 +265,7 @@ def _chunk_tick(
 
     old_run = slots.run
     slots, solved, ended = jax.vmap(step_done)(slots)
+
     result = jax.vmap(lambda s: metrics(loop, params_of(s)[0], s.state))(slots)
 
     # 2. a new run for a free slot
@@ -346,18 +345,6 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
             pos = jnp.where(assign, idx % R, R)
             ring_run = eng.ring_run.at[pos].set(idx, mode="drop")
 
-            def process(chunk_slots, chunk_assign, chunk_idx):
-                return _chunk_tick(
-                    loop,
-                    cfg,
-                    shared_params,
-                    shared_sp,
-                    source,
-                    chunk_slots,
-                    chunk_assign,
-                    chunk_idx,
-                )
-
             def one_chunk(carry, c):
                 slots, ring, ring_done = carry
                 sl = jax.tree.map(lambda a: lax.dynamic_slice_in_dim(a, c * C, C), slots)
@@ -367,7 +354,9 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
 
                 def work(args):
                     sl, asg, ix, ring, ring_done = args
-                    new, ended, run, res = process(sl, asg, ix)
+                    new, ended, run, res = _chunk_tick(
+                        loop, cfg, shared_params, shared_sp, source, sl, asg, ix
+                    )
                     wpos = jnp.where(ended, run % R, R)
                     ring = jax.tree.map(lambda r, v: r.at[wpos].set(v, mode="drop"), ring, res)
                     ring_done = ring_done.at[wpos].set(True, mode="drop")

@@ -98,17 +98,13 @@ def start(
     """
     dtype = ocp.B.dtype
     params = _prepared(params, dtype)
-    checked = [
-        a
-        for name, a in zip(OCP._fields, ocp, strict=True)
-        if not (trusted_model and name in MODEL_FIELDS)
-    ]
-    inputs_ok = all_finite(checked) & (True if init is None else all_finite(init))
-    safe = {
-        name: jnp.where(inputs_ok, a, jnp.zeros_like(a))
-        for name, a in zip(OCP._fields, ocp, strict=True)
+    data = {
+        name: getattr(ocp, name)
+        for name in OCP._fields
         if not (trusted_model and name in MODEL_FIELDS)
     }
+    inputs_ok = all_finite(list(data.values())) & (True if init is None else all_finite(init))
+    safe = {name: jnp.where(inputs_ok, a, jnp.zeros_like(a)) for name, a in data.items()}
     if not trusted_model:
         eye = jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)
         safe["R"] = jnp.where(inputs_ok, ocp.R, eye)
