@@ -4,7 +4,9 @@ DESIGN §4 and paper 003 Ch. 5 (the robustness study of the thesis):
 
 * **Navigation noise** (paper 003 Eqs. 5.6-5.7): the guidance sees the relative state plus
   zero-mean Gaussian noise, sigma_rho on each position axis and sigma_rho_dot on each velocity
-  axis (the thesis: 5 cm and 1 mm/s; it has no filter, and neither has rvdjax).
+  axis (the thesis: 5 cm and 1 mm/s; it has no filter, and by default neither has rvdjax:
+  ``LoopConfig(nav_filter=True)`` puts rvdjax's Kalman filter, :mod:`rvdjax.loop.navigation`,
+  between the measurement and the guidance).
 * **Thrust-amplitude error** (paper 003 Eqs. 5.2-5.3, Table 5.1, after Carpenter and Lee): the
   applied thrust is (1 + w(t)) times the commanded one, with w from the second-order
   Gauss-Markov model d[w, v]/dt = [[-1/tau, 1], [-omega_n^2, -2 xi omega_n]] [w, v] + [eta_w,
@@ -19,7 +21,8 @@ Assumptions (the thesis is silent; printed with every disturbed run):
 
 * w is in **percent** (Fig. 5.1 shows errors of a few per cent; with eta_w = 3/sqrt(600) as a
   white-noise intensity on a fraction, w's steady-state standard deviation would be ~430 %):
-  the applied factor is 1 + w / 100. Stationary 1-sigma of w: 4.6 %.
+  the applied factor is 1 + w / 100. Stationary 1-sigma of w: 4.6 % (derived:
+  :func:`gm_stationary_std`).
 * eta_w, eta_v are the standard deviations per sqrt(second) of the white noises (G = diag(eta)).
 * w(0) ~ N(0, 1) % ("initialized with a random normal distribution with zero-mean and 1 sigma
   standard deviation"), v(0) = 0.
@@ -44,6 +47,7 @@ __all__ = [
     "gm_discretize",
     "gm_init",
     "gm_step",
+    "gm_stationary_std",
     "measure",
     "thrust_factor",
     "minimum_impulse_bit",
@@ -134,7 +138,7 @@ LAB_DISTURBANCES = dict(
 
 DISTURBANCE_NOTES = (
     "disturbed run (paper 003 Ch. 5): navigation noise sigma = {sigma_pos:g} m, "
-    "{sigma_vel:g} m/s per axis (no filter); thrust-amplitude error (1 + w / 100) with the "
+    "{sigma_vel:g} m/s per axis; thrust-amplitude error (1 + w / 100) with the "
     "Carpenter-Lee Gauss-Markov model of Table 5.1 per input axis (w in percent, assumed; "
     "eta as white-noise intensities; w(0) ~ N(0, 1) %; held over each step); "
     "minimum impulse bit {mib_s:g} s",
@@ -174,6 +178,19 @@ def gm_step(key, state, d: Disturbances, dt):
     L = jnp.linalg.cholesky(Qd + 1e-30 * jnp.eye(2))
     e = jax.random.normal(key, state.shape) @ L.T
     return state @ Phi.T + e
+
+
+def gm_stationary_std(d: Disturbances, dt):
+    """Stationary 1-sigma of w [%] of the Gauss-Markov model discretised over ``dt`` [s].
+
+    The stationary covariance P of w_{k+1} = Phi w_k + e_k solves the discrete Lyapunov
+    equation P = Phi P Phi^T + Q_d, here (I - Phi (x) Phi) vec(P) = vec(Q_d); it is the same for
+    every dt (that of the continuous model). Paper 003 Table 5.1: 4.62 %.
+    """
+    Phi, Qd = gm_discretize(d, dt)
+    K = jnp.eye(4, dtype=Qd.dtype) - jnp.kron(Phi, Phi)
+    P = jnp.linalg.solve(K, Qd.reshape(-1)).reshape(2, 2)
+    return jnp.sqrt(P[0, 0])
 
 
 def thrust_factor(state):

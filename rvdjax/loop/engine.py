@@ -93,6 +93,10 @@ class EngineConfig:
         iterations: solver iterations per slot per tick.
         ticks_per_segment: ticks between two collections of results on the host.
         ring: finished results kept on the device between collections (>= slots).
+        devices: the slots are sharded over this many devices (the first ``devices`` of
+            ``jax.local_devices()``; a ``Mesh`` with one axis): each device flies
+            ``ceil(slots / devices)`` slots and every ``devices``-th run of the queue, with no
+            communication between devices.
     """
 
     slots: int = 256
@@ -100,12 +104,20 @@ class EngineConfig:
     iterations: int = 3
     ticks_per_segment: int = 256
     ring: int = 0  # 0: 4 * slots
+    devices: int = 1
 
     def __post_init__(self):
-        for name in ("slots", "chunk", "iterations", "ticks_per_segment"):
+        for name in ("slots", "chunk", "iterations", "ticks_per_segment", "devices"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+
+    @property
+    def per_device(self) -> EngineConfig:
+        """The configuration of one device's share of the slots."""
+        if self.devices == 1:
+            return self
+        return dataclasses.replace(self, slots=math.ceil(self.slots / self.devices), devices=1)
 
     @property
     def chunk_size(self) -> int:
@@ -137,6 +149,7 @@ class Slot(NamedTuple):
     solve: SolveState
     params: Any  # the run's parameters (None when shared)
     solver: Any  # the run's solver parameters (None when shared)
+    nav: Any  # the navigation filter's estimate after this step's update (None: no filter)
 
 
 class EngineState(NamedTuple):
@@ -220,6 +233,7 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
         solve=solve_state,
         params=p if per_run_params else None,
         solver=s if per_run_solver else None,
+        nav=prep.nav,
     )
 
 
@@ -257,7 +271,7 @@ def _chunk_tick(
         solved = slot.live & finished(slot.solve, settings)
         ocp = ocp_of(slot, params)
         sol = finish(ocp, slot.solve, settings, sp)
-        prep = Prepared(slot.guidance, ocp, slot.hard, None)
+        prep = Prepared(slot.guidance, ocp, slot.hard, None, slot.nav)
         stepped, _ = advance(loop, params, sp, slot.state, prep, sol)
         state = _where(solved, stepped, slot.state)
         ended = solved & ~state.active
@@ -296,6 +310,7 @@ def _chunk_tick(
             ocp=_where(n, _strip_model(loop, ocp), slot.ocp),
             hard=jnp.where(n, nxt.hard, slot.hard),
             solve=_where(n, solve, slot.solve),
+            nav=_where(n, nxt.nav, slot.nav),
         )
 
     slots = lax.cond(jnp.any(need), lambda s: jax.vmap(prepare_solve)(s, need), lambda s: s, slots)
@@ -323,6 +338,57 @@ def _chunk_tick(
 def _build(loop: Loop, cfg: EngineConfig, source_fn):
     """The jitted segment function (cached: one compile per loop, engine config and queue
     function, whatever the data)."""
+    return _build_sharded(loop, cfg, source_fn)
+
+
+_AXIS = "slots"
+
+
+def _mesh(cfg: EngineConfig):
+    devices = jax.local_devices()
+    if cfg.devices > len(devices):
+        raise ValueError(
+            f"devices must be <= {len(devices)} (jax.local_devices() here), got {cfg.devices}; "
+            "on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N makes N devices"
+        )
+    return jax.sharding.Mesh(np.asarray(devices[: cfg.devices]), (_AXIS,))
+
+
+def _build_sharded(loop: Loop, cfg: EngineConfig, source_fn):
+    """The segment with the slots sharded over ``cfg.devices`` devices (``shard_map``): every
+    device runs the one-device segment on its slots; device d takes queue positions
+    d, d + D, d + 2 D, ... (its local run i is position d + D i). The engine state has a
+    leading device axis; no communication between devices. One device takes the same path
+    (a one-device mesh), so that a run's bits do not depend on the number of devices."""
+    from jax.sharding import PartitionSpec as P
+
+    D = cfg.devices
+    local_cfg = cfg.per_device
+
+    def strided(data, i):
+        d = lax.axis_index(_AXIS)
+        return source_fn(data, d + D * i)
+
+    seg = _segment(loop, local_cfg, strided)
+
+    def local(eng, source_data, shared_params, shared_sp, max_ticks):
+        eng = jax.tree.map(lambda a: a[0], eng)
+        eng = seg(eng, source_data, shared_params, shared_sp, max_ticks)
+        return jax.tree.map(lambda a: a[None], eng)
+
+    return jax.jit(
+        jax.shard_map(
+            local,
+            mesh=_mesh(cfg),
+            in_specs=(P(_AXIS), P(), P(), P(), P()),
+            out_specs=P(_AXIS),
+            check_vma=False,
+        )
+    )
+
+
+def _segment(loop: Loop, cfg: EngineConfig, source_fn):
+    """The segment function of one device (not jitted)."""
     C, n_chunks, R = cfg.chunk_size, cfg.n_chunks, cfg.ring_size
 
     def segment(eng: EngineState, source_data, shared_params, shared_sp, max_ticks):
@@ -395,7 +461,7 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
         eng, _ = lax.while_loop(cond, lambda c: (tick(c[0]), c[1] + 1), (eng, 0))
         return eng
 
-    return jax.jit(segment)
+    return segment
 
 
 def _compact(eng: EngineState) -> EngineState:
@@ -404,7 +470,12 @@ def _compact(eng: EngineState) -> EngineState:
     return eng._replace(slots=jax.tree.map(lambda a: a[perm], eng.slots))
 
 
-_compact_jit = jax.jit(_compact)
+_compact_sharded = jax.jit(jax.vmap(_compact))
+
+
+def _like(ref, host):
+    """``host`` (NumPy) placed like the device array ``ref`` (same sharding)."""
+    return jax.device_put(jnp.asarray(host, ref.dtype), ref.sharding)
 
 
 @functools.lru_cache(maxsize=64)
@@ -419,6 +490,18 @@ def _slot_builder(loop: Loop, source_fn, per_run_params: bool, per_run_solver: b
 
 
 def _initial_state(loop, config: EngineConfig, source: Source, params, sp, n_runs):
+    """One engine state per device, stacked on a sharded leading axis."""
+    D = config.devices
+    per = [
+        _initial_state_one(loop, config.per_device, source, params, sp, (n_runs - d + D - 1) // D)
+        for d in range(D)
+    ]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *per)
+    sharding = jax.sharding.NamedSharding(_mesh(config), jax.sharding.PartitionSpec(_AXIS))
+    return jax.device_put(stacked, sharding)
+
+
+def _initial_state_one(loop, config: EngineConfig, source: Source, params, sp, n_runs):
     probe = jax.eval_shape(functools.partial(source.fn, source.data), jnp.asarray(0))
     build = _slot_builder(loop, source.fn, probe.params is not None, probe.solver is not None)
     slot0, res0 = build(source.data, params, sp)
@@ -477,37 +560,42 @@ def run_batch(
         raise ValueError("params must be given when the source gives no per-run parameters")
     eng = _initial_state(loop, config, source, params, sp, n_runs)
     segment = _build(loop, config, source.fn)
+    D = config.devices
+    host_view = np.asarray  # every engine array has a leading device axis
     collected_idx, collected = [], []
     done = 0
     t0 = time.perf_counter()
     while done < n_runs:
         eng = segment(eng, source.data, params, sp, config.ticks_per_segment)
-        ring_done = np.asarray(eng.ring_done)
+        ring_done = host_view(eng.ring_done)
         if ring_done.any():
-            pos = np.flatnonzero(ring_done)
-            idx = np.asarray(eng.ring_run)[pos]
-            res = jax.tree.map(lambda a, pos=pos: np.asarray(a)[pos], eng.ring)
+            dev, pos = np.nonzero(ring_done)
+            local = host_view(eng.ring_run)[dev, pos]
+            idx = dev + D * local
+            res = jax.tree.map(lambda a, dev=dev, pos=pos: host_view(a)[dev, pos], eng.ring)
             collected_idx.append(idx)
             collected.append(res)
             done += len(idx)
             if on_results is not None:
                 on_results(idx, res)
-            ring_run = np.asarray(eng.ring_run).copy()
-            ring_run[pos] = -1
+            ring_run = host_view(eng.ring_run).copy()
+            ring_run[dev, pos] = -1
             eng = eng._replace(
-                ring_run=jnp.asarray(ring_run), ring_done=jnp.zeros(config.ring_size, bool)
+                ring_run=_like(eng.ring_run, ring_run),
+                ring_done=_like(eng.ring_done, np.zeros_like(ring_run, bool)),
             )
         if progress is not None:
             progress(done, n_runs)
-        if int(eng.next_run) >= n_runs and done < n_runs:
-            eng = _compact_jit(eng)
+        queue_empty = np.all(host_view(eng.next_run) >= host_view(eng.n_runs))
+        if queue_empty and done < n_runs:
+            eng = _compact_sharded(eng)
     idx = np.concatenate(collected_idx)
     order = np.argsort(idx)
     merged = jax.tree.map(lambda *a: np.concatenate(a)[order], *collected)
     return {
         "run": idx[order],
         "metrics": merged,
-        "ticks": int(eng.ticks),
+        "ticks": int(np.max(np.asarray(eng.ticks))),
         "seconds": time.perf_counter() - t0,
     }
 

@@ -1,15 +1,16 @@
 """The closed-loop kernel shared by every guidance family: ``init``, ``step``, ``fly``, metrics.
 
 One ``step`` is one MPC decision (DESIGN §4): the family observes the truth (cone
-activation), the guidance sees the measured state (navigation noise), the family builds the
-OCP, the solver answers (warm-started from the shifted previous plan, or cold after a phase
+activation), the guidance sees the measured state (navigation noise; with ``nav_filter``
+the estimate of a Kalman filter, :mod:`rvdjax.loop.navigation`), the family builds the OCP,
+the solver answers (warm-started from the shifted previous plan, or cold after a phase
 change), the command goes through the actuator (minimum impulse bit, thrust-amplitude error)
 and the plant, the family updates its guidance state (phase, holding radius, docking) on the
-truth, and the step's figures are accumulated. A finished run (docked, out of steps or failed)
-keeps stepping as a no-op, so a batch has one shape. The shape follows blackjax's kernels:
-``init(loop, params, x0, key) -> LoopState`` and ``step(loop, params, state) -> (state,
-StepInfo)``, the per-step PRNG key derived from the run's key and the step index, so a run is
-reproducible from its key whatever batch it is flown in.
+truth, and the step's figures are accumulated. A finished run (docked, out of steps or past
+its time limit, or failed) keeps stepping as a no-op, so a batch has one shape. The shape
+follows blackjax's kernels: ``init(loop, params, x0, key) -> LoopState`` and ``step(loop,
+params, state) -> (state, StepInfo)``, the per-step PRNG key derived from the run's key and
+the step index, so a run is reproducible from its key whatever batch it is flown in.
 
 ``step`` is :func:`prepare` (observe, measure, build the OCP and the warm start), a solve and
 :func:`advance` (command, actuator, plant, guidance update, accumulation); the batch engine
@@ -20,6 +21,7 @@ spread over several calls.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from typing import Any, NamedTuple
 
 import jax
@@ -29,6 +31,15 @@ from jax import lax
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, gm_step, measure, minimum_impulse_bit, thrust_factor
 from rvdjax.loop.family import Family
+from rvdjax.loop.navigation import (
+    NavState,
+    measurement_covariance,
+    nav_init,
+    nav_predict,
+    nav_update,
+    process_noise,
+    thrust_error_fraction,
+)
 from rvdjax.loop.plant import TRUTHS, impulse_per_unit, truth_step
 from rvdjax.ocp import OCP
 from rvdjax.solver import (
@@ -66,7 +77,7 @@ class RunStatus:
     """How a run ended (``Metrics.status``)."""
 
     DOCKED = 0
-    TIMEOUT = 1  # out of MPC steps without docking
+    TIMEOUT = 1  # out of MPC steps (or past LoopConfig.time_limit_s) without docking
     FAILED = 2  # the truth became non-finite (the run stops; its figures stay finite)
 
     names = ("docked", "timeout", "failed")
@@ -89,6 +100,12 @@ class LoopConfig:
         disturbed: the guidance sees a noisy state and the thrusters apply (1 + w) u with the
             Gauss-Markov error w, dropping pulses shorter than the minimum impulse bit
             (``params.disturbances``).
+        time_limit_s: a run also ends (TIMEOUT unless docked) after the first step whose end
+            time reaches this limit [s] (paper 003 Ch. 4: 200 minutes per maneuver); None: no
+            limit.
+        nav_filter: the guidance sees the estimate of a Kalman filter fed by the noisy
+            measurements instead of the measurements (:mod:`rvdjax.loop.navigation`; rvdjax's
+            choice, the thesis has no filter). Needs ``disturbed``.
     """
 
     family: Any
@@ -97,6 +114,8 @@ class LoopConfig:
     truth: str = "linear"
     truth_substeps: int = 3
     disturbed: bool = False
+    time_limit_s: float | None = None
+    nav_filter: bool = False
 
     def __post_init__(self):
         if self.truth not in TRUTHS:
@@ -105,6 +124,16 @@ class LoopConfig:
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        lim = self.time_limit_s
+        if lim is not None and (
+            isinstance(lim, bool) or not isinstance(lim, numbers.Real) or not lim > 0
+        ):
+            raise ValueError(f"time_limit_s must be None or a number > 0 [s], got {lim!r}")
+        if self.nav_filter and not self.disturbed:
+            raise ValueError(
+                "nav_filter=True needs disturbed=True (the filter works on the noisy "
+                "measurements of a disturbed run)"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,6 +194,8 @@ class LoopState(NamedTuple):
         gm: (nu, 2) Gauss-Markov thrust-error states (zeros when undisturbed).
         key: the run's PRNG key (step keys derive from it and the step index).
         acc: the :class:`Accumulator`.
+        nav: with ``nav_filter``, the filter's :class:`NavState` predicted to this step (a
+            placeholder before the first measurement, k = 0); None otherwise.
     """
 
     x: jnp.ndarray
@@ -180,16 +211,19 @@ class LoopState(NamedTuple):
     gm: jnp.ndarray
     key: jnp.ndarray
     acc: Accumulator
+    nav: NavState | None = None
 
 
 class Prepared(NamedTuple):
     """A step between its two halves: the observed guidance state, the OCP, the rows that
-    stand for hard constraints (for the INFEASIBLE status) and the warm start."""
+    stand for hard constraints (for the INFEASIBLE status), the warm start and, with
+    ``nav_filter``, the filter's estimate after this step's measurement update."""
 
     guidance: Any
     ocp: OCP
     hard: jnp.ndarray  # (N, m) 1.0 on hard rows
     warm: Plan
+    nav: NavState | None = None
 
 
 class StepInfo(NamedTuple):
@@ -285,6 +319,10 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
     if loop.config.truth != "linear" and orbit is None:
         raise ValueError(f"truth={loop.config.truth!r} needs params.orbit (the target's orbit)")
     false = jnp.asarray(False)
+    nav = None
+    if loop.config.nav_filter:  # replaced by the first measurement (prepare, k = 0)
+        nx = fam.layout.nx
+        nav = NavState(jnp.zeros(nx, dtype), jnp.zeros((nx, nx), dtype))
     return LoopState(
         x=x0,
         t=jnp.zeros((), dtype),
@@ -299,6 +337,7 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
         gm=gm,
         key=key,
         acc=_empty_acc(loop, params, x0, g, dtype),
+        nav=nav,
     )
 
 
@@ -310,13 +349,28 @@ def _keys(state: LoopState):
 
 
 def prepare(loop: Loop, params, state: LoopState) -> Prepared:
-    """First half of a step: observe, measure, build the OCP and the warm start."""
+    """First half of a step: observe, measure (and filter), build the OCP and the warm
+    start."""
     fam, fc, lay = loop.family, loop.config.family, loop.family.layout
+    # observe: the mode decisions the loop takes on the truth (entry-cone activation by the
+    # true distance to the port; a no-op for the three-phase family, whose phase switches are
+    # in update, also on the truth). Not the measured-state path: it keeps the true state
+    # with or without the filter; the guidance's state estimate is x_meas below.
     g = fam.observe(params, fc, state.guidance, state.x, state.t, state.plan)
     x_meas = state.x
+    nav = None
     if loop.config.disturbed:
         k_nav, _ = _keys(state)
         x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att)
+        if loop.config.nav_filter:
+            R = measurement_covariance(lay, params.disturbances, x_meas.dtype)
+            first = state.k == 0
+            nav = jax.tree.map(
+                lambda a, b: jnp.where(first, a, b),
+                nav_init(x_meas, R),
+                nav_update(state.nav, x_meas, R),
+            )
+            x_meas = nav.x_hat
     ocp, blocks = fam.ocp(params, fc, g, x_meas, state.t, state.plan)
     settings = loop.config.settings
     if settings.mode == "paper" and settings.paper_start != "feasible":
@@ -324,7 +378,7 @@ def prepare(loop: Loop, params, state: LoopState) -> Prepared:
     else:  # the solver starts from the drift of the inputs: zero inputs and multipliers
         cold = Plan(jnp.zeros_like(state.plan.u), state.plan.x, jnp.zeros_like(state.plan.nu))
     warm = jax.tree.map(lambda a, b: jnp.where(state.fresh, a, b), cold, state.plan)
-    return Prepared(g, ocp, hard_mask(blocks), warm)
+    return Prepared(g, ocp, hard_mask(blocks), warm, nav)
 
 
 def _hard_violation(prep: Prepared, sol: Solution):
@@ -358,12 +412,16 @@ def advance(
     dt = fam.sample_time(params, g)
     u = u_cmd
     gm = state.gm
+    u_believed = u_cmd  # the input the navigation filter predicts with
     if cfg.disturbed:
         _, k_act = _keys(state)
         d = params.disturbances
         per_u = impulse_per_unit(lay, params.mass, dt)
         idx = jnp.asarray(lay.force, int)
         u = u.at[idx].set(minimum_impulse_bit(u[idx] * per_u, d) / per_u)
+        # the minimum impulse bit is on-board logic (known to the filter); the thrust factor
+        # (1 + w / 100) is not: the filter predicts with the command after the former only
+        u_believed = u
         u = u * thrust_factor(gm)
         gm = gm_step(k_act, gm, d, dt)
 
@@ -377,6 +435,12 @@ def advance(
     )
 
     A, B = fam.truth_model(params, g)
+    nav_next = state.nav
+    if cfg.nav_filter:  # prediction to the next step on the guidance's model of this step
+        d = params.disturbances
+        R = measurement_covariance(lay, d, dtype)
+        Qp = process_noise(B, u_believed, thrust_error_fraction(d, dt), R)
+        nav_next = nav_predict(prep.nav, A, B, u_believed, Qp)
     x_next, orbit_next = truth_step(
         lay, cfg.truth, cfg.truth_substeps, A, B, params, state.orbit, state.x, u, dt
     )
@@ -417,6 +481,8 @@ def advance(
     acc = _accumulate(loop, params, state.acc, info)
     k_next = state.k + 1
     ended = docked | ~finite | (k_next >= cfg.n_steps)
+    if cfg.time_limit_s is not None:
+        ended = ended | (t_next >= cfg.time_limit_s)
     nxt = LoopState(
         x=x_next,
         t=t_next,
@@ -431,6 +497,7 @@ def advance(
         gm=gm,
         key=state.key,
         acc=acc,
+        nav=nav_next,
     )
     nxt = nxt._replace(fresh=jnp.asarray(nxt.fresh))
     # A finished run idles: its state stops changing.

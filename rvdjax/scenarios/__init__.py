@@ -116,9 +116,12 @@ class Scenario:
         disturbed: bool = False,
         n_steps: int | None = None,
         settings: SolverSettings | None = None,
+        time_limit_s: float | None = None,
+        nav_filter: bool = False,
         **config,
     ) -> Loop:
-        """The static closed loop of this scenario (family config overrides in ``config``)."""
+        """The static closed loop of this scenario (family config overrides in ``config``;
+        ``time_limit_s`` and ``nav_filter``: :class:`~rvdjax.loop.kernel.LoopConfig`)."""
         fam = self.family_
         fconfig = fam.config_type(**{**self.config, **config})
         return Loop(
@@ -129,6 +132,8 @@ class Scenario:
                 settings=self.settings(mode) if settings is None else settings,
                 truth=truth,
                 disturbed=disturbed,
+                time_limit_s=time_limit_s,
+                nav_filter=nav_filter,
             ),
         )
 
