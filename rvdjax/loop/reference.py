@@ -21,9 +21,9 @@ from rvdjax.solver import SolverParams, SolverSettings
 __all__ = ["reference_loop", "clarabel_loop"]
 
 
-def clarabel_loop(loop: Loop) -> Loop:
-    """The same loop with Clarabel as the solver."""
-    return loop.replace(settings=SolverSettings(backend="clarabel"))
+def clarabel_loop(loop: Loop, backend: str = "clarabel") -> Loop:
+    """The same loop with Clarabel (or the peer ``backend``: "piqp", "daqp") as the solver."""
+    return loop.replace(settings=SolverSettings(backend=backend))
 
 
 @functools.lru_cache(maxsize=32)
@@ -36,7 +36,9 @@ def _jitted_init(loop: Loop):
     return jax.jit(lambda p, x, k: init(loop, p, x, k))
 
 
-def reference_loop(loop: Loop, params, x0, key=None, stop_when_done: bool = True):
+def reference_loop(
+    loop: Loop, params, x0, key=None, stop_when_done: bool = True, backend: str = "clarabel"
+):
     """Fly one maneuver step by step from Python with Clarabel.
 
     Args:
@@ -44,11 +46,12 @@ def reference_loop(loop: Loop, params, x0, key=None, stop_when_done: bool = True
         params, x0, key: as :func:`rvdjax.loop.fly`.
         stop_when_done: stop calling the step once the run has finished (the idle steps of
             ``fly`` are not flown).
+        backend: the host solver, "clarabel" (default), "piqp" or "daqp".
 
     Returns:
         (list of per-step :class:`~rvdjax.loop.StepInfo` (NumPy), Metrics (NumPy), seconds).
     """
-    ref = clarabel_loop(loop)
+    ref = clarabel_loop(loop, backend)
     sp = SolverParams.for_settings(ref.config.settings)
     step_fn = _jitted_step(ref)
     state = _jitted_init(ref)(params, x0, jax.random.key(0) if key is None else key)

@@ -1,11 +1,16 @@
-"""The Clarabel backend: the same OCP solved by Clarabel on the host, inside a jitted program.
+"""Host backends: the same OCP solved by Clarabel (or a peer: PIQP, DAQP) on the host,
+inside a jitted program.
 
 ``SolverSettings(backend="clarabel")`` routes every solve through ``jax.pure_callback``: the
 reference "Clarabel in the loop" for any jitted closed loop (QP assembly in SciPy included).
-Not differentiable; a vmapped batch is solved one problem at a time.
+``backend="piqp"`` (sparse interior point) and ``backend="daqp"`` (dense active set on the
+sparse-form QP) are the peers of the study benchmarks. Not differentiable; a vmapped batch is
+solved one problem at a time.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -17,19 +22,31 @@ from rvdjax.solver.types import Solution, Status
 __all__ = ["solve_clarabel_backend"]
 
 
-def _clarabel_host(*leaves):
+_OK = {"Solved", "solved", "EXIT_OPTIMAL"}
+
+
+def _host_solve(name: str, qp):
+    from rvdjax import peers
+
+    if name == "clarabel":
+        return peers.solve_clarabel(qp)
+    if name == "piqp":
+        return peers.solve_piqp(qp)
+    return peers.solve_daqp(qp)
+
+
+def _clarabel_host(*leaves, solver: str = "clarabel"):
     """Host side: one OCP as NumPy arrays -> (u, x, status, iterations)."""
-    from rvdjax.peers import solve_clarabel
     from rvdjax.qp import split_solution, to_qp
 
     ocp = OCP(*(np.asarray(a, dtype=np.float64) for a in leaves))
     N, nx, nu = ocp.B.shape
     dtype = np.asarray(leaves[0]).dtype
     try:
-        res = solve_clarabel(to_qp(ocp, soft=True))
+        res = _host_solve(solver, to_qp(ocp, soft=True))
         u, x = split_solution(res.z, N, nx, nu)
         ok = np.all(np.isfinite(u)) and np.all(np.isfinite(x))
-        status = Status.CONVERGED if res.status == "Solved" else Status.MAX_ITER
+        status = Status.CONVERGED if res.status in _OK else Status.MAX_ITER
         if "Infeasible" in res.status:
             status = Status.INFEASIBLE
         its = res.iterations
@@ -40,8 +57,9 @@ def _clarabel_host(*leaves):
     return u.astype(dtype), x.astype(dtype), np.int32(status), np.int32(its)
 
 
-def solve_clarabel_backend(ocp: OCP) -> Solution:
-    """Solve ``ocp`` with Clarabel through a host callback (objective filled in by the caller)."""
+def solve_clarabel_backend(ocp: OCP, solver: str = "clarabel") -> Solution:
+    """Solve ``ocp`` with Clarabel (or ``solver``: "piqp", "daqp") through a host callback
+    (objective filled in by the caller)."""
     dtype = ocp.B.dtype
     shapes = (
         jax.ShapeDtypeStruct((ocp.N, ocp.nu), dtype),
@@ -49,6 +67,7 @@ def solve_clarabel_backend(ocp: OCP) -> Solution:
         jax.ShapeDtypeStruct((), jnp.int32),
         jax.ShapeDtypeStruct((), jnp.int32),
     )
-    u, x, status, its = jax.pure_callback(_clarabel_host, shapes, *ocp, vmap_method="sequential")
+    host = functools.partial(_clarabel_host, solver=solver)
+    u, x, status, its = jax.pure_callback(host, shapes, *ocp, vmap_method="sequential")
     zero = jnp.zeros((), dtype)
     return Solution(u, x, jnp.zeros((ocp.N, ocp.nx), dtype), zero, zero, its, zero, status)

@@ -248,8 +248,8 @@ _solve_core.defvjp(_solve_core_fwd, implicit_bwd)
 
 
 def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None, params: SolverParams):
-    if settings.backend == "clarabel":
-        sol = solve_clarabel_backend(ocp)
+    if settings.backend != "rvdjax":
+        sol = solve_clarabel_backend(ocp, settings.backend)
     else:
         sol = _solve_core(ocp, params.astype(ocp.B.dtype), init, settings)
     return with_objective(ocp, sol)

@@ -19,7 +19,7 @@ __all__ = ["Status", "SolverSettings", "SolverParams", "Solution", "Plan"]
 
 MODES = ("paper", "accurate", "barrier")
 METHODS = ("riccati", "dense")
-BACKENDS = ("rvdjax", "clarabel")
+BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp")
 PAPER_STARTS = ("feasible", "warm", "track")
 
 
@@ -61,7 +61,8 @@ class SolverSettings:
             many trials instead of one).
         backend: "rvdjax" (this solver) or "clarabel": the same OCP solved by Clarabel on the
             host through ``jax.pure_callback`` — the reference "Clarabel in the loop" for any
-            jitted closed loop (not differentiable; batches are solved one by one).
+            jitted closed loop (not differentiable; batches are solved one by one); "piqp",
+            "daqp": the same with a peer solver (the ``peers`` extra).
         paper_start: paper mode's starting states. "feasible" (default): the states the
             warm-start inputs produce through the dynamics, so the equality residual is zero
             from the first iterate and an iterate cut at ``max_iter`` is a flyable plan.
