@@ -154,12 +154,20 @@ def cmd_list(args) -> int:
 
 
 def run_scenario(
-    name: str, mode: str = "accurate", truth: str = "linear", disturbed: bool = False, seed=0
+    name: str,
+    mode: str = "accurate",
+    truth: str = "linear",
+    disturbed: bool = False,
+    seed=0,
+    study=None,
+    run: int = 0,
+    nav_filter: bool = False,
 ):
     """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step).
 
     ``disturbed``: navigation noise, thrust-amplitude error and minimum impulse bit of the
-    scenario's disturbance parameters, drawn from PRNG key ``seed``."""
+    scenario's disturbance parameters, drawn from PRNG key ``seed``. ``study``, ``run``: fly
+    run ``run`` of the study in directory ``study`` instead (its exact inputs)."""
     import time
 
     import jax
@@ -167,12 +175,19 @@ def run_scenario(
     from rvdjax.loop import fly
     from rvdjax.scenarios import get_scenario
 
-    sc = get_scenario(name)
-    params, x0 = sc.build()
-    loop = sc.loop(mode, truth=truth, disturbed=disturbed)
-    sc.check(params, x0, loop)
-    sp = sc.solver_params(mode)
-    key = jax.random.key(int(seed))
+    if study is not None:  # one run of a study, with exactly the study's inputs
+        from rvdjax.study import replay_inputs
+
+        spec, sc, loop, params, x0, key, sp = replay_inputs(study, run)
+        if spec.scenario != name:
+            raise ValueError(f"run {run} of {study} flies {spec.scenario!r}, not {name!r}")
+    else:
+        sc = get_scenario(name)
+        params, x0 = sc.build()
+        loop = sc.loop(mode, truth=truth, disturbed=disturbed, nav_filter=nav_filter)
+        sc.check(params, x0, loop)
+        sp = sc.solver_params(mode)
+        key = jax.random.key(int(seed))
     run = jax.jit(lambda p, x, k, s: fly(loop, p, x, k, s))
     compiled = run.lower(params, x0, key, sp).compile()
     t0 = time.perf_counter()
@@ -220,9 +235,26 @@ def cmd_run(args) -> int:
 
     check_output(args.plot, "--plot", PLOT_FORMATS)
     get_scenario(args.scenario)  # unknown names fail before anything is compiled
+    if (args.study is None) != (args.run is None):
+        raise ValueError("--study DIR and --run R go together (replay run R of a study)")
+    if args.nav_filter and not args.disturbed:
+        raise ValueError("--nav-filter needs --disturbed (it filters the noisy measurements)")
     sc, params, infos, m, ms_per_step = run_scenario(
-        args.scenario, args.mode, args.truth, args.disturbed, args.seed
+        args.scenario,
+        args.mode,
+        args.truth,
+        args.disturbed,
+        args.seed,
+        args.study,
+        args.run,
+        args.nav_filter,
     )
+    if args.study is not None:
+        from rvdjax.study.table import read_config
+
+        cfg = read_config(args.study)["spec"]
+        args.mode, args.truth, args.disturbed = cfg["mode"], cfg["truth"], cfg["disturbed"]
+        args.nav_filter = cfg["nav_filter"]
     notes = list(sc.notes(args.mode))
     if args.disturbed:
         d = params.disturbances
@@ -231,6 +263,12 @@ def cmd_run(args) -> int:
                 sigma_pos=float(d.sigma_pos), sigma_vel=float(d.sigma_vel), mib_s=float(d.mib_s)
             )
         )
+        if args.nav_filter:
+            from rvdjax.loop.navigation import NAV_FILTER_NOTES
+
+            notes.extend(NAV_FILTER_NOTES)
+        else:
+            notes.append("no navigation filter: the guidance sees the noisy measurements")
     result = {
         "scenario": sc.name,
         "family": sc.family,
@@ -238,7 +276,9 @@ def cmd_run(args) -> int:
         "solver_mode": args.mode,
         "truth": args.truth,
         "disturbed": bool(args.disturbed),
-        "seed": args.seed if args.disturbed else None,
+        "nav_filter": bool(args.nav_filter),
+        "seed": args.seed if args.disturbed and args.study is None else None,
+        "study_run": None if args.study is None else {"study": args.study, "run": args.run},
         **metrics_dict(m),
         "delta_v_norm": "sum_k ||dv_k||_2 (force inputs: sum_k ||u_k||_2 dt / m)",
         "mean_solve_ms": ms_per_step,
@@ -377,6 +417,142 @@ def cmd_bench(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------ study
+
+
+def _grid(text: str):
+    from rvdjax.study.spec import parse_assignment
+
+    name, values = parse_assignment(text, "--grid")
+    try:
+        vals = tuple(float(v) for v in values.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"--grid {name}: values must be numbers, got {values!r}") from None
+    return name, vals
+
+
+def _study_spec(args):
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.study import StudySpec
+    from rvdjax.study.spec import parse_assignment
+
+    get_scenario(args.scenario)
+    kind = args.study_command
+    if kind == "montecarlo":
+        n_initial, replicates, grid = args.runs, 1, ()
+    elif kind == "sweep":
+        if not args.grid:
+            raise ValueError("study sweep needs at least one --grid NAME=V1,V2,...")
+        n_initial, replicates, grid = args.runs_per_point, 1, tuple(_grid(g) for g in args.grid)
+    else:
+        n_initial, replicates, grid = args.initial_conditions, args.realisations, ()
+    vary = tuple(parse_assignment(v, "--vary") for v in (args.vary or ()))
+    for name, value in (("--runs", n_initial), ("--realisations", replicates)):
+        if value < 1:
+            raise ValueError(f"{name} must be >= 1, got {value}")
+    return StudySpec(
+        kind=kind,
+        scenario=args.scenario,
+        n_initial=n_initial,
+        replicates=replicates,
+        seed=args.seed,
+        initial=args.initial,
+        vary=vary,
+        grid=grid,
+        mode=args.mode,
+        disturbed=bool(args.disturbed or kind == "robustness"),
+        nav_filter=bool(args.nav_filter),
+        time_limit_s=args.time_limit_s,
+        n_steps=args.n_steps,
+        slots=args.slots,
+        chunk=args.chunk,
+        iterations=args.iterations,
+    )
+
+
+def _distributed(args) -> tuple[int, int]:
+    """(process index, process count): jax.distributed when --coordinator is given."""
+    if not args.coordinator:
+        return 0, 1
+    import jax
+
+    if args.num_processes is None or args.process_id is None:
+        raise ValueError("--coordinator needs --num-processes and --process-id")
+    jax.distributed.initialize(
+        coordinator_address=args.coordinator,
+        num_processes=args.num_processes,
+        process_id=args.process_id,
+        initialization_timeout=120,
+    )
+    return jax.process_index(), jax.process_count()
+
+
+def _barrier(name: str, count: int) -> None:
+    """Wait for every process of a jax.distributed run (the coordination service's barrier)."""
+    if count == 1:
+        return
+    from jax._src import distributed
+
+    distributed.global_state.client.wait_at_barrier(name, 3_600_000)
+
+
+def cmd_study(args) -> int:
+    from rvdjax.study import format_summary, run_study, summarize
+
+    if args.study_command == "summary":
+        s = summarize(args.out)
+        print(json.dumps(s, indent=2) if args.json else format_summary(s))
+        return 0
+    spec = _study_spec(args)
+    from rvdjax.scenarios import get_scenario
+
+    spec.validate(get_scenario(spec.scenario))
+    if args.plots:
+        os.makedirs(args.plots, exist_ok=True)
+    index, count = _distributed(args)
+    timing = run_study(
+        spec,
+        args.out,
+        resume=args.resume,
+        progress=not args.quiet,
+        process_index=index,
+        process_count=count,
+        devices=args.devices,
+        flush_rows=args.flush_rows,
+    )
+    _barrier("rvdjax-study-done", count)
+    if count > 1:
+        import jax
+
+        jax.distributed.shutdown()
+    if index != 0:
+        return 0
+    s = summarize(args.out)
+    s.update(
+        runs_flown=timing["runs_flown"],
+        runs_skipped=timing["runs_skipped"],
+        seconds=timing["seconds"],
+        runs_per_s=timing["runs_per_s"],
+        peak_memory_mb=timing["peak_memory_mb"],
+        processes=count,
+        table=os.path.join(args.out, "runs"),
+    )
+    if args.plots:
+        from rvdjax.study.figures import study_figures
+
+        s["plots"] = study_figures(args.out, args.plots)
+    if args.json:
+        print(json.dumps(s, indent=2))
+    else:
+        print(format_summary(s))
+        print(
+            f"  {timing['runs_flown']} runs flown in {timing['seconds']:.1f} s "
+            f"({timing['runs_per_s']:.2f} runs/s), peak memory {timing['peak_memory_mb']:.0f} MB; "
+            f"table: {s['table']}"
+        )
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="rvdjax",
@@ -408,6 +584,13 @@ def main(argv=None) -> int:
         help="navigation noise and Gauss-Markov thrust error (paper 003 Ch. 5)",
     )
     p.add_argument("--seed", type=int, default=0, help="PRNG seed of a disturbed run")
+    p.add_argument(
+        "--nav-filter",
+        action="store_true",
+        help="with --disturbed: a Kalman filter on the measurements feeds the guidance",
+    )
+    p.add_argument("--study", metavar="DIR", help="replay a run of the study in DIR (with --run)")
+    p.add_argument("--run", type=int, metavar="R", help="the run index to replay (with --study)")
     p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png, pdf)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)
@@ -475,9 +658,101 @@ def main(argv=None) -> int:
     )
     p.set_defaults(func=cmd_bench)
 
+    p = sub.add_parser(
+        "study",
+        help="batch studies: Monte Carlo, parameter sweeps, robustness (paper 003 Ch. 4-6)",
+    )
+    ssub = p.add_subparsers(dest="study_command", required=True)
+    for kind, text in (
+        ("montecarlo", "runs over initial conditions, parameters and disturbances"),
+        ("sweep", "a grid of parameter values (horizons, sample times, ...), runs per point"),
+        ("robustness", "initial conditions x noise realisations (paper 003 Ch. 5)"),
+    ):
+        q = ssub.add_parser(kind, help=text)
+        q.add_argument("scenario", help="scenario name (rvdjax list)")
+        if kind == "montecarlo":
+            q.add_argument("--runs", type=int, default=100, help="number of runs (default 100)")
+        if kind == "sweep":
+            q.add_argument(
+                "--grid",
+                action="append",
+                metavar="NAME=V1,V2,...",
+                help="a swept parameter (repeat for a Cartesian grid); horizons (N, N1) "
+                "compile once per value",
+            )
+            q.add_argument("--runs-per-point", type=int, default=20, help="runs per sweep point")
+        if kind == "robustness":
+            q.add_argument("--initial-conditions", type=int, default=100)
+            q.add_argument("--realisations", type=int, default=60, help="noise keys per state")
+        q.add_argument(
+            "--vary",
+            action="append",
+            metavar="NAME=DIST",
+            help="draw a parameter per run: uniform(a,b), normal(m,s), +normal(0,s) (added), "
+            "*normal(1,s) (scaled), loguniform(a,b), choice(v1,...); NAME: x0, x0[k], "
+            "or a physical value (mass, u_max, ts[0], ...)",
+        )
+        q.add_argument(
+            "--initial",
+            choices=("nominal", "paper003"),
+            default="nominal",
+            help="initial states: the scenario's, or paper 003 Sec. 4 (0.15-2.5 km, no-drift "
+            "velocity + N(0, 0.5 m/s))",
+        )
+        q.add_argument(
+            "--disturbed",
+            action="store_true",
+            help="navigation noise, thrust error, minimum impulse bit (robustness: always)",
+        )
+        q.add_argument(
+            "--nav-filter", action="store_true", help="Kalman filter on the measurements"
+        )
+        q.add_argument("--seed", type=int, default=0, help="study seed (default 0)")
+        q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
+        q.add_argument(
+            "--time-limit-s", type=float, help="a run not docked by then fails (e.g. 12000)"
+        )
+        q.add_argument("--n-steps", type=int, help="MPC steps at most (default: the scenario's)")
+        q.add_argument("--slots", type=int, default=256, help="runs in flight (default 256)")
+        q.add_argument("--chunk", type=int, default=32, help="slots per vmapped chunk")
+        q.add_argument("--iterations", type=int, default=3, help="solver iterations per tick")
+        q.add_argument("--out", required=True, metavar="DIR", help="study directory")
+        q.add_argument("--resume", action="store_true", help="continue the study in DIR")
+        q.add_argument("--plots", metavar="DIR", help="write the study's figures to DIR")
+        q.add_argument("--json", action="store_true", help="print the summary as JSON")
+        q.add_argument("--quiet", action="store_true", help="no progress bar")
+        q.add_argument(
+            "--coordinator",
+            metavar="HOST:PORT",
+            help="jax.distributed coordinator: this process flies its share of the runs",
+        )
+        q.add_argument(
+            "--devices",
+            type=int,
+            default=1,
+            help="shard the slots over N devices (CPU: N host devices, one per core)",
+        )
+        q.add_argument(
+            "--flush-rows", type=int, default=256, help="runs per Parquet part (default 256)"
+        )
+        q.add_argument("--num-processes", type=int)
+        q.add_argument("--process-id", type=int)
+        q.set_defaults(func=cmd_study)
+    q = ssub.add_parser("summary", help="summarise a finished (or interrupted) study")
+    q.add_argument("out", metavar="DIR")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_study)
+
     args = parser.parse_args(argv)
     if getattr(args, "threads", 1) == 1:
         _one_thread()
+    devices = getattr(args, "devices", 1)
+    if devices > 1 and "xla_force_host_platform_device_count" not in os.environ.get(
+        "XLA_FLAGS", ""
+    ):  # on a CPU, one XLA host device per core asked for (before JAX starts)
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}"
+        ).strip()
     try:
         return args.func(args)
     except ValueError as err:  # bad user input: say what and stop, no traceback

@@ -1,0 +1,142 @@
+"""The paper's figures from a study table (paper 003 Figs. 4.2-4.12, 5.x): effort versus time
+to dock, effort versus control intervals, failures per sweep point, and the spread per initial
+condition of a robustness study."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rvdjax.study.spec import StudySpec
+from rvdjax.study.table import read_config, read_table
+
+__all__ = ["study_figures", "scatter_effort_time", "effort_intervals", "failures_per_point"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _labels(spec: StudySpec, df):
+    if len(spec.points) > 1:
+        return df["point"].to_numpy(), {p.index: p.label() for p in spec.points}
+    return np.zeros(len(df), int), {0: spec.scenario}
+
+
+def scatter_effort_time(df, spec: StudySpec, path) -> str:
+    """Effort versus time to dock per docked run, one colour per sweep point (Fig. 4.2b)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    groups, names = _labels(spec, df)
+    ok = df["docked"].to_numpy()
+    for g, label in names.items():
+        sel = ok & (groups == g)
+        ax.scatter(df["time_to_dock_s"][sel] / 60.0, df["effort"][sel], s=8, label=label)
+    ax.set_xlabel("time to dock [min]")
+    ax.set_ylabel(_effort_label(df))
+    ax.set_title(f"{spec.scenario}: {int(ok.sum())} of {len(df)} runs docked")
+    return _finish(plt, fig, ax, path, legend=len(names) > 1)
+
+
+def _finish(plt, fig, ax, path, legend: bool) -> str:
+    if legend:
+        ax.legend(fontsize=7, markerscale=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def _effort_label(df) -> str:
+    return "effort (delta-v [m/s] or impulse [N s])"
+
+
+def effort_intervals(df, spec: StudySpec, path, phase: int | None = None) -> str:
+    """Effort (of ``phase``, or the whole run) versus the number of control intervals
+    (Figs. 4.4-4.12 right-hand panels)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    groups, names = _labels(spec, df)
+    ok = df["docked"].to_numpy()
+    if phase is not None and f"phase{phase}_intervals" in df:
+        x, y = df[f"phase{phase}_intervals"], df[f"phase{phase}_delta_v_m_s"]
+        ax.set_xlabel(f"control intervals in phase {phase}")
+        ax.set_ylabel(f"phase {phase} delta-v [m/s]")
+    else:
+        x, y = df["steps"], df["effort"]
+        ax.set_xlabel("control intervals (MPC steps)")
+        ax.set_ylabel(_effort_label(df))
+    for g, label in names.items():
+        sel = ok & (groups == g)
+        ax.scatter(x[sel], y[sel], s=8, label=label)
+    return _finish(plt, fig, ax, path, legend=len(names) > 1)
+
+
+def failures_per_point(df, spec: StudySpec, path) -> str:
+    """Failed runs (not docked, or a truth constraint violated) per sweep point."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(max(6.4, 0.45 * len(spec.points)), 4.0))
+    labels, fails = [], []
+    for p in spec.points:
+        sub = df[df["point"] == p.index]
+        labels.append(p.label())
+        fails.append(int((sub["failure"] != "").sum()))
+    ax.bar(range(len(labels)), fails)
+    ax.set_xticks(range(len(labels)), labels, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel(f"failed runs (of {spec.runs_per_point})")
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def spread_per_initial_condition(df, spec: StudySpec, path) -> str:
+    """Robustness: the standard deviation over noise realisations of effort and time to dock,
+    per initial condition (paper 003 Ch. 5 reports their averages)."""
+    plt = _plt()
+    ok = df[df["docked"]]
+    g = ok.groupby("ic")
+    sd = g["effort"].std(ddof=1).dropna()
+    st = (g["time_to_dock_s"].std(ddof=1) / 60.0).dropna()
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 3.8))
+    axes[0].hist(sd, bins=20)
+    axes[0].set_xlabel("std of effort per initial condition")
+    axes[0].set_title(f"mean {sd.mean():.3g}" if len(sd) else "no docked runs")
+    axes[1].hist(st, bins=20)
+    axes[1].set_xlabel("std of time to dock per initial condition [min]")
+    axes[1].set_title(f"mean {st.mean():.3g} min" if len(st) else "no docked runs")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return str(path)
+
+
+def study_figures(out, directory) -> list[str]:
+    """Every figure that fits the study in ``out``, written to ``directory`` (PNG)."""
+    out, directory = Path(out), Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    spec = StudySpec.from_dict(read_config(out)["spec"])
+    df = read_table(out)
+    paths = [
+        scatter_effort_time(df, spec, directory / "effort_vs_time.png"),
+        effort_intervals(df, spec, directory / "effort_vs_intervals.png"),
+    ]
+    if any(f"phase{k}_intervals" in df for k in range(3)):
+        for k in range(3):
+            if f"phase{k}_intervals" in df:
+                paths.append(
+                    effort_intervals(df, spec, directory / f"phase{k}_vs_intervals.png", k)
+                )
+    if len(spec.points) > 1:
+        paths.append(failures_per_point(df, spec, directory / "failures_per_point.png"))
+    if spec.replicates > 1:
+        paths.append(spread_per_initial_condition(df, spec, directory / "spread_per_ic.png"))
+    return paths

@@ -1,0 +1,148 @@
+"""Study benchmark: the batch engine against the same maneuvers flown one by one from a Python
+loop with Clarabel, PIQP or DAQP solving every MPC step; and the memory of a study against its
+number of runs.
+
+    python sweeps/study_benchmark.py throughput [--scenario thesis-vbar] [--batch-runs 64]
+        [--single-runs 3] [--json FILE]
+    python sweeps/study_benchmark.py memory [--runs 1000,100000] [--json FILE]
+
+Throughput: the same initial conditions (paper 003 Sec. 4.1 for three-phase scenarios, the
+scenario's x0 perturbed otherwise), one core (XLA single threaded), compile excluded. The
+Python loop calls the jitted MPC step once per step (the host solver inside it through a
+callback: QP assembly in SciPy included), as a user without rvdjax's engine would.
+Memory: `rvdjax study montecarlo` in a fresh process per size (peak RSS of that process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "")
+    + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+)
+
+import numpy as np  # noqa: E402
+
+
+def throughput(args) -> list[dict]:
+    import jax
+
+    import rvdjax  # noqa: F401
+    from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
+    from rvdjax.loop.reference import reference_loop
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.study import StudySpec
+    from rvdjax.study.runner import run_inputs
+
+    sc = get_scenario(args.scenario)
+    params, _ = sc.build()
+    initial = "paper003" if sc.family == "three-phase" else "nominal"
+    vary = () if initial == "paper003" else (("x0", "*normal(1,0.02)"),)
+    spec = StudySpec(
+        kind="montecarlo", scenario=sc.name, n_initial=args.batch_runs, initial=initial, vary=vary
+    )
+    rs = run_inputs(spec, sc, np.arange(args.batch_runs))
+    loop = sc.loop(time_limit_s=args.time_limit_s, n_steps=args.n_steps)
+    rows = []
+    cfg = EngineConfig(slots=args.batch_runs, chunk=32)
+    src = arrays_source(rs.x0, rs.keys)
+    run_batch(loop, arrays_source(rs.x0[:2], rs.keys[:2]), 2, params=params, config=cfg)
+    t0 = time.perf_counter()
+    out = run_batch(loop, src, args.batch_runs, params=params, config=cfg)
+    wall = time.perf_counter() - t0
+    m = out["metrics"]
+    engine_rate = args.batch_runs / wall
+    rows.append(
+        {
+            "method": f"rvdjax batch engine, {args.batch_runs} slots",
+            "runs": args.batch_runs,
+            "maneuvers_per_s": engine_rate,
+            "docked_fraction": float(np.mean(m.docked)),
+            "ratio": 1.0,
+        }
+    )
+    for backend in args.peers.split(","):
+        # compile the step once (first run's first step), then time whole maneuvers
+        reference_loop(loop.replace(n_steps=1), params, rs.x0[0], rs.keys[0], backend=backend)
+        secs, agree = 0.0, []
+        for i in range(args.single_runs):
+            _, mi, s = reference_loop(loop, params, rs.x0[i], rs.keys[i], backend=backend)
+            secs += s
+            agree.append(
+                (bool(mi.docked) == bool(m.docked[i]))
+                and abs(float(mi.delta_v_m_s) - float(m.delta_v_m_s[i]))
+                <= 1e-3 * max(1.0, float(m.delta_v_m_s[i]))
+            )
+        rate = args.single_runs / secs
+        rows.append(
+            {
+                "method": f"Python loop, {backend} per step",
+                "runs": args.single_runs,
+                "maneuvers_per_s": rate,
+                "ratio": engine_rate / rate,
+                "same_outcome_as_engine": f"{sum(agree)}/{len(agree)}",
+            }
+        )
+        print(rows[-1], file=sys.stderr)
+    del jax
+    return rows
+
+
+def memory(args) -> list[dict]:
+    rows = []
+    for n in args.runs:
+        out = f"/tmp/rvdjax-memory-study-{n}"
+        subprocess.run(["rm", "-rf", out], check=True)
+        cmd = [
+            sys.executable, "-m", "rvdjax.cli", "study", "montecarlo", args.mem_scenario,
+            "--runs", str(n), "--n-steps", str(args.mem_steps), "--vary", "x0=*normal(1,0.02)",
+            "--out", out, "--json", "--quiet",
+        ]  # fmt: skip
+        r = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        s = json.loads(r.stdout)
+        rows.append(
+            {
+                "runs": n,
+                "scenario": args.mem_scenario,
+                "n_steps": args.mem_steps,
+                "runs_per_s": s["runs_per_s"],
+                "peak_memory_mb": s["peak_memory_mb"],
+            }
+        )
+        print(rows[-1], file=sys.stderr)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("what", choices=("throughput", "memory"))
+    ap.add_argument("--scenario", default="thesis-vbar")
+    ap.add_argument("--batch-runs", type=int, default=64)
+    ap.add_argument("--single-runs", type=int, default=3)
+    ap.add_argument("--peers", default="clarabel,piqp,daqp")
+    ap.add_argument("--time-limit-s", type=float, default=12000.0)
+    ap.add_argument("--n-steps", type=int, default=2600)
+    ap.add_argument("--runs", type=lambda t: [int(v) for v in t.split(",")], default=[1000, 100000])
+    ap.add_argument("--mem-scenario", default="poseidyn-lqmpc")
+    ap.add_argument("--mem-steps", type=int, default=5)
+    ap.add_argument("--json", metavar="FILE")
+    args = ap.parse_args()
+    rows = throughput(args) if args.what == "throughput" else memory(args)
+    keys = list(rows[0])
+    print(" | ".join(keys))
+    for r in rows:
+        print(" | ".join(f"{r.get(k):.4g}" if isinstance(r.get(k), float) else str(r.get(k))
+                         for k in keys))  # fmt: skip
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
