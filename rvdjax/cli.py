@@ -507,8 +507,15 @@ def cmd_study(args) -> int:
     from rvdjax.scenarios import get_scenario
 
     spec.validate(get_scenario(spec.scenario))
-    if args.plots:
-        os.makedirs(args.plots, exist_ok=True)
+    if args.plots:  # checked before flying, created after (it may lie inside --out)
+        parent = os.path.dirname(os.path.abspath(args.plots))
+        if os.path.exists(args.plots) and not os.path.isdir(args.plots):
+            raise ValueError(f"--plots {args.plots!r} is a file, not a directory")
+        if not os.path.exists(args.plots) and not (
+            os.access(parent, os.W_OK)
+            or os.path.abspath(parent).startswith(os.path.abspath(args.out))
+        ):
+            raise ValueError(f"--plots {args.plots!r}: directory {parent!r} is not writable")
     index, count = _distributed(args)
     timing = run_study(
         spec,
@@ -749,9 +756,10 @@ def main(argv=None) -> int:
     devices = getattr(args, "devices", 1)
     if devices > 1 and "xla_force_host_platform_device_count" not in os.environ.get(
         "XLA_FLAGS", ""
-    ):  # on a CPU, one XLA host device per core asked for (before JAX starts)
+    ):  # on a CPU, one XLA host device per core asked for (before JAX starts); first, since
+        # XLA stops reading its flags at the bare "intra_op_parallelism_threads=1" token
         os.environ["XLA_FLAGS"] = (
-            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={devices}"
+            f"--xla_force_host_platform_device_count={devices} " + os.environ.get("XLA_FLAGS", "")
         ).strip()
     try:
         return args.func(args)

@@ -120,7 +120,7 @@ def ch6(args) -> dict:
     sc = get_scenario(SCENARIO)
     params, x0 = sc.build()
     sp = sc.solver_params()
-    rows = {}
+    rows, samples = {}, {}
     for n1 in (15, 30, 45):
         loop = sc.loop(N=(n1, 15, 12), n_steps=600)
         settings = loop.config.settings
@@ -142,12 +142,35 @@ def ch6(args) -> dict:
             for ph, v in times.items()
             if v
         }
+        samples[n1] = times
+    _solve_time_histograms(samples, Path(args.out) / "ch6-solve-times.png")
     r0 = rows[15][0]["mean_ms"]
     return {
         "solve_ms": rows,
         "rendezvous_ratio_to_N1_15": {n: rows[n][0]["mean_ms"] / r0 for n in rows},
         "paper_ratio_to_N1_15": {n: v / PAPER_CH6_MS[15] for n, v in PAPER_CH6_MS.items()},
     }
+
+
+def _solve_time_histograms(samples: dict, path: Path) -> None:
+    """Solve-time histograms per phase (columns) and N1 (colours), paper 003 Ch. 6."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    for ph, ax in enumerate(axes):
+        for n1, times in samples.items():
+            if times[ph]:
+                ax.hist(times[ph], bins=20, alpha=0.6, label=f"N1 = {n1}")
+        ax.set_title(("rendezvous", "approach", "docking")[ph])
+        ax.set_xlabel("solve time per MPC step [ms]")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -166,8 +189,8 @@ def main() -> None:
 
     if args.devices > 1:
         os.environ["XLA_FLAGS"] = (
-            os.environ.get("XLA_FLAGS", "")
-            + f" --xla_force_host_platform_device_count={args.devices}"
+            f"--xla_force_host_platform_device_count={args.devices} "
+            + os.environ.get("XLA_FLAGS", "")
         )
     import rvdjax  # noqa: F401
 

@@ -272,3 +272,29 @@ def test_two_processes_through_jax_distributed_give_the_same_table(study_env):
     files = {f.name.split("-")[1] for f in (out / "runs").glob("part-*.parquet")}
     assert files == {"P000", "P001"}  # each process wrote its own parts
     _frames_equal(read_table(out), reference)
+
+
+# ------------------------------------------------------------------------- command line
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["study", "sweep", "poseidyn-lqmpc"], "needs at least one --grid"),
+        (["study", "montecarlo", "poseidyn-lqmpc", "--vary", "nope=normal(0,1)"], "nope"),
+        (["study", "montecarlo", "poseidyn-lqmpc", "--vary", "mass=gamma(1)"], "gamma"),
+        (["study", "montecarlo", "poseidyn-lqmpc", "--runs", "0"], "--runs must be >= 1"),
+        (["study", "sweep", "poseidyn-lqmpc", "--grid", "N=10.5"], "integers"),
+        (["study", "montecarlo", "nope"], "unknown scenario"),
+        (["run", "poseidyn-lqmpc", "--study", "x"], "--study DIR and --run R"),
+        (["run", "poseidyn-lqmpc", "--nav-filter"], "--nav-filter needs --disturbed"),
+    ],
+)
+def test_study_command_line_rejects_bad_input_before_flying(argv, message, tmp_path, capsys):
+    from rvdjax.cli import main
+
+    if argv[0] == "study":
+        argv = [*argv, "--out", str(tmp_path / "s"), "--quiet"]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "s" / "runs").exists()

@@ -54,8 +54,19 @@ def _finish(plt, fig, ax, path, legend: bool) -> str:
     return str(path)
 
 
+_EFFORT_LABELS = {
+    "delta_v_m_s": "delta-v [m/s]",
+    "effort_l1_N_s": "impulse, per-axis L1 [N s]",
+    "total_impulse_N_s": "impulse, L2 [N s]",
+}
+
+
 def _effort_label(df) -> str:
-    return "effort (delta-v [m/s] or impulse [N s])"
+    """The label of the ``effort`` column: the metric column it copies."""
+    for col, label in _EFFORT_LABELS.items():
+        if col in df and df["effort"].equals(df[col]):
+            return label
+    return "effort"
 
 
 def effort_intervals(df, spec: StudySpec, path, phase: int | None = None) -> str:
