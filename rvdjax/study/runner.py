@@ -304,6 +304,19 @@ def _loop_for(spec: StudySpec, scenario, static: dict):
     return loop
 
 
+def _pad(trees, n: int):
+    """Pad every leading axis to ``n`` with copies of entry 0 (never flown: the queue's length
+    is the number of real runs)."""
+
+    def pad(a):
+        if a is None or a.shape[0] == n:
+            return a
+        reps = jnp.repeat(a[:1], n - a.shape[0], axis=0)
+        return jnp.concatenate([jnp.asarray(a), reps], axis=0)
+
+    return jax.tree.map(pad, trees, is_leaf=lambda x: x is None)
+
+
 def _stack(trees):
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *trees)
 
@@ -397,6 +410,9 @@ def run_study(
 
         group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
         distinct_phys = len({repr(sorted(point_cfg[p][1].items())) for p in point_ids}) > 1
+        # every block of the group has the same array shapes (the last one padded): the
+        # engine's program depends on them, and a new shape would compile it again
+        bucket = min(spec.block, 1 << max(0, int(len(group_runs) - 1).bit_length()))
         for lo in range(0, len(group_runs), spec.block):
             block = group_runs[lo : lo + spec.block]
             rs = run_inputs(spec, scenario, block)
@@ -411,7 +427,7 @@ def run_study(
             else:
                 per_run = None
                 shared = params_of_point(int(point_ids[0]))
-            source = arrays_source(jnp.asarray(rs.x0), rs.keys, params=per_run)
+            source = arrays_source(*_pad((jnp.asarray(rs.x0), rs.keys, per_run), bucket))
             unit = spec.chunk * devices
             slots = min(spec.slots, max(unit, int(np.ceil(len(block) / unit)) * unit))
             slots = max(slots, unit)
