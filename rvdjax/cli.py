@@ -517,6 +517,12 @@ def cmd_study(args) -> int:
         ):
             raise ValueError(f"--plots {args.plots!r}: directory {parent!r} is not writable")
     index, count = _distributed(args)
+    if count > 1:  # process 0 checks --out and writes the configuration before anyone flies
+        from rvdjax.study.runner import prepare_out
+
+        if index == 0:
+            prepare_out(spec, args.out, args.resume)
+        _barrier("rvdjax-study-out", count)
     timing = run_study(
         spec,
         args.out,
@@ -526,6 +532,7 @@ def cmd_study(args) -> int:
         process_count=count,
         devices=args.devices,
         flush_rows=args.flush_rows,
+        prepare=count == 1,
     )
     _barrier("rvdjax-study-done", count)
     if count > 1:

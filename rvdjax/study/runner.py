@@ -351,20 +351,23 @@ def run_study(
     process_count: int = 1,
     devices: int = 1,
     flush_rows: int = 256,
+    prepare: bool = True,
 ) -> dict:
     """Fly ``spec`` and write its table to ``out``; returns timing figures.
 
     Runs already in ``out`` are skipped when ``resume``; with ``process_count`` > 1 this
     process flies every ``process_count``-th remaining run and writes its own parts;
     ``devices`` shards the engine's slots over that many local devices; a part file is
-    written every ``flush_rows`` finished runs (or 20 s).
+    written every ``flush_rows`` finished runs (or 20 s). ``prepare``: process 0 checks
+    ``out`` and writes the configuration first (False: the caller did, e.g. before a barrier
+    of several processes).
     """
     from rvdjax.scenarios import get_scenario
 
     scenario = get_scenario(spec.scenario)
     spec.validate(scenario)
     out = Path(out)
-    if process_index == 0:
+    if prepare and process_index == 0:
         prepare_out(spec, out, resume)
     effort = effort_metric(scenario)
     all_runs = np.arange(spec.n_runs, dtype=np.int64)
