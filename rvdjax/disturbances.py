@@ -180,16 +180,19 @@ def gm_step(key, state, d: Disturbances, dt):
     return state @ Phi.T + e
 
 
-def gm_stationary_std(d: Disturbances, dt):
-    """Stationary 1-sigma of w [%] of the Gauss-Markov model discretised over ``dt`` [s].
+def gm_stationary_std(d: Disturbances, dt=None):
+    """Stationary 1-sigma of w [%] of the Gauss-Markov model.
 
-    The stationary covariance P of w_{k+1} = Phi w_k + e_k solves the discrete Lyapunov
-    equation P = Phi P Phi^T + Q_d, here (I - Phi (x) Phi) vec(P) = vec(Q_d); it is the same for
-    every dt (that of the continuous model). Paper 003 Table 5.1: 4.62 %.
+    The exact discretisation over any ``dt`` has the stationary covariance of the continuous
+    model, so ``dt`` is not needed: P solves the continuous Lyapunov equation
+    F P + P F^T + G G^T = 0, here (I (x) F + F (x) I) vec(P) = -vec(G G^T) (no matrix
+    exponential: the filter evaluates it every step). Paper 003 Table 5.1: 4.62 %.
     """
-    Phi, Qd = gm_discretize(d, dt)
-    K = jnp.eye(4, dtype=Qd.dtype) - jnp.kron(Phi, Phi)
-    P = jnp.linalg.solve(K, Qd.reshape(-1)).reshape(2, 2)
+    del dt
+    F, G = _gm_matrices(d)
+    eye = jnp.eye(2, dtype=F.dtype)
+    K = jnp.kron(eye, F) + jnp.kron(F, eye)
+    P = jnp.linalg.solve(K, -(G @ G.T).reshape(-1)).reshape(2, 2)
     return jnp.sqrt(P[0, 0])
 
 

@@ -337,39 +337,21 @@ def _chunk_tick(
 @functools.lru_cache(maxsize=64)
 def _build(loop: Loop, cfg: EngineConfig, source_fn):
     """The jitted segment function (cached: one compile per loop, engine config and queue
-    function, whatever the data)."""
-    return _build_sharded(loop, cfg, source_fn)
-
-
-_AXIS = "slots"
-
-
-def _mesh(cfg: EngineConfig):
-    devices = jax.local_devices()
-    if cfg.devices > len(devices):
-        raise ValueError(
-            f"devices must be <= {len(devices)} (jax.local_devices() here), got {cfg.devices}; "
-            "on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N makes N devices"
-        )
-    return jax.sharding.Mesh(np.asarray(devices[: cfg.devices]), (_AXIS,))
-
-
-def _build_sharded(loop: Loop, cfg: EngineConfig, source_fn):
-    """The segment with the slots sharded over ``cfg.devices`` devices (``shard_map``): every
-    device runs the one-device segment on its slots; device d takes queue positions
-    d, d + D, d + 2 D, ... (its local run i is position d + D i). The engine state has a
-    leading device axis; no communication between devices. One device takes the same path
-    (a one-device mesh), so that a run's bits do not depend on the number of devices."""
+    function, whatever the data), its slots sharded over ``cfg.devices`` devices
+    (``shard_map``): every device runs the one-device segment on its slots; device d takes
+    queue positions d, d + D, d + 2 D, ... (its local run i is position d + D i). The engine
+    state has a leading device axis; no communication between devices. One device takes the
+    same path (a one-device mesh), so that a run's bits do not depend on the number of
+    devices."""
     from jax.sharding import PartitionSpec as P
 
     D = cfg.devices
-    local_cfg = cfg.per_device
 
     def strided(data, i):
         d = lax.axis_index(_AXIS)
         return source_fn(data, d + D * i)
 
-    seg = _segment(loop, local_cfg, strided)
+    seg = _segment(loop, cfg.per_device, strided)
 
     def local(eng, source_data, shared_params, shared_sp, max_ticks):
         eng = jax.tree.map(lambda a: a[0], eng)
@@ -385,6 +367,19 @@ def _build_sharded(loop: Loop, cfg: EngineConfig, source_fn):
             check_vma=False,
         )
     )
+
+
+_AXIS = "slots"
+
+
+def _mesh(cfg: EngineConfig):
+    devices = jax.local_devices()
+    if cfg.devices > len(devices):
+        raise ValueError(
+            f"devices must be <= {len(devices)} (jax.local_devices() here), got {cfg.devices}; "
+            "on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N makes N devices"
+        )
+    return jax.sharding.Mesh(np.asarray(devices[: cfg.devices]), (_AXIS,))
 
 
 def _segment(loop: Loop, cfg: EngineConfig, source_fn):
@@ -560,25 +555,24 @@ def run_batch(
         raise ValueError("params must be given when the source gives no per-run parameters")
     eng = _initial_state(loop, config, source, params, sp, n_runs)
     segment = _build(loop, config, source.fn)
-    D = config.devices
-    host_view = np.asarray  # every engine array has a leading device axis
+    D = config.devices  # every engine array has a leading device axis
     collected_idx, collected = [], []
     done = 0
     t0 = time.perf_counter()
     while done < n_runs:
         eng = segment(eng, source.data, params, sp, config.ticks_per_segment)
-        ring_done = host_view(eng.ring_done)
+        ring_done = np.asarray(eng.ring_done)
         if ring_done.any():
             dev, pos = np.nonzero(ring_done)
-            local = host_view(eng.ring_run)[dev, pos]
+            local = np.asarray(eng.ring_run)[dev, pos]
             idx = dev + D * local
-            res = jax.tree.map(lambda a, dev=dev, pos=pos: host_view(a)[dev, pos], eng.ring)
+            res = jax.tree.map(lambda a, dev=dev, pos=pos: np.asarray(a)[dev, pos], eng.ring)
             collected_idx.append(idx)
             collected.append(res)
             done += len(idx)
             if on_results is not None:
                 on_results(idx, res)
-            ring_run = host_view(eng.ring_run).copy()
+            ring_run = np.asarray(eng.ring_run).copy()
             ring_run[dev, pos] = -1
             eng = eng._replace(
                 ring_run=_like(eng.ring_run, ring_run),
@@ -586,7 +580,7 @@ def run_batch(
             )
         if progress is not None:
             progress(done, n_runs)
-        queue_empty = np.all(host_view(eng.next_run) >= host_view(eng.n_runs))
+        queue_empty = np.all(np.asarray(eng.next_run) >= np.asarray(eng.n_runs))
         if queue_empty and done < n_runs:
             eng = _compact_sharded(eng)
     idx = np.concatenate(collected_idx)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import resource
 import time
 from collections.abc import Callable
@@ -288,17 +289,13 @@ def _group_key(static: dict) -> tuple:
 
 
 def _loop_for(spec: StudySpec, scenario, static: dict):
-    extra = {}
-    if spec.time_limit_s is not None:
-        extra["time_limit_s"] = spec.time_limit_s
-    if spec.nav_filter:
-        extra["nav_filter"] = True
     loop = scenario.loop(
         spec.mode,
         truth=spec.truth,
         disturbed=spec.disturbed,
         n_steps=spec.n_steps,
-        **extra,
+        time_limit_s=spec.time_limit_s,
+        nav_filter=spec.nav_filter,
         **static,
     )
     return loop
@@ -325,7 +322,7 @@ def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
     """Check ``out`` against the study and write its configuration."""
     out = Path(out)
     existing = read_config(out)
-    config = {"spec": __import__("json").loads(spec.to_json()), "version": 1}
+    config = {"spec": json.loads(spec.to_json()), "version": 1}
     if existing is not None:
         if not resume:
             raise ValueError(
@@ -396,7 +393,6 @@ def run_study(
         )
     t0 = time.perf_counter()
     flown = 0
-    compile_s = 0.0
     nominal_params, _ = scenario.build()
     scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
     for _, point_ids in groups.items():
@@ -448,7 +444,7 @@ def run_study(
                 elif callable(progress):
                     progress(base + done_block, len(todo))
 
-            res = run_batch(
+            run_batch(
                 loop,
                 source,
                 len(block),
@@ -458,7 +454,6 @@ def run_study(
                 on_results=on_results,
                 progress=on_progress,
             )
-            compile_s += res.get("compile_s", 0.0)
             flown += len(block)
     writer.close()
     if bar is not None:

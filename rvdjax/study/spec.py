@@ -19,6 +19,7 @@ Parameter names (``--grid`` and ``--vary``):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import itertools
 import json
@@ -191,7 +192,7 @@ class StudySpec:
 
     # ------------------------------------------------------------------ derived
 
-    @property
+    @functools.cached_property
     def points(self) -> list[Point]:
         names = [n for n, _ in self.grid]
         combos = itertools.product(*(vs for _, vs in self.grid)) if self.grid else [()]
