@@ -91,17 +91,29 @@ def all_finite(tree):
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(tree)]))
 
 
-def _soft_slack_parts(g, rho, kappa):
-    """(s, s - g, b, root) of the optimal slack of one soft row (module docstring).
+def _soft_kappas(kappa):
+    """(kappa of s - g, kappa of s) of the soft rows: one weight for both, or a pair."""
+    if isinstance(kappa, tuple):
+        return kappa
+    return kappa, kappa
 
-    Written with cancellation-free forms of rho g + sqrt(.) and sqrt(.) - rho g.
+
+def _soft_slack_parts(g, rho, kappa):
+    """(s, s - g) of the optimal slack of one soft row (module docstring) and the two
+    weights. With kappa = (k_mu, k_pi) the slack minimises rho s - k_pi log s - k_mu log(s - g)
+    (a primal-dual iterate's own products mu (s - g), pi s); one kappa is the barrier problem.
+
+    The stationarity rho = k_pi / s + k_mu / (s - g) is a quadratic in s whose larger root is
+    s = (c + root + 2 k_pi) / (2 rho), s - g = (root - c + 2 k_mu) / (2 rho) with c = rho g +
+    k_mu - k_pi and root = sqrt(c^2 + 4 k_mu k_pi), written without cancellation.
     """
-    rg = rho * g
-    root = jnp.sqrt(rg * rg + 4.0 * kappa * kappa)
-    four_k2 = 4.0 * kappa * kappa
-    a = jnp.where(rg >= 0, rg + root, four_k2 / (root - jnp.minimum(rg, 0.0)))  # rho g + root
-    b = jnp.where(rg <= 0, root - rg, four_k2 / (root + jnp.maximum(rg, 0.0)))  # root - rho g
-    return (a + 2.0 * kappa) / (2.0 * rho), (b + 2.0 * kappa) / (2.0 * rho), b, root
+    k_mu, k_pi = _soft_kappas(kappa)
+    c = rho * g + k_mu - k_pi
+    four = 4.0 * k_mu * k_pi
+    root = jnp.sqrt(c * c + four)
+    a = jnp.where(c >= 0, c + root, four / (root - jnp.minimum(c, 0.0)))  # c + root
+    b = jnp.where(c <= 0, root - c, four / (root + jnp.maximum(c, 0.0)))  # root - c
+    return (a + 2.0 * k_pi) / (2.0 * rho), (b + 2.0 * k_mu) / (2.0 * rho), k_mu, k_pi
 
 
 def soft_slack(g, rho, kappa):
@@ -111,11 +123,15 @@ def soft_slack(g, rho, kappa):
 
 
 def soft_penalty(g, rho, kappa):
-    """phi(g), phi'(g), phi''(g) of the slack-eliminated soft barrier (module docstring)."""
-    s, s_minus_g, b, root = _soft_slack_parts(g, rho, kappa)
-    phi = rho * s - kappa * jnp.log(s) - kappa * jnp.log(s_minus_g)
-    d1 = kappa / s_minus_g
-    d2 = kappa / (s_minus_g * s_minus_g) * (0.5 * b / root)
+    """phi(g), phi'(g), phi''(g) of the slack-eliminated soft barrier (module docstring).
+
+    phi' = k_mu / (s - g) (the row's multiplier) and phi'' = 1 / ((s - g)^2 / k_mu + s^2 /
+    k_pi), the primal-dual linearisation 1 / ((s - g) / mu + s / pi) of the row.
+    """
+    s, s_minus_g, k_mu, k_pi = _soft_slack_parts(g, rho, kappa)
+    phi = rho * s - k_pi * jnp.log(s) - k_mu * jnp.log(s_minus_g)
+    d1 = k_mu / s_minus_g
+    d2 = 1.0 / (s_minus_g * s_minus_g / k_mu + s * s / k_pi)
     return phi, d1, d2
 
 
@@ -147,15 +163,26 @@ def max_violation(ocp: OCP, u, x):
     return jnp.maximum(jnp.maximum(vx, vu), 0.0)
 
 
+def split_kappa(kappa):
+    """(kappa of the input rows, kappa of the soft rows): a scalar serves both; a pair gives
+    each row its own weight: ((N, mu) array, (N, mx) array or a pair of them for the two
+    products of a soft row), the complementarity products of a primal-dual iterate
+    (:func:`rvdjax.solver.driver._derivative_kappa`)."""
+    if isinstance(kappa, tuple):
+        return kappa
+    return kappa, kappa
+
+
 def gradient(ocp: OCP, rows: Rows, u, x, kappa):
     """Gradient blocks of cost + barrier (requires strictly feasible input rows)."""
+    k_u, k_x = split_kappa(kappa)
     su = u_slack(rows, u)
     du = rows.wu / su
-    _, d1, _ = soft_penalty(x_violation(rows, x), rows.rho, kappa)
+    _, d1, _ = soft_penalty(x_violation(rows, x), rows.rho, k_x)
     g_u = (
         2.0 * jnp.einsum("tij,tj->ti", ocp.R, u)
         + ocp.r
-        + kappa * jnp.einsum("tij,ti->tj", rows.Fu, du)
+        + jnp.einsum("tij,ti->tj", rows.Fu, k_u * du)
     )
     g_x = (
         2.0 * jnp.einsum("tij,tj->ti", ocp.Q, x - ocp.x_ref)
@@ -167,9 +194,10 @@ def gradient(ocp: OCP, rows: Rows, u, x, kappa):
 
 def hessian(ocp: OCP, rows: Rows, u, x, kappa):
     """Hessian blocks Phi_u (N, nu, nu), Phi_x (N, nx, nx) (paper 000 Eq. 21: 2H + barrier)."""
+    k_u, k_x = split_kappa(kappa)
     su = u_slack(rows, u)
-    wu2 = kappa * rows.wu / (su * su)
-    _, _, d2 = soft_penalty(x_violation(rows, x), rows.rho, kappa)
+    wu2 = k_u * rows.wu / (su * su)
+    _, _, d2 = soft_penalty(x_violation(rows, x), rows.rho, k_x)
     Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, wu2, rows.Fu)
     Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * d2, rows.Fx)
     return Phi_u, Phi_x

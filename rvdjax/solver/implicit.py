@@ -4,7 +4,8 @@ through the Newton iterations.
 The returned point satisfies F(z, nu; theta, kappa) = 0 with F = (grad f_kappa + C^T nu,
 C z - b) (:func:`rvdjax.solver.barrier.kkt_residual`). With J = dF/d(z, nu) (the symmetric
 KKT matrix, factorised by the Riccati method), theta_bar = -(dF/dtheta)^T J^-1 (z_bar, nu_bar).
-kappa is held at the returned iterate's value; in paper mode that is the traced
+kappa is held at the returned iterate's value (accurate mode: each row's complementarity
+product, :func:`rvdjax.solver.driver._derivative_kappa`); in paper mode that is the traced
 ``SolverParams.kappa``, which receives its derivative too (the other solver parameters move the
 answer only through the iteration count: their derivative is zero).
 """
@@ -30,14 +31,14 @@ def kkt_at(ocp, u, x, kappa, settings: SolverSettings) -> KKT:
 def implicit_bwd(settings: SolverSettings, res, sol_bar):
     """Backward rule of the solve: (ocp_bar, params_bar, init_bar) from the cotangent of the
     :class:`~rvdjax.solver.types.Solution`."""
-    ocp, params, init, sol, kkt = res
+    ocp, params, init, sol, kkt, kappa = res
     # J w = (u_bar, x_bar, nu_bar): the Newton system with g = -z_bar, r_p = -nu_bar.
     w = kkt_solve(kkt, -sol_bar.u, -sol_bar.x, -sol_bar.nu, settings.method)
 
     def F(o, kappa):
         return kkt_residual(o, sol.u, sol.x, sol.nu, kappa)
 
-    _, vjp = jax.vjp(F, ocp, sol.kappa)
+    _, vjp = jax.vjp(F, ocp, kappa)
     ocp_bar, kappa_bar = vjp((-w.du, -w.dx, -w.nu))
     ok = (sol.status != Status.NONFINITE) & all_finite((w.du, w.dx, w.nu))
     ocp_bar = jax.tree.map(lambda a: jnp.where(ok & jnp.isfinite(a), a, 0.0), ocp_bar)
