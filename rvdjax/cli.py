@@ -162,12 +162,14 @@ def run_scenario(
     study=None,
     run: int = 0,
     nav_filter: bool = False,
+    tuned: str | None = None,
 ):
     """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step).
 
     ``disturbed``: navigation noise, thrust-amplitude error and minimum impulse bit of the
     scenario's disturbance parameters, drawn from PRNG key ``seed``. ``study``, ``run``: fly
-    run ``run`` of the study in directory ``study`` instead (its exact inputs)."""
+    run ``run`` of the study in directory ``study`` instead (its exact inputs). ``tuned``: a
+    tuned-parameters file written by ``rvdjax tune`` (its values replace the scenario's)."""
     import time
 
     import jax
@@ -188,6 +190,10 @@ def run_scenario(
         sc.check(params, x0, loop)
         sp = sc.solver_params(mode)
         key = jax.random.key(int(seed))
+    if tuned is not None:
+        from rvdjax.tune import apply_params_file
+
+        params, sp, _ = apply_params_file(tuned, sc, params, sp, mode)
     run = jax.jit(lambda p, x, k, s: fly(loop, p, x, k, s))
     compiled = run.lower(params, x0, key, sp).compile()
     t0 = time.perf_counter()
@@ -229,6 +235,78 @@ def metrics_dict(m) -> dict:
     }
 
 
+def cmd_tune(args) -> int:
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.study.spec import parse_assignment
+    from rvdjax.tune import TuneSpec, parse_loss, parse_names, tunables_of
+
+    sc = get_scenario(args.scenario)
+    if args.list_params:
+        for name, t in tunables_of(sc, args.mode).items():
+            print(f"{name:<16}{t.description}")
+        return 0
+    if args.out is not None:
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            raise ValueError(f"--out {args.out!r} is a file, not a directory")
+        parent = os.path.dirname(os.path.abspath(args.out))
+        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+            raise ValueError(f"--out {args.out!r}: directory {parent!r} is not writable")
+    vary = None
+    if args.vary:
+        vary = tuple(parse_assignment(v, "--vary") for v in args.vary)
+    spec = TuneSpec(
+        scenario=sc.name,
+        params=parse_names(args.params, sc, args.mode),
+        loss=parse_loss(args.loss),
+        train=args.train,
+        heldout=args.heldout,
+        steps=args.steps,
+        lr=args.lr,
+        seed=args.seed,
+        mode=args.mode,
+        disturbed=args.disturbed,
+        nav_filter=args.nav_filter,
+        initial=args.initial,
+        vary=vary,
+        n_steps=args.n_steps,
+        random_search=not args.no_random_search,
+        search_sigma=args.search_sigma,
+        remat=not args.no_remat,
+    )
+    from rvdjax.tune import tune
+
+    result = tune(spec, out=args.out, progress=not args.quiet)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(
+        f"{sc.name}: tuned {', '.join(result['params'])} ({result['n_values']} values) over "
+        f"{spec.train} training maneuvers, {spec.steps} Adam steps; loss {spec.loss.label()}"
+    )
+    print(f"  held-out maneuvers: {spec.heldout}")
+    keys = ("effort", "time_to_dock_s", "docked_fraction", "max_violation_m", "loss")
+    print(f"  {'tuning':<16}" + "".join(f"{k:>18}" for k in keys))
+    for label, m in result["heldout"].items():
+        cells = "".join(f"{'-' if m[k] is None else format(m[k], '.4g'):>18}" for k in keys)
+        print(f"  {label:<16}{cells}")
+    print(f"  effort = {result['heldout']['hand']['effort_metric']}")
+    print(
+        f"  gradient step {result['grad_step_s']:.3g} s, forward batch {result['forward_s']:.3g}"
+        f" s, peak memory {result['peak_memory_mb']:.0f} MB"
+        if result["grad_step_s"] is not None
+        else f"  forward batch {result['forward_s']:.3g} s"
+    )
+    if args.out:
+        print(
+            f"  files: {args.out}/tuned_params.json (rvdjax run {sc.name} --params ...), "
+            "history.parquet, heldout.parquet, plots/"
+        )
+    print("  assumptions:")
+    for a in result["assumptions"]:
+        print(f"    - {a}")
+    return 0
+
+
 def cmd_run(args) -> int:
     from rvdjax.disturbances import DISTURBANCE_NOTES
     from rvdjax.scenarios import get_scenario
@@ -248,6 +326,7 @@ def cmd_run(args) -> int:
         args.study,
         args.run,
         args.nav_filter,
+        args.params,
     )
     if args.study is not None:
         from rvdjax.study.table import read_config
@@ -256,6 +335,8 @@ def cmd_run(args) -> int:
         args.mode, args.truth, args.disturbed = cfg["mode"], cfg["truth"], cfg["disturbed"]
         args.nav_filter = cfg["nav_filter"]
     notes = list(sc.notes(args.mode))
+    if args.params is not None:
+        notes.append(f"tuned values from {args.params} replace the scenario's (rvdjax tune)")
     if args.disturbed:
         d = params.disturbances
         notes.append(
@@ -279,6 +360,7 @@ def cmd_run(args) -> int:
         "nav_filter": bool(args.nav_filter),
         "seed": args.seed if args.disturbed and args.study is None else None,
         "study_run": None if args.study is None else {"study": args.study, "run": args.run},
+        "tuned_params": args.params,
         **metrics_dict(m),
         "delta_v_norm": "sum_k ||dv_k||_2 (force inputs: sum_k ||u_k||_2 dt / m)",
         "mean_solve_ms": ms_per_step,
@@ -605,9 +687,66 @@ def main(argv=None) -> int:
     )
     p.add_argument("--study", metavar="DIR", help="replay a run of the study in DIR (with --run)")
     p.add_argument("--run", type=int, metavar="R", help="the run index to replay (with --study)")
+    p.add_argument(
+        "--params", metavar="FILE", help="fly the tuned values in FILE (written by rvdjax tune)"
+    )
     p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png, pdf)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "tune",
+        help="tune weights by gradient through the closed loop (optax), judged on held-out runs",
+    )
+    p.add_argument("scenario", help="scenario name (rvdjax list)")
+    p.add_argument(
+        "--params",
+        default="Q,R",
+        help="comma-separated values to tune (default Q,R; the family's list: rvdjax tune "
+        "SCENARIO --list-params)",
+    )
+    p.add_argument("--list-params", action="store_true", help="list the tunable values, stop")
+    p.add_argument(
+        "--loss",
+        help="surrogate weights, e.g. effort=1,time=1,margin=10 (the defaults)",
+    )
+    p.add_argument("--train", type=int, default=16, help="training maneuvers (default 16)")
+    p.add_argument("--heldout", type=int, default=64, help="held-out maneuvers (default 64)")
+    p.add_argument("--steps", type=int, default=30, help="optimiser steps (default 30)")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam step size on theta (0.05)")
+    p.add_argument("--seed", type=int, default=0, help="training-set seed (held-out: seed + 1)")
+    p.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
+    p.add_argument("--disturbed", action="store_true", help="noise and thrust errors")
+    p.add_argument("--nav-filter", action="store_true", help="with --disturbed: Kalman filter")
+    p.add_argument(
+        "--initial",
+        choices=("nominal", "paper003"),
+        default="nominal",
+        help="initial-state sampler (default: the scenario's x0, positions x N(1, 0.05))",
+    )
+    p.add_argument(
+        "--vary",
+        action="append",
+        default=None,
+        metavar="NAME=DIST",
+        help="initial-state distribution as in rvdjax study (replaces the default), e.g. "
+        "x0[0]=*normal(1,0.1)",
+    )
+    p.add_argument("--n-steps", type=int, help="MPC steps per maneuver (default: the scenario's)")
+    p.add_argument(
+        "--no-random-search", action="store_true", help="skip the derivative-free baseline"
+    )
+    p.add_argument("--search-sigma", type=float, default=0.3, help="random search spread (0.3)")
+    p.add_argument(
+        "--no-remat",
+        action="store_true",
+        help="keep every step's solver residuals instead of recomputing the step (faster "
+        "gradient, memory grows with the steps)",
+    )
+    p.add_argument("--out", metavar="DIR", help="write the tuned values, tables and plots here")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_tune)
 
     p = sub.add_parser("compare", help="fly a scenario with every solver (paper 000 Sec. IV)")
     p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")

@@ -57,3 +57,74 @@ def sample_time(p, g):
 
 def truth_model(p, g):
     return p.A, p.B
+
+
+def weight_diag(W):
+    """The diagonals (..., n) of weight matrices (..., n, n)."""
+    return jnp.diagonal(W, axis1=-2, axis2=-1)
+
+
+def with_weight_diag(W, d):
+    """``W`` rescaled symmetrically so that its diagonal becomes ``d``: S W S with S =
+    diag(sqrt(d / diag W)) (exactly diag(d) for a diagonal W; positive (semi)definiteness is
+    kept). The tuner's weights are diagonals (DESIGN §7: log-diagonals of Q and R)."""
+    s = jnp.sqrt(d / weight_diag(W))
+    return W * s[..., :, None] * s[..., None, :]
+
+
+def weight_tunables(phases: str = "") -> dict:
+    """The ``Q`` and ``R`` :class:`~rvdjax.loop.family.Tunable` entries (log-diagonals)."""
+    from rvdjax.loop.family import Tunable
+
+    where = f" {phases}" if phases else ""
+    return {
+        "Q": Tunable(
+            f"state weight diagonal{where} (log scale)",
+            get=lambda p: weight_diag(p.Q),
+            set=lambda p, v: p._replace(Q=with_weight_diag(p.Q, v)),
+            derived=True,
+        ),
+        "R": Tunable(
+            f"input weight diagonal{where} (log scale)",
+            get=lambda p: weight_diag(p.R),
+            set=lambda p, v: p._replace(R=with_weight_diag(p.R, v)),
+            derived=True,
+        ),
+    }
+
+
+def derive_terminal(p, names, scale=1.0):
+    """Q_f = scale * P_bar, P_bar the DARE solution of (A, B, Q, R), when Q, R or the model
+    changed (how every time-invariant family builds its terminal weight)."""
+    from rvdjax.dynamics import dare
+
+    if not names:
+        return p
+    return p._replace(Q_f=scale * dare(p.A, p.B, p.Q, p.R))
+
+
+def smooth_norm(v, eps=1e-9):
+    """sqrt(|v|^2 + eps^2): the Euclidean norm with a finite derivative at v = 0 [units of v]."""
+    return jnp.sqrt(jnp.sum(v * v, axis=-1) + eps * eps)
+
+
+def smooth_excess(d, tol):
+    """Smooth max(0, d - tol) (width 0.1 tol): the distance left to a docking region of
+    radius ``tol``. Near 0 where a run docks, so a docking step earlier or later moves the
+    tuning surrogate's time integral (:mod:`rvdjax.tune.loss`) by almost nothing."""
+    z = d - tol
+    w = 0.1 * tol
+    return 0.5 * (z + jnp.sqrt(z * z + w * w))
+
+
+def field_tunable(field: str, description: str, **options):
+    """A :class:`~rvdjax.loop.family.Tunable` reading and replacing the parameters' ``field``
+    (``options``: transform, bounds, derived)."""
+    from rvdjax.loop.family import Tunable
+
+    return Tunable(
+        description,
+        get=lambda p: getattr(p, field),
+        set=lambda p, v: p._replace(**{field: v}),
+        **options,
+    )

@@ -44,8 +44,19 @@ from rvdjax.constraints import (
 )
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
-from rvdjax.loop.family import Family, Layout
+from rvdjax.families.common import (
+    control,
+    derive_terminal,
+    field_tunable,
+    model,
+    sample_time,
+    smooth_excess,
+    smooth_norm,
+    tracking_ocp,
+    truth_model,
+    weight_tunables,
+)
+from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -380,6 +391,31 @@ def _plot(path, scenario, params, infos):
     plot_docking(path, scenario, params, infos)
 
 
+def dock_error(p: Params, fc: Config, g: Guidance, x, t):
+    """Distance [m] beyond dock_tol of the docked holding position (the circle shrunk to
+    r_min, plus the gap, on the port axis) at time t."""
+    centre, phi = target_at(p, jnp.asarray(t))
+    return smooth_excess(smooth_norm(x[:2] - (centre + (p.r_min + p.gap) * _unit(phi))), p.dock_tol)
+
+
+TUNING = Tuning(
+    tunables={
+        **weight_tunables(),
+        "gamma": field_tunable(
+            "gamma",
+            "holding-radius shrink factor per qualifying step (paper 000 Eq. 18, paper 002)",
+            transform="logit",
+            bounds=(0.0, 1.0),
+        ),
+        "gap": field_tunable(
+            "gap",
+            "keep-out margin: holding position distance outside the dynamic circle [m]",
+        ),
+    },
+    derive=derive_terminal,
+)
+
+
 FAMILY = Family(
     name="planar-docking",
     description="planar 3-DOF docking to a rotating, translating target: holding radius, "
@@ -400,4 +436,6 @@ FAMILY = Family(
     truth_blocks=truth_blocks,
     model=model,
     plot=_plot,
+    dock_error=dock_error,
+    tuning=TUNING,
 )

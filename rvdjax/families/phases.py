@@ -54,7 +54,8 @@ from rvdjax.constraints import (
 )
 from rvdjax.disturbances import THESIS_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.loop.family import Family, Layout
+from rvdjax.families.common import field_tunable, smooth_excess, smooth_norm, weight_tunables
+from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.ocp import OCP
 from rvdjax.propagate import Drag, Orbit, circular_orbit
 from rvdjax.solver import Plan
@@ -575,6 +576,44 @@ def _plot(path, scenario, params, infos):
     plot_phases(path, scenario, params, infos)
 
 
+def dock_error(p: Params, fc: Config, g: Guidance, x, t):
+    """Distance beyond r3 of the docking port [m] (docked within r3)."""
+    port, _, _ = target_state(p, t)
+    return smooth_excess(smooth_norm(x[:3] - port), p.r3)
+
+
+def _derive(p: Params, names) -> Params:
+    """The impulsive CW model per phase from the sample times, then Q_f = P_bar per phase."""
+    import jax
+
+    from rvdjax.dynamics import cw_continuous, dare, discretize_impulsive
+
+    if "ts" in names:
+        Ac, _ = cw_continuous(p.n, p.mass)
+        A, B = jax.vmap(lambda ts: discretize_impulsive(Ac, ts))(p.ts)
+        p = p._replace(A=A, B=B)
+    if not names:
+        return p
+    return p._replace(Q_f=jax.vmap(dare)(p.A, p.B, p.Q, p.R))
+
+
+TUNING = Tuning(
+    tunables={
+        **weight_tunables("per phase (3 rows: rendezvous, approach, docking)"),
+        "lam": field_tunable(
+            "lam",
+            "cone-penalty weight lambda per phase (paper 003 Eqs. 3.3, 3.8; phase 2 unused)",
+        ),
+        "ts": field_tunable(
+            "ts",
+            "sample time per phase [s] (the discrete models follow; the step budget does not)",
+            derived=True,
+        ),
+    },
+    derive=_derive,
+)
+
+
 FAMILY = Family(
     name="three-phase",
     description="three-phase CW rendezvous, approach and docking with impulsive delta-v "
@@ -596,4 +635,6 @@ FAMILY = Family(
     truths=("linear", "two-body", "two-body-j2", "two-body-j2-drag"),
     check=check,
     plot=_plot,
+    dock_error=dock_error,
+    tuning=TUNING,
 )

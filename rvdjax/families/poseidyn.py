@@ -37,8 +37,19 @@ from rvdjax import checks
 from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out, thrust_box
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
-from rvdjax.loop.family import Family, Layout
+from rvdjax.families.common import (
+    control,
+    derive_terminal,
+    field_tunable,
+    model,
+    sample_time,
+    smooth_excess,
+    smooth_norm,
+    tracking_ocp,
+    truth_model,
+    weight_tunables,
+)
+from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "make_params", "FAMILY"]
@@ -56,6 +67,7 @@ class Params(NamedTuple):
     Attributes:
         A, B: (4, 4), (4, 2) ZOH model of the planar double integrator (also the truth).
         Q, R, Q_f: weights; Q_f = terminal_scale * P_bar (P_bar: DARE solution).
+        terminal_scale: () the scale of Q_f (paper 001: 100 initial, 1 re-tuned).
         u_max: (2,) force limits on Fx, Fy [N].
         dock: (2,) docking point x_t (cone apex) [m].
         cone_axis: () outward cone axis angle [rad]; half_angle: () [rad];
@@ -76,6 +88,7 @@ class Params(NamedTuple):
     Q: jnp.ndarray
     R: jnp.ndarray
     Q_f: jnp.ndarray
+    terminal_scale: jnp.ndarray
     u_max: jnp.ndarray
     dock: jnp.ndarray
     cone_axis: jnp.ndarray
@@ -209,6 +222,7 @@ def make_params(
         Q=f(Q),
         R=f(R),
         Q_f=terminal_scale * P_bar,
+        terminal_scale=f(float(terminal_scale)),
         u_max=f(np.full(NU, u_max, dtype=float)),
         dock=f(dock),
         cone_axis=f(axis),
@@ -324,6 +338,39 @@ def _plot(path, scenario, params, infos):
     plot_poseidyn(path, scenario, params, infos)
 
 
+def dock_error(p: Params, fc: Config, g: Guidance, x, t):
+    """Distance beyond dock_tol of the docking point [m]."""
+    return smooth_excess(smooth_norm(x[:2] - p.dock), p.dock_tol)
+
+
+def _derive(p: Params, names) -> Params:
+    """The ZOH model from the sample time, then Q_f = terminal_scale * P_bar."""
+    from rvdjax.dynamics import discretize_zoh, planar2dof_continuous
+
+    if "ts" in names:
+        A, B = discretize_zoh(*planar2dof_continuous(p.mass), p.ts)
+        p = p._replace(A=A, B=B)
+    return derive_terminal(p, names, p.terminal_scale)
+
+
+TUNING = Tuning(
+    tunables={
+        **weight_tunables(),
+        "terminal_scale": field_tunable(
+            "terminal_scale",
+            "terminal weight scale: Q_f = terminal_scale P_bar (paper 001 Tables 2-3)",
+            derived=True,
+        ),
+        "ts": field_tunable(
+            "ts",
+            "sample time [s] (the discrete model follows; the run's step budget does not)",
+            derived=True,
+        ),
+    },
+    derive=_derive,
+)
+
+
 FAMILY = Family(
     name="poseidyn",
     description="planar double-integrator LQ-MPC docking with a rotating-hyperplane keep-out "
@@ -346,4 +393,6 @@ FAMILY = Family(
     subsamples=subsamples,
     plot=_plot,
     baselines=("idvd",),
+    dock_error=dock_error,
+    tuning=TUNING,
 )

@@ -22,8 +22,18 @@ from rvdjax import checks
 from rvdjax.constraints import sphere_keep_out, thrust_box
 from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
-from rvdjax.loop.family import Family, Layout
+from rvdjax.families.common import (
+    control,
+    derive_terminal,
+    model,
+    sample_time,
+    smooth_excess,
+    smooth_norm,
+    tracking_ocp,
+    truth_model,
+    weight_tunables,
+)
+from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.propagate import Drag, Orbit, circular_orbit
 from rvdjax.solver import drift_plan
 
@@ -232,6 +242,13 @@ def _plot(path, scenario, params, infos):
     plot_rendezvous(path, scenario, params, infos)
 
 
+def dock_error(p: Params, fc, g, x, t):
+    """Distance beyond ``stop_radius`` of the holding position [m] (where the run ends)."""
+    return smooth_excess(smooth_norm(x[:3] - p.x_ref[:3]), p.stop_radius)
+
+
+TUNING = Tuning(tunables=weight_tunables(), derive=derive_terminal)
+
 FAMILY = Family(
     name="rendezvous",
     description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
@@ -253,4 +270,6 @@ FAMILY = Family(
     truths=("linear", "two-body", "two-body-j2"),
     plot=_plot,
     baselines=("nmpc",),
+    dock_error=dock_error,
+    tuning=TUNING,
 )

@@ -24,6 +24,9 @@ options), and these pure functions of arrays:
 * ``truth_blocks(params, fconfig, G, x, t) -> blocks``: single-stage blocks built at the
   truth's own state and time; their slacks are the truth's constraint margins (kind "hard" is
   judged in ``max_violation_m``, "monitor" is reported);
+* optionally ``dock_error(params, fconfig, G, x, t) -> ()``: the distance [m] from the state to
+  docking (the smooth quantity the tuning loss integrates, :mod:`rvdjax.tune.loss`), and
+  ``tuning``: the family's :class:`Tuning` (what ``rvdjax tune`` may change);
 * optionally ``model(params, fconfig) -> (A, B, c, Q, R)``: the OCP's stage-wise model and
   weights when they depend on the parameters alone (not on the guidance state). The batch
   engine then keeps them out of its slots and, when the runs share their parameters, solves
@@ -37,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-__all__ = ["Layout", "Family"]
+__all__ = ["Layout", "Family", "Tunable", "Tuning"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +77,40 @@ class Layout:
         return tuple(i for i in range(self.nu) if i not in self.force)
 
 
+@dataclasses.dataclass(frozen=True)
+class Tunable:
+    """A parameter the tuner may change (:mod:`rvdjax.tune`).
+
+    Attributes:
+        description: what it is, its units and where the paper sets it.
+        get: params -> its value (an array; e.g. the diagonal of Q per phase).
+        set: (params, value) -> params with the value replaced (pure, jittable; the fields
+            derived from it are recomputed by :attr:`Tuning.derive`).
+        transform: "log" (value = exp(theta), for positive values) or "logit" (value = lo +
+            (hi - lo) sigmoid(theta), for values inside ``bounds``).
+        bounds: the open interval the value must lie in.
+        derived: it changes fields that :attr:`Tuning.derive` recomputes (weights -> terminal
+            weight, sample time -> discrete model).
+    """
+
+    description: str
+    get: Callable
+    set: Callable
+    transform: str = "log"
+    bounds: tuple[float, float] = (0.0, float("inf"))
+    derived: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Tuning:
+    """What a family lets the tuner change: named :class:`Tunable` values and ``derive(params,
+    names) -> params``, which recomputes the fields derived from the tuned ``names`` (the DARE
+    terminal weight from Q and R, the discrete model from the sample time)."""
+
+    tunables: dict
+    derive: Callable
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Family:
     """A guidance family: its layout, configuration type and pure functions (module doc).
@@ -92,6 +129,8 @@ class Family:
             inside a step at M instants, for docking detection and margins between samples.
         model: optional (params, fconfig) -> (A, B, c, Q, R) of the OCP (module docstring).
         plot: (path, scenario, params, infos) -> None, the run's figure.
+        dock_error: optional (params, fconfig, G, x, t) -> distance to docking [m].
+        tuning: optional :class:`Tuning` (the parameters ``rvdjax tune`` may change).
     """
 
     name: str
@@ -116,6 +155,8 @@ class Family:
     model: Callable | None = None
     plot: Callable | None = None
     baselines: tuple[str, ...] = ()
+    dock_error: Callable | None = None
+    tuning: Tuning | None = None
 
     def __hash__(self):
         return hash(self.name)

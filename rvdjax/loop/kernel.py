@@ -586,9 +586,22 @@ def step(loop: Loop, params, sp: SolverParams, state: LoopState):
     return advance(loop, params, sp, state, prep, sol)
 
 
-def fly(loop: Loop, params, x0, key=None, solver_params: SolverParams | None = None):
+def fly(
+    loop: Loop,
+    params,
+    x0,
+    key=None,
+    solver_params: SolverParams | None = None,
+    remat: bool = False,
+):
     """Fly one maneuver: ``n_steps`` MPC steps in one ``lax.scan``. Pure in (params, x0, key,
     solver_params): jit it, vmap it, differentiate it.
+
+    ``remat``: wrap the step in ``jax.checkpoint``. Reverse mode then keeps only the loop
+    state of each step and flies the step again (its solve included) in the backward pass,
+    instead of keeping every step's solver residuals (the OCP and its factorised KKT
+    matrix): memory per step falls from O(N nx^2) to the loop state, for about one more
+    forward pass of compute. No effect on the values.
 
     Returns:
         (StepInfo with a leading step axis, Metrics).
@@ -596,8 +609,14 @@ def fly(loop: Loop, params, x0, key=None, solver_params: SolverParams | None = N
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
     state = init(loop, params, x0, key)
 
-    def body(s, _):
+    def one(s):
         return step(loop, params, sp, s)
+
+    if remat:
+        one = jax.checkpoint(one)
+
+    def body(s, _):
+        return one(s)
 
     last, infos = lax.scan(body, state, None, length=loop.config.n_steps)
     return infos, metrics(loop, params, last)

@@ -1,0 +1,494 @@
+"""Tune a scenario's weights by gradient through the batched closed loop, against the hand
+tuning and a random search with the same budget, judged on held-out maneuvers (DESIGN §7).
+
+Gradients: ``jax.value_and_grad`` of the mean surrogate (:mod:`rvdjax.tune.loss`) over a
+``vmap`` of :func:`rvdjax.loop.fly` (one ``lax.scan`` per maneuver, every solve differentiated
+by its implicit derivative, the step under ``jax.checkpoint`` so memory stays bounded for
+maneuvers of hundreds of steps). Optimiser: optax Adam on the unconstrained theta
+(:mod:`rvdjax.tune.parameters`), cosine-decayed step size, global-norm clipping, non-finite
+updates skipped. The returned tuning is the best theta met on the training loss (the same
+rule as the random search's). Training and held-out sets are study samplers' runs
+(:func:`rvdjax.study.run_inputs`) with different seeds, so no held-out maneuver is trained on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvdjax.loop import fly
+from rvdjax.tune.loss import LossWeights, combine, run_terms
+from rvdjax.tune.parameters import ParameterSpace
+
+__all__ = ["TuneSpec", "Tuner", "tuner_for", "tune", "heldout_summary", "DEFAULT_VARY_SD"]
+
+DEFAULT_VARY_SD = 0.05  # default sets: each position component of x0 times N(1, 0.05)
+
+NOTES = (
+    "surrogate loss (rvdjax's choice): w_e E/E_ref + w_t T/T_ref + w_m M; E the headline "
+    "effort with smoothed norms, T = sum dt log(1 + d/d0)/log(101) (d the distance to docking, "
+    "d0 = 1 % of the initial distance), M = sum (max(0, -margin)/d0)^2 over the hard truth "
+    "rows; E_ref, T_ref the hand tuning's training means. Results are judged with the exact "
+    "metrics.",
+    "the tuned result is the best theta on the training loss met by Adam (gradient) or by "
+    "the random search (theta_hand + sigma N(0, I)); both spend the same number of "
+    "closed-loop evaluations of the training set (a gradient evaluation also runs the "
+    "backward pass)",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneSpec:
+    """A tuning run as plain data.
+
+    Attributes:
+        scenario: scenario name.
+        params: the tuned names (the family's :class:`~rvdjax.loop.family.Tuning`; "kappa" in
+            paper mode).
+        loss: the surrogate's weights.
+        train, heldout: maneuvers in the training and held-out sets.
+        steps: optimiser steps (the random search gets steps + 1 evaluations, as many as the
+            gradient run).
+        lr: Adam's initial step size on theta (log scale for weights: 0.05 = 5 %).
+        seed: training set seed (held-out: seed + 1; random search: seed + 2).
+        mode, disturbed, nav_filter: the closed loop.
+        initial: initial-state sampler ("nominal" or "paper003").
+        vary: ((name, distribution), ...) as ``rvdjax study --vary``; default: each position
+            component of x0 multiplied by N(1, 0.05).
+        n_steps: MPC steps per maneuver (default: the scenario's).
+        random_search: also run the derivative-free baseline.
+        search_sigma: the random search's spread on theta.
+        remat: ``jax.checkpoint`` the closed-loop step (bounded memory, ~1 more forward pass).
+        clip: global-norm clip of the gradient on theta.
+    """
+
+    scenario: str
+    params: tuple = ("Q", "R")
+    loss: LossWeights = LossWeights()
+    train: int = 16
+    heldout: int = 64
+    steps: int = 30
+    lr: float = 0.05
+    seed: int = 0
+    mode: str = "accurate"
+    disturbed: bool = False
+    nav_filter: bool = False
+    initial: str = "nominal"
+    vary: tuple | None = None
+    n_steps: int | None = None
+    random_search: bool = True
+    search_sigma: float = 0.3
+    remat: bool = True
+    clip: float = 1.0
+
+    def __post_init__(self):
+        for name in ("train", "heldout"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v >= 1):
+                raise ValueError(f"--{name} must be an integer >= 1, got {v!r}")
+        if not (isinstance(self.steps, (int, np.integer)) and self.steps >= 0):
+            raise ValueError(f"--steps must be an integer >= 0, got {self.steps!r}")
+        for name in ("lr", "search_sigma", "clip"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
+                raise ValueError(f"{name} must be a number > 0, got {v!r}")
+        if self.n_steps is not None and not (
+            isinstance(self.n_steps, (int, np.integer)) and self.n_steps >= 1
+        ):
+            raise ValueError(f"--n-steps must be an integer >= 1, got {self.n_steps!r}")
+        if self.mode not in ("accurate", "paper", "barrier"):
+            raise ValueError(f"--mode must be accurate, paper or barrier, got {self.mode!r}")
+        if self.nav_filter and not self.disturbed:
+            raise ValueError("--nav-filter needs --disturbed (it filters noisy measurements)")
+        if isinstance(self.params, str):
+            object.__setattr__(self, "params", tuple(self.params.split(",")))
+        object.__setattr__(self, "params", tuple(str(p).strip() for p in self.params))
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["loss"] = dataclasses.asdict(self.loss)
+        return d
+
+
+def _default_vary(scenario) -> tuple:
+    pos = scenario.family_.layout.pos
+    return tuple((f"x0[{i}]", f"*normal(1,{DEFAULT_VARY_SD:g})") for i in pos)
+
+
+def _run_set(spec: TuneSpec, scenario, n: int, seed: int):
+    """(x0s (n, nx), keys (n,)) of n runs of a study with this seed."""
+    from rvdjax.study.runner import run_inputs
+    from rvdjax.study.spec import StudySpec
+
+    vary = _default_vary(scenario) if spec.vary is None else spec.vary
+    study = StudySpec(
+        kind="montecarlo",
+        scenario=scenario.name,
+        n_initial=n,
+        seed=seed,
+        initial=spec.initial,
+        vary=vary,
+        mode=spec.mode,
+        disturbed=spec.disturbed,
+        nav_filter=spec.nav_filter,
+    )
+    study.validate(scenario)
+    for name, _ in study.vary:
+        if not name.startswith("x0"):
+            raise ValueError(f"--vary {name}: tuning draws initial states only (x0, x0[k])")
+    rs = run_inputs(study, scenario, np.arange(n))
+    return jnp.asarray(rs.x0), rs.keys
+
+
+def _mean_finite(a) -> float | None:
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else None
+
+
+def heldout_summary(metrics, effort_key: str, loss=None) -> dict:
+    """Exact held-out figures: mean effort, mean time to dock (docked runs), docked fraction,
+    largest truth violation; plus the surrogate loss when given."""
+    docked = np.asarray(metrics.docked, bool)
+    eff = np.asarray(getattr(metrics, effort_key), float)
+    out = {
+        "effort": _mean_finite(eff),
+        "effort_metric": effort_key,
+        "effort_std": float(np.std(eff[np.isfinite(eff)])) if np.isfinite(eff).any() else None,
+        "time_to_dock_s": _mean_finite(np.where(docked, metrics.time_to_dock_s, np.nan)),
+        "docked_fraction": float(docked.mean()),
+        "max_violation_m": float(np.max(np.asarray(metrics.max_violation_m, float))),
+    }
+    if loss is not None:
+        out["loss"] = float(np.mean(loss))
+    return out
+
+
+_TUNERS: dict = {}
+
+
+def tuner_for(spec: TuneSpec) -> Tuner:
+    """The :class:`Tuner` of ``spec``, shared with earlier specs that differ only in what is
+    traced (loss weights, sets, steps, step size, seeds): a trade-off curve compiles once."""
+    key = (
+        spec.scenario,
+        tuple(spec.params),
+        spec.mode,
+        spec.disturbed,
+        spec.nav_filter,
+        spec.n_steps,
+        spec.remat,
+    )
+    if key not in _TUNERS:
+        _TUNERS.clear()  # one set-up at a time: compiled programs hold memory
+        _TUNERS[key] = Tuner(spec)
+    return _TUNERS[key]
+
+
+class Tuner:
+    """The compiled pieces of one tuning set-up (shared by the gradient run, the random
+    search and the evaluations): ``terms(theta, x0s, keys)`` and ``value_and_grad(theta,
+    x0s, keys, refs, weights)``; the loss weights and the reference scales are traced."""
+
+    def __init__(self, spec: TuneSpec, settings=None, solver_params=None):
+        """``settings``, ``solver_params``: override the scenario's solver settings and traced
+        solver parameters of ``spec.mode`` (e.g. paper mode iterated to convergence)."""
+        from rvdjax.scenarios import get_scenario
+        from rvdjax.study.runner import effort_metric
+
+        self.spec = spec
+        sc = get_scenario(spec.scenario)
+        self.scenario = sc
+        params, x0 = sc.build()
+        loop = sc.loop(
+            spec.mode,
+            disturbed=spec.disturbed,
+            nav_filter=spec.nav_filter,
+            n_steps=spec.n_steps,
+            settings=settings,
+        )
+        sc.check(params, x0, loop)
+        self.loop = loop
+        self.params = params
+        self.sp = sc.solver_params(spec.mode) if solver_params is None else solver_params
+        self.space = ParameterSpace.of(sc, spec.params, params, self.sp, spec.mode)
+        self.effort_key = effort_metric(sc)
+        space, effort_key = self.space, self.effort_key
+
+        def batch_terms(theta, x0s, keys, remat):
+            p, sp = space.apply(params, self.sp, space.values(theta))
+
+            def one(x, k):
+                infos, m = fly(loop, p, x, k, sp, remat=remat)
+                return run_terms(loop, p, infos, effort_key), m
+
+            return jax.vmap(one)(x0s, keys)
+
+        def batch_loss(theta, x0s, keys, refs, weights):
+            (E, T, M), m = batch_terms(theta, x0s, keys, spec.remat)
+            L = combine(weights, E, T, M, refs[0], refs[1])
+            return jnp.mean(L), (L, E, T, M, m)
+
+        self._terms = jax.jit(lambda th, x, k: batch_terms(th, x, k, False))
+        self._vg = jax.jit(jax.value_and_grad(batch_loss, has_aux=True))
+
+    # ------------------------------------------------------------------ evaluations
+
+    def terms(self, theta, x0s, keys):
+        """((E, T, M) per run, Metrics per run) at theta (forward only)."""
+        return self._terms(theta, x0s, keys)
+
+    def losses(self, theta, x0s, keys, refs, weights, chunk: int):
+        """(L per run, Metrics per run) in batches of ``chunk`` (one compiled shape)."""
+        n = x0s.shape[0]
+        pad = (-n) % chunk
+        idx = np.concatenate([np.arange(n), np.zeros(pad, int)])
+        Ls, ms = [], []
+        for s in range(0, n + pad, chunk):
+            sel = idx[s : s + chunk]
+            (E, T, M), m = self.terms(theta, x0s[sel], keys[sel])
+            Ls.append(np.asarray(combine(weights, E, T, M, refs[0], refs[1])))
+            ms.append(jax.tree.map(np.asarray, m))
+        L = np.concatenate(Ls)[:n]
+        m = jax.tree.map(lambda *a: np.concatenate(a)[:n], *ms)
+        return L, m
+
+    def value_and_grad(self, theta, x0s, keys, refs, weights):
+        w = weights.array() if isinstance(weights, LossWeights) else jnp.asarray(weights)
+        return self._vg(theta, x0s, keys, refs, w)
+
+
+def _theta_np(theta) -> dict:
+    return {k: np.asarray(v) for k, v in theta.items()}
+
+
+def tune(spec: TuneSpec, out=None, progress: bool = True) -> dict:
+    """Run a tuning (module docstring); write its files to ``out`` when given.
+
+    Returns the summary dict (what ``rvdjax tune --json`` prints)."""
+    import optax
+
+    from rvdjax.study.runner import peak_rss_mb
+
+    t_start = time.perf_counter()
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+    tuner = tuner_for(spec)
+    sc, space = tuner.scenario, tuner.space
+    weights = spec.loss.array()
+    x_tr, k_tr = _run_set(spec, sc, spec.train, spec.seed)
+    x_ho, k_ho = _run_set(spec, sc, spec.heldout, spec.seed + 1)
+    theta_hand = space.theta()
+
+    # reference scales: the hand tuning's training means (compiles the forward pass)
+    t0 = time.perf_counter()
+    (E, T, M), m_hand_tr = jax.block_until_ready(tuner.terms(theta_hand, x_tr, k_tr))
+    compile_forward_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(tuner.terms(theta_hand, x_tr, k_tr))
+    forward_s = time.perf_counter() - t0
+    refs = (jnp.maximum(jnp.mean(E), 1e-12), jnp.maximum(jnp.mean(T), 1e-12))
+
+    history = []
+    bar = _bar(spec.steps + 1, f"tune {sc.name} (gradient)", progress)
+
+    # ---------------------------------------------------------------- gradient run
+    schedule = optax.cosine_decay_schedule(spec.lr, max(spec.steps, 1), alpha=0.1)
+    opt = optax.apply_if_finite(
+        optax.chain(optax.clip_by_global_norm(spec.clip), optax.adam(schedule)), 5
+    )
+    theta = theta_hand
+    state = opt.init(theta)
+    best = (np.inf, theta_hand)
+    grad_times = []
+    for k in range(spec.steps + 1):
+        t0 = time.perf_counter()
+        if k < spec.steps:
+            (L, aux), g = jax.block_until_ready(
+                tuner.value_and_grad(theta, x_tr, k_tr, refs, weights)
+            )
+            gnorm = float(optax.tree.norm(g))
+        else:  # the last iterate: a forward evaluation
+            (E, T, M), m = tuner.terms(theta, x_tr, k_tr)
+            Ls = combine(weights, E, T, M, refs[0], refs[1])
+            L, aux, gnorm = jnp.mean(Ls), (Ls, E, T, M, m), None
+        wall = time.perf_counter() - t0
+        if 0 < k < spec.steps:
+            grad_times.append(wall)
+        L = float(L)
+        if np.isfinite(L) and L < best[0]:
+            best = (L, theta)
+        history.append(_history_row("gradient", k, k + 1, L, best[0], aux, gnorm, wall))
+        if k < spec.steps:
+            updates, state = opt.update(g, state, theta)
+            theta = optax.apply_updates(theta, updates)
+        bar.update(1)
+        bar.set_postfix(loss=f"{L:.4g}", best=f"{best[0]:.4g}")
+    bar.close()
+    theta_grad = best[1]
+    grad_step_s = float(np.median(grad_times)) if grad_times else None
+    if grad_step_s is None and spec.steps >= 1:
+        grad_step_s = history[0]["wall_s"]
+
+    # ---------------------------------------------------------------- random search
+    theta_rand = None
+    if spec.random_search:
+        key = jax.random.key(spec.seed + 2)
+        bar = _bar(spec.steps + 1, f"tune {sc.name} (random search)", progress)
+        best_r = (np.inf, theta_hand)
+        leaves, treedef = jax.tree.flatten(theta_hand)
+        for k in range(spec.steps + 1):
+            if k == 0:
+                cand = theta_hand
+            else:
+                keys = jax.random.split(jax.random.fold_in(key, k), len(leaves))
+                cand = jax.tree.unflatten(
+                    treedef,
+                    [
+                        a + spec.search_sigma * jax.random.normal(kk, a.shape, a.dtype)
+                        for a, kk in zip(leaves, keys, strict=True)
+                    ],
+                )
+            t0 = time.perf_counter()
+            (E, T, M), m = tuner.terms(cand, x_tr, k_tr)
+            Ls = combine(weights, E, T, M, refs[0], refs[1])
+            L = float(jnp.mean(Ls))
+            wall = time.perf_counter() - t0
+            if np.isfinite(L) and L < best_r[0]:
+                best_r = (L, cand)
+            history.append(
+                _history_row("random", k, k + 1, L, best_r[0], (Ls, E, T, M, m), None, wall)
+            )
+            bar.update(1)
+            bar.set_postfix(loss=f"{L:.4g}", best=f"{best_r[0]:.4g}")
+        bar.close()
+        theta_rand = best_r[1]
+
+    # ---------------------------------------------------------------- held-out judgement
+    chunk = spec.train
+    tunings = {"hand": theta_hand, "tuned": theta_grad}
+    if theta_rand is not None:
+        tunings["random_search"] = theta_rand
+    heldout, rows = {}, []
+    for label, th in tunings.items():
+        L, m = tuner.losses(th, x_ho, k_ho, refs, weights, chunk)
+        heldout[label] = heldout_summary(m, tuner.effort_key, L)
+        for i in range(spec.heldout):
+            rows.append(
+                {
+                    "tuning": label,
+                    "run": i,
+                    "loss": float(L[i]),
+                    "status": int(m.status[i]),
+                    "docked": bool(m.docked[i]),
+                    "effort": float(getattr(m, tuner.effort_key)[i]),
+                    "time_to_dock_s": float(m.time_to_dock_s[i]),
+                    "max_violation_m": float(m.max_violation_m[i]),
+                    **{f"x0_{j}": float(v) for j, v in enumerate(np.asarray(x_ho[i]))},
+                }
+            )
+    values = {
+        label: {k: np.asarray(v) for k, v in space.values(th).items()}
+        for label, th in tunings.items()
+    }
+    result = {
+        "scenario": sc.name,
+        "family": sc.family,
+        "params": list(space.names),
+        "n_values": space.size,
+        "loss": dataclasses.asdict(spec.loss),
+        "mode": spec.mode,
+        "train": spec.train,
+        "heldout_runs": spec.heldout,
+        "steps": spec.steps,
+        "n_steps": tuner.loop.config.n_steps,
+        "evaluations": {
+            "gradient": spec.steps + 1,
+            "random_search": spec.steps + 1 if spec.random_search else 0,
+        },
+        "train_loss": {
+            "hand": history[0]["loss"],
+            "tuned": float(best[0]),
+            **({"random_search": float(best_r[0])} if spec.random_search else {}),
+        },
+        "heldout": heldout,
+        "grad_step_s": grad_step_s,
+        "forward_s": forward_s,
+        "grad_to_forward": None if grad_step_s is None else grad_step_s / forward_s,
+        "compile_forward_s": compile_forward_s,
+        "remat": spec.remat,
+        "peak_memory_mb": peak_rss_mb(),
+        "wall_s": time.perf_counter() - t_start,
+        "values": {lab: {k: v.tolist() for k, v in d.items()} for lab, d in values.items()},
+        "assumptions": [*NOTES, *sc.notes(spec.mode)],
+    }
+    if out is not None:
+        tuner.heldout_keys = k_ho  # the figures fly a held-out run with its own key
+        _write(out, spec, tuner, result, history, rows, values)
+        result["out"] = str(out)
+    return result
+
+
+def _history_row(method, step, evaluations, loss, best, aux, gnorm, wall) -> dict:
+    Ls, E, T, M, m = aux
+    return {
+        "method": method,
+        "step": step,
+        "evaluations": evaluations,
+        "loss": loss,
+        "best_loss": float(best),
+        "effort_term": float(jnp.mean(E)),
+        "time_term_s": float(jnp.mean(T)),
+        "margin_term": float(jnp.mean(M)),
+        "docked_fraction": float(jnp.mean(m.docked)),
+        "grad_norm": gnorm,
+        "wall_s": wall,
+    }
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+    def set_postfix(self, **kw):
+        pass
+
+    def close(self):
+        pass
+
+
+def _bar(total, desc, progress):
+    if not progress:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", leave=False)
+
+
+def _write(out: Path, spec: TuneSpec, tuner: Tuner, result, history, rows, values) -> None:
+    import pandas as pd
+
+    from rvdjax.tune.files import write_params
+
+    pd.DataFrame(history).to_parquet(out / "history.parquet", index=False)
+    pd.DataFrame(rows).to_parquet(out / "heldout.parquet", index=False)
+    write_params(out / "tuned_params.json", tuner, values["tuned"], "gradient", spec)
+    if "random_search" in values:
+        write_params(out / "random_params.json", tuner, values["random_search"], "random", spec)
+    (out / "spec.json").write_text(json.dumps(spec.to_dict(), indent=2, default=list))
+    (out / "summary.json").write_text(json.dumps(result, indent=2))
+    try:  # the tables and files are written: a failed figure must not lose them
+        from rvdjax.tune.figures import tuning_figures
+
+        tuning_figures(out, tuner, values, history, rows)
+    except Exception as err:  # noqa: BLE001
+        import warnings
+
+        warnings.warn(f"tuning figures not written: {err!r}", stacklevel=2)
