@@ -1,23 +1,8 @@
-"""Differentiable tuning (issue 9): parameter maps, the surrogate, gradients through the
-closed loop against central differences per family, the command and its files.
-
-Each family's check flies two short maneuvers (5 MPC steps: no phase switch or docking, so
-the loss is smooth where it is probed) and compares <grad, d> along a random direction d of
-theta with a Richardson-extrapolated central difference, in two solver modes:
-
-* paper mode iterated to convergence (fixed kappa, tol 1e-13, up to 3000 iterations: the
-  thesis' first cold solve takes over 1000): every solve is the exact
-  barrier solution and its implicit derivative exact, so the closed loop's gradient (scan,
-  checkpointed steps, parameter maps, DARE, surrogate) must agree to 1e-6;
-* accurate mode (the tuner's default): the implicit derivative linearises the primal-dual
-  iterate with its complementarity products held fixed (rvdjax.solver.driver.
-  _derivative_kappa), while the solver's output moves them; measured agreement 1e-5 to
-  6e-4 relative on these maneuvers, checked at 2e-3.
-"""
+"""Differentiable tuning (issue 9): parameter maps, the surrogate, the command and its files
+(the gradient checks: tests/test_tune_gradients.py)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import jax
@@ -28,10 +13,8 @@ import pytest
 
 from rvdjax.cli import main
 from rvdjax.scenarios import get_scenario
-from rvdjax.solver import SolverParams, SolverSettings
 from rvdjax.tune import LossWeights, ParameterSpace, Tuner, TuneSpec, parse_loss
-from rvdjax.tune.loss import combine, run_terms
-from rvdjax.tune.trainer import _run_set
+from rvdjax.tune.loss import run_terms
 
 # family -> (scenario, tuned names); every family's full list of tunables
 CASES = {
@@ -40,115 +23,6 @@ CASES = {
     "poseidyn": ("poseidyn-lqmpc", ("Q", "R", "terminal_scale", "ts")),
     "three-phase": ("thesis-vbar", ("Q", "R", "lam", "ts")),
 }
-SHORT = 5  # MPC steps of the gradient checks
-RTOL = {"paper": 1e-6, "accurate": 2e-3}  # module docstring
-MODES = ("paper", "accurate")
-
-
-def _tuner(family: str, mode: str, n_steps: int = SHORT) -> Tuner:
-    name, names = CASES[family]
-    spec = TuneSpec(scenario=name, params=names, train=2, heldout=1, steps=0, n_steps=n_steps)
-    if mode == "accurate":
-        return Tuner(spec)
-    sc = get_scenario(name)
-    spec = dataclasses.replace(spec, mode="paper")
-    return Tuner(
-        spec,
-        settings=SolverSettings(mode="paper", max_iter=3000, max_line_search=300),
-        solver_params=SolverParams.paper(kappa=sc.paper_kappa, tol=1e-13),
-    )
-
-
-@pytest.fixture(scope="module", params=[(f, m) for f in CASES for m in MODES], ids=str)
-def short(request):
-    """(family, mode, tuner, x0s, keys, refs) of two short maneuvers."""
-    family, mode = request.param
-    tuner = _tuner(family, mode)
-    x, k = _run_set(tuner.spec, tuner.scenario, 2, 0)
-    (E, T, M), _ = tuner.terms(tuner.space.theta(), x, k)
-    refs = (jnp.mean(E), jnp.mean(T))
-    return family, mode, tuner, x, k, refs
-
-
-def _loss(tuner, theta, x, k, refs) -> float:
-    (E, T, M), _ = tuner.terms(theta, x, k)
-    return float(jnp.mean(combine(LossWeights(), E, T, M, *refs)))
-
-
-def test_gradient_matches_central_differences(short):
-    fam, mode, tuner, x, k, refs = short
-    theta = tuner.space.theta()
-    (L, _), g = tuner.value_and_grad(theta, x, k, refs, LossWeights())
-    flat_g = np.concatenate([np.ravel(g[n]) for n in tuner.space.names])
-    assert np.all(np.isfinite(flat_g))
-    assert np.count_nonzero(flat_g) >= 2, f"{fam}: the loss does not move with theta"
-    rng = np.random.default_rng(list(CASES).index(fam))
-    d = {n: rng.normal(size=np.shape(theta[n])) for n in tuner.space.names}
-    gd = float(sum(np.sum(np.asarray(g[n]) * d[n]) for n in d))
-
-    def f(t):
-        return _loss(tuner, {n: theta[n] + t * d[n] for n in d}, x, k, refs)
-
-    h = 1e-3
-    d1 = (f(h) - f(-h)) / (2 * h)
-    d2 = (f(h / 2) - f(-h / 2)) / h
-    fd = (4 * d2 - d1) / 3
-    scale = np.linalg.norm(flat_g) * np.sqrt(sum(np.sum(v * v) for v in d.values()))
-    noise = (1e-13 if mode == "paper" else 1e-9) * abs(float(L)) / h
-    assert abs(fd - gd) <= RTOL[mode] * abs(gd) + 1e-7 * scale + noise, (
-        f"{fam}, {mode} mode: grad.d {gd:.10e}, central difference {fd:.10e}"
-    )
-
-
-def test_gradient_finite_at_active_thrust_limits():
-    """fastmpc-3d saturates its thrusters from the first step (the input rows are active in
-    the truth's plan): the gradient through those solves is finite and matches central
-    differences in each weight's largest entry to 5e-3 (measured 2.4e-3 for Q: the soft
-    keep-out rows' linearisation, module docstring; before the per-row complementarity fix
-    it was off by 2 %)."""
-    sc = get_scenario("fastmpc-3d")
-    spec = TuneSpec(scenario=sc.name, params=("Q", "R"), train=1, heldout=1, steps=0, n_steps=3)
-    tuner = Tuner(spec)
-    x = jnp.asarray(sc.x0)[None]
-    k = jax.random.key(0)[None]
-    from rvdjax.loop import fly
-
-    infos, _ = jax.jit(lambda p: fly(tuner.loop, p, x[0]))(tuner.params)
-    saturation = np.max(np.abs(np.asarray(infos.u)) / np.asarray(tuner.params.u_max))
-    assert saturation > 0.999, f"no active thrust limit ({saturation:.4f} of u_max)"
-    refs = (1.0, 1.0)
-    theta = tuner.space.theta()
-    _, g = tuner.value_and_grad(theta, x, k, refs, LossWeights())
-    for n in ("Q", "R"):
-        gn = np.asarray(g[n])
-        assert np.all(np.isfinite(gn))
-        i = int(np.argmax(np.abs(gn)))
-        e = np.zeros_like(gn)
-        e.flat[i] = 1.0
-        h = 1e-4
-
-        def f(t, n=n, e=e):
-            return _loss(tuner, {**theta, n: theta[n] + t * e}, x, k, refs)
-
-        fd = (f(h) - f(-h)) / (2 * h)
-        np.testing.assert_allclose(gn.flat[i], fd, rtol=5e-3)
-
-
-def test_remat_gives_the_same_gradient():
-    """jax.checkpoint of the step recomputes it in the backward pass: the same gradient up to
-    the re-solve. The recomputed step is another compiled program, its solves end at other
-    rounding within their 1e-9 tolerance, and the accurate mode's derivative moves with them
-    by ~3e-5 relative (measured); 1e-4 keeps that and catches a lost term."""
-    base = dict(scenario="poseidyn-lqmpc", params=("Q", "R"), train=2, heldout=1, steps=0)
-    a = Tuner(TuneSpec(**base, n_steps=SHORT, remat=True))
-    b = Tuner(TuneSpec(**base, n_steps=SHORT, remat=False))
-    x, k = _run_set(a.spec, a.scenario, 2, 0)
-    theta = a.space.theta()
-    _, ga = a.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
-    _, gb = b.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
-    for n in theta:
-        np.testing.assert_allclose(ga[n], gb[n], rtol=1e-4, atol=0)
-
 
 # ------------------------------------------------------------------ maps and the surrogate
 
