@@ -139,8 +139,12 @@ def test_gradient_finite_at_active_thrust_limits():
 def test_remat_gives_the_same_gradient():
     """jax.checkpoint of the step recomputes it in the backward pass: the same gradient up to
     the re-solve. The recomputed step is another compiled program, its solves end at other
-    rounding within their 1e-9 tolerance, and the accurate mode's derivative moves with them
-    by ~3e-5 relative (measured); 1e-4 keeps that and catches a lost term."""
+    rounding within their 1e-9 tolerance, and the accurate mode's derivative (taken at the
+    returned iterate's own complementarities) moves with them: measured 3e-5 relative with
+    the undamped Mehrotra corrector, 2.2e-4 with the damped one (largest on terminal_scale,
+    whose element is 2e-5 against 25 for Ts; 1e-4 on Q). Tighter solver tolerances do not
+    shrink it (1e-10 to 1e-12 are beyond what these solves reach reliably). 1e-3 per element
+    keeps that and still catches a lost term, which moves an element by O(1)."""
     a = _tuner("poseidyn", "accurate", remat=True)
     b = _tuner("poseidyn", "accurate")
     x, k = _run_set(a.spec, a.scenario, 2, 0)
@@ -148,4 +152,4 @@ def test_remat_gives_the_same_gradient():
     _, ga = a.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
     _, gb = b.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
     for n in theta:
-        np.testing.assert_allclose(ga[n], gb[n], rtol=1e-4, atol=0)
+        np.testing.assert_allclose(ga[n], gb[n], rtol=1e-3, atol=0)

@@ -30,6 +30,12 @@ from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
 
+# sigma >= SIGMA_FLOOR while the relative dual residual exceeds SIGMA_FLOOR_RES (chosen on the
+# closed loops of paper 003: 0.2 / 0.3 / 0.5 gave 29.5 / 24.8 / 22.0 iterations per solve on
+# thesis-vbar-lp and 12.3 / 12.6 / 14.4 on thesis-vbar; docs/solver.md).
+SIGMA_FLOOR = 0.3
+SIGMA_FLOOR_RES = 10.0
+
 
 class PDState(NamedTuple):
     """Carry of the primal-dual loop (one problem). Row arrays: (N, mu) or (N, mx)."""
@@ -136,9 +142,22 @@ def pd_iteration(
         )
     )
     sigma = jnp.clip(gap_a / jnp.maximum(gap, 1e-300), 0.0, 1.0) ** 3
+    # While the dual residual is large, keep centring: from a warm start whose multipliers are
+    # far from dual feasible (the LP cost of thesis-vbar-lp), Mehrotra's sigma drove the gap
+    # down 5000x in five iterations while the residual stayed, and the iterate then crept
+    # along the boundary for 100-300 iterations.
+    res = jnp.where(jnp.isfinite(st.res), st.res, 0.0)
+    sigma = jnp.where(res > SIGMA_FLOOR_RES, jnp.maximum(sigma, SIGMA_FLOOR), sigma)
     kappa = sigma * gap / jnp.maximum(m_eff, 1.0)
 
-    # Corrector: centring plus Mehrotra's second-order term.
+    # Corrector: centring plus Mehrotra's second-order term, damped by the affine step length.
+    # The full term dsu_a dlam_a is the product of the affine steps at alpha = 1; when the
+    # affine step is cut to alpha_a, the products the corrector should cancel are
+    # alpha_a^2 dsu_a dlam_a and the full term overshoots: from the warm starts of the
+    # three-phase family, correctors with the full term were cut to step lengths of 1e-3
+    # for dozens of iterations (up to 82 per solve). Damping by alpha_a (one factor, as the
+    # centring target also moves with the step) halved the iterations per solve there.
+    damp = alpha_a
     step, ds, dlam, dmu, dpi, dsu, dsx = _pd_step(
         rows,
         st,
@@ -148,9 +167,9 @@ def pd_iteration(
         rp,
         su,
         sx,
-        kappa - dsu_a * dlam_a,
-        kappa - dsx_a * dmu_a,
-        kappa - ds_a * dpi_a,
+        kappa - damp * dsu_a * dlam_a,
+        kappa - damp * dsx_a * dmu_a,
+        kappa - damp * ds_a * dpi_a,
         method,
     )
     finite = all_finite((step, ds, dlam, dmu, dpi))

@@ -1,0 +1,90 @@
+"""Solver iterations per MPC step over one maneuver of each scenario (docs/benchmark.md).
+
+Flies every scenario (accurate mode, CW truth, the published initial state) with the jitted
+``rvdjax.loop.fly`` and prints the mean, p90 and largest number of solver iterations per MPC
+step, the solver statuses over the steps and the maneuver's delta-v and time to dock (so that a
+solver change that lowers the iterations can be seen not to change the answers). With
+``--disturbed K`` the disturbed rows fly K PRNG keys of ``thesis-vbar`` (with the navigation
+filter) and ``rotating-target-b``.
+
+    python sweeps/solver_iterations.py [--scenarios a,b,...] [--disturbed 8] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import rvdjax  # noqa: F401  (float64)
+from rvdjax.loop import kernel
+from rvdjax.scenarios import SCENARIOS, get_scenario
+
+DISTURBED = (("thesis-vbar", True), ("rotating-target-b", False))
+
+
+def _row(name, infos, m, runs):
+    active = np.asarray(infos.active)
+    its = np.asarray(infos.iterations)[active]
+    return {
+        "scenario": name,
+        "runs": runs,
+        "iterations_mean": float(its.mean()),
+        "iterations_p90": float(np.percentile(its, 90)),
+        "iterations_max": int(its.max()),
+        "status_counts": np.asarray(m.status_counts).reshape(-1, 4).sum(0).tolist(),
+        "docked": int(np.asarray(m.docked).sum()),
+        "delta_v_m_s": float(np.mean(np.asarray(m.delta_v_m_s))),
+        "time_to_dock_s": float(np.mean(np.asarray(m.time_to_dock_s))),
+    }
+
+
+def nominal(name: str) -> dict:
+    sc = get_scenario(name)
+    params, x0 = sc.build()
+    loop = sc.loop("accurate")
+    infos, m = jax.jit(lambda p: kernel.fly(loop, p, jnp.asarray(x0)))(params)
+    return _row(name, infos, m, 1)
+
+
+def disturbed(name: str, nav_filter: bool, runs: int) -> dict:
+    sc = get_scenario(name)
+    params, x0 = sc.build()
+    loop = sc.loop("accurate", disturbed=True, nav_filter=nav_filter)
+    keys = jax.random.split(jax.random.PRNGKey(0), runs)
+    f = jax.jit(jax.vmap(lambda k: kernel.fly(loop, params, jnp.asarray(x0), k)))
+    infos, m = f(keys)
+    label = f"{name}, disturbed" + (", navigation filter" if nav_filter else "")
+    return _row(label, infos, m, runs)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated names")
+    ap.add_argument("--disturbed", type=int, default=8, help="PRNG keys per disturbed row")
+    ap.add_argument("--json", action="store_true", help="one JSON object per row")
+    args = ap.parse_args(argv)
+    names = [n for n in args.scenarios.split(",") if n]
+    for n in names:
+        get_scenario(n)  # unknown names fail before anything compiles
+    rows = [nominal(n) for n in names]
+    if args.disturbed > 0:
+        rows += [disturbed(n, nav, args.disturbed) for n, nav in DISTURBED]
+    for r in rows:
+        if args.json:
+            print(json.dumps(r))
+        else:
+            print(
+                f"{r['scenario']:<48} runs {r['runs']:>3}  iterations/step "
+                f"{r['iterations_mean']:6.2f} (p90 {r['iterations_p90']:3.0f}, max "
+                f"{r['iterations_max']:3d})  statuses {r['status_counts']}  docked "
+                f"{r['docked']}/{r['runs']}  dv {r['delta_v_m_s']:.6f} m/s  "
+                f"t {r['time_to_dock_s']:.1f} s"
+            )
+
+
+if __name__ == "__main__":
+    main()
