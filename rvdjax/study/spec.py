@@ -161,7 +161,7 @@ class StudySpec:
     slots: int = 256
     chunk: int = 32
     iterations: int = 3
-    block: int = 4096
+    block: int = 8192
 
     def __post_init__(self):
         if self.kind not in ("montecarlo", "sweep", "robustness"):
