@@ -137,6 +137,23 @@ def test_a_horizon_grid_compiles_once_per_value():
     assert spec.n_runs == 4
 
 
+def test_two_parameter_sweeps_draw_one_panel_per_horizon():
+    from rvdjax.study.figures import _panels
+
+    grid = (("Ts", (20.0, 30.0, 40.0)), ("N", (10.0, 15.0)))
+    spec = StudySpec(n_initial=2, **{**BASE, "kind": "sweep", "grid": grid})
+    panels = _panels(spec)
+    assert [name for name, _ in panels] == ["N = 10", "N = 15"]
+    for (_, series), n in zip(panels, (10.0, 15.0), strict=True):
+        # each panel holds the three sample times at its horizon, by point index
+        assert [spec.points[i].values for i, _ in series] == [
+            {"Ts": ts, "N": n} for ts in (20.0, 30.0, 40.0)
+        ]
+        assert [label for _, label in series] == ["Ts=20", "Ts=30", "Ts=40"]
+    one = StudySpec(n_initial=2, **{**BASE, "kind": "sweep", "grid": (("N", (10, 15)),)})
+    assert _panels(one) == [("", [(0, "N=10"), (1, "N=15")])]
+
+
 # --------------------------------------------------------------------------------- a study
 
 

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from rvdjax.study.spec import StudySpec
 from rvdjax.study.table import read_config, read_table
 
@@ -23,35 +21,70 @@ def _plt():
     return plt
 
 
-def _labels(spec: StudySpec, df):
-    if len(spec.points) > 1:
-        return df["point"].to_numpy(), {p.index: p.label() for p in spec.points}
-    return np.zeros(len(df), int), {0: spec.scenario}
+def _panels(spec: StudySpec):
+    """[(panel title, [(point index, label), ...]), ...]: with two or more grid parameters
+    one panel per value of the last (the thesis draws one figure per horizon, Figs. 4.4-4.12,
+    its series the sample times); otherwise one panel with every point."""
+    if len(spec.points) <= 1:
+        return [("", [(p.index, spec.scenario) for p in spec.points] or [(0, spec.scenario)])]
+    if len(spec.grid) < 2:
+        return [("", [(p.index, p.label()) for p in spec.points])]
+    last = spec.grid[-1][0]
+    panels = []
+    for v in spec.grid[-1][1]:
+        pts = [p for p in spec.points if p.values[last] == v]
+        rest = [
+            (p.index, ", ".join(f"{k}={x:g}" for k, x in p.values.items() if k != last))
+            for p in pts
+        ]
+        panels.append((f"{last} = {v:g}", rest))
+    return panels
 
 
-def scatter_effort_time(df, spec: StudySpec, path) -> str:
-    """Effort versus time to dock per docked run, one colour per sweep point (Fig. 4.2b)."""
+def _scatter_panels(df, spec: StudySpec, x, y, xlabel, ylabel, title, path) -> str:
+    """One scatter panel per :func:`_panels` entry, docked runs only, shared axes, the
+    points of a panel coloured along viridis (a sweep has more points than a qualitative
+    palette has colours)."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    groups, names = _labels(spec, df)
+    panels = _panels(spec)
+    n = len(panels)
+    fig, axes = plt.subplots(
+        1, n, figsize=(max(6.4, 4.2 * n), 4.4), sharex=True, sharey=True, squeeze=False
+    )
     ok = df["docked"].to_numpy()
-    for g, label in names.items():
-        sel = ok & (groups == g)
-        ax.scatter(df["time_to_dock_s"][sel] / 60.0, df["effort"][sel], s=8, label=label)
-    ax.set_xlabel("time to dock [min]")
-    ax.set_ylabel(_effort_label(df))
-    ax.set_title(f"{spec.scenario}: {int(ok.sum())} of {len(df)} runs docked")
-    return _finish(plt, fig, ax, path, legend=len(names) > 1)
-
-
-def _finish(plt, fig, ax, path, legend: bool) -> str:
-    if legend:
-        ax.legend(fontsize=7, markerscale=2)
-    ax.grid(alpha=0.3)
+    point = df["point"].to_numpy()
+    cmap = plt.get_cmap("viridis")
+    for ax, (name, series) in zip(axes[0], panels, strict=True):
+        for j, (g, label) in enumerate(series):
+            sel = ok & (point == g)
+            colour = cmap(j / max(len(series) - 1, 1) * 0.9)
+            ax.scatter(x[sel], y[sel], s=8, color=colour, label=label)
+        ax.set_xlabel(xlabel)
+        ax.set_title(name, fontsize=10)
+        ax.grid(alpha=0.3)
+        if len(series) > 1:
+            ax.legend(fontsize=7, markerscale=2)
+    axes[0][0].set_ylabel(ylabel)
+    fig.suptitle(title, fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return str(path)
+
+
+def scatter_effort_time(df, spec: StudySpec, path) -> str:
+    """Effort versus time to dock per docked run, one colour per sweep point (Fig. 4.2b)."""
+    ok = df["docked"].to_numpy()
+    return _scatter_panels(
+        df,
+        spec,
+        df["time_to_dock_s"].to_numpy() / 60.0,
+        df["effort"].to_numpy(),
+        "time to dock [min]",
+        _effort_label(df),
+        f"{spec.scenario}: {int(ok.sum())} of {len(df)} runs docked",
+        path,
+    )
 
 
 _EFFORT_LABELS = {
@@ -72,22 +105,14 @@ def _effort_label(df) -> str:
 def effort_intervals(df, spec: StudySpec, path, phase: int | None = None) -> str:
     """Effort (of ``phase``, or the whole run) versus the number of control intervals
     (Figs. 4.4-4.12 right-hand panels)."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    groups, names = _labels(spec, df)
-    ok = df["docked"].to_numpy()
     if phase is not None and f"phase{phase}_intervals" in df:
         x, y = df[f"phase{phase}_intervals"], df[f"phase{phase}_delta_v_m_s"]
-        ax.set_xlabel(f"control intervals in phase {phase}")
-        ax.set_ylabel(f"phase {phase} delta-v [m/s]")
+        xlabel, ylabel = f"control intervals in phase {phase}", f"phase {phase} delta-v [m/s]"
     else:
         x, y = df["steps"], df["effort"]
-        ax.set_xlabel("control intervals (MPC steps)")
-        ax.set_ylabel(_effort_label(df))
-    for g, label in names.items():
-        sel = ok & (groups == g)
-        ax.scatter(x[sel], y[sel], s=8, label=label)
-    return _finish(plt, fig, ax, path, legend=len(names) > 1)
+        xlabel, ylabel = "control intervals (MPC steps)", _effort_label(df)
+    title = spec.scenario if phase is None else f"{spec.scenario}: phase {phase}"
+    return _scatter_panels(df, spec, x.to_numpy(), y.to_numpy(), xlabel, ylabel, title, path)
 
 
 def failures_per_point(df, spec: StudySpec, path) -> str:
