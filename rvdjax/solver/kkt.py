@@ -200,7 +200,12 @@ def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
 BATCH_LAST_MAX = 96
 
 
-def _to_last(axis_size, batched, a):
+def _full(axis_size, a, batched):
+    """``a`` with the batch axis first, broadcast if it had none."""
+    return a if batched else jnp.broadcast_to(a, (axis_size, *a.shape))
+
+
+def _to_last(a, batched=True):
     if not batched:
         return a[..., None]  # broadcasts against the batch inside the elementwise form
     return jnp.moveaxis(a, 0, -1)
@@ -208,6 +213,12 @@ def _to_last(axis_size, batched, a):
 
 def _to_first(a):
     return jnp.moveaxis(a, -1, 0)
+
+
+def _dot_vmap(fn, in_batched, args, out_batched):
+    """The dot form under an ordinary ``vmap`` (batches above BATCH_LAST_MAX)."""
+    axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
+    return jax.vmap(lambda *a: fn(*a, _DOT), in_axes=axes)(*args), out_batched
 
 
 @jax.custom_batching.custom_vmap
@@ -218,20 +229,17 @@ def _factor_batched(A, B, Phi_u, Phi_x):
 @_factor_batched.def_vmap
 def _factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     if axis_size > BATCH_LAST_MAX:
-        axes = tuple(0 if b else None for b in in_batched)
-        return jax.vmap(lambda *a: _factor(*a, _DOT), in_axes=axes)(A, B, Phi_u, Phi_x), (
-            RiccatiFactor(True, True, True, True, True)
+        return _dot_vmap(
+            _factor, in_batched, (A, B, Phi_u, Phi_x), RiccatiFactor(True, True, True, True, True)
         )
     bA, bB, bPu, bPx = in_batched
-    Phi_u = Phi_u if bPu else jnp.broadcast_to(Phi_u, (axis_size, *Phi_u.shape))
-    Phi_x = Phi_x if bPx else jnp.broadcast_to(Phi_x, (axis_size, *Phi_x.shape))
-    args = (
-        _to_last(axis_size, bA, A),
-        _to_last(axis_size, bB, B),
-        _to_last(axis_size, True, Phi_u),
-        _to_last(axis_size, True, Phi_x),
+    f = _factor(
+        _to_last(A, bA),
+        _to_last(B, bB),
+        _to_last(_full(axis_size, Phi_u, bPu)),
+        _to_last(_full(axis_size, Phi_x, bPx)),
+        _ELEMENTWISE,
     )
-    f = _factor(*args, _ELEMENTWISE)
     m_batched = bool(bA or bB)
     M = _to_first(f.M) if m_batched else f.M[..., 0]
     out = RiccatiFactor(M, *(_to_first(a) for a in f[1:]))
@@ -246,23 +254,25 @@ def _apply_batched(f, g_u, g_x, rp):
 @_apply_batched.def_vmap
 def _apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     if axis_size > BATCH_LAST_MAX:
-        axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
-        out = jax.vmap(lambda *a: _apply(*a, _DOT), in_axes=axes)(f, g_u, g_x, rp)
-        return out, NewtonStep(True, True, True)
+        return _dot_vmap(_apply, in_batched, (f, g_u, g_x, rp), NewtonStep(True, True, True))
     fb, bu, bx, br = in_batched
-
-    def full(a, b):  # every operand but M carries the batch
-        return a if b else jnp.broadcast_to(a, (axis_size, *a.shape))
-
-    f = RiccatiFactor(f.M, *(full(a, b) for a, b in zip(f[1:], fb[1:], strict=True)))
+    # every operand but M carries the batch
     f = RiccatiFactor(
-        _to_last(axis_size, fb.M, f.M), *(_to_last(axis_size, True, a) for a in f[1:])
+        _to_last(f.M, fb.M),
+        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)),
     )
-    g_u, g_x, rp = (
-        _to_last(axis_size, True, full(a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))
-    )
+    g_u, g_x, rp = (_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br)))
     out = _apply(f, g_u, g_x, rp, _ELEMENTWISE)
     return NewtonStep(*(_to_first(a) for a in out)), NewtonStep(True, True, True)
+
+
+def _dot_derivative(fn):
+    """A custom_jvp rule: the derivative of ``fn``'s dot form."""
+
+    def jvp(primals, tangents):
+        return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
+
+    return jvp
 
 
 @jax.custom_jvp
@@ -281,9 +291,7 @@ def riccati_factor(A, B, Phi_u, Phi_x) -> RiccatiFactor:
     return _factor_batched(A, B, Phi_u, Phi_x)
 
 
-@riccati_factor.defjvp
-def _riccati_factor_jvp(primals, tangents):
-    return jax.jvp(lambda *a: _factor(*a, _DOT), primals, tangents)
+riccati_factor.defjvp(_dot_derivative(_factor))
 
 
 @jax.custom_jvp
@@ -297,9 +305,7 @@ def riccati_apply(f: RiccatiFactor, g_u, g_x, rp) -> NewtonStep:
     return _apply_batched(f, g_u, g_x, rp)
 
 
-@riccati_apply.defjvp
-def _riccati_apply_jvp(primals, tangents):
-    return jax.jvp(lambda *a: _apply(*a, _DOT), primals, tangents)
+riccati_apply.defjvp(_dot_derivative(_apply))
 
 
 def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:

@@ -25,8 +25,8 @@ def _panels(spec: StudySpec):
     """[(panel title, [(point index, label), ...]), ...]: with two or more grid parameters
     one panel per value of the last (the thesis draws one figure per horizon, Figs. 4.4-4.12,
     its series the sample times); otherwise one panel with every point."""
-    if len(spec.points) <= 1:
-        return [("", [(p.index, spec.scenario) for p in spec.points] or [(0, spec.scenario)])]
+    if len(spec.points) == 1:  # a study without a grid has one point, "nominal"
+        return [("", [(spec.points[0].index, spec.scenario)])]
     if len(spec.grid) < 2:
         return [("", [(p.index, p.label()) for p in spec.points])]
     last = spec.grid[-1][0]
