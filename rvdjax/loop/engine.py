@@ -54,8 +54,7 @@ from rvdjax.loop.kernel import (
 )
 from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, finish, finished, iterate, start
-from rvdjax.solver.driver import MODEL_FIELDS, batch_last_ok
-from rvdjax.solver.layout import BATCH_LAST, shared_to_last, to_first, to_last
+from rvdjax.solver.driver import MODEL_FIELDS
 
 __all__ = [
     "RunInputs",
@@ -322,10 +321,6 @@ def _chunk_tick(
     )
 
     # 4. solver iterations
-    if batch_last_ok(settings):
-        solve = _iterations_batch_last(loop, cfg, slots, shared_model, shared_sp)
-        return slots._replace(solve=solve), ended, old_run, result
-
     def iterations(slot):
         params, sp = params_of(slot)
         ocp = ocp_of(slot, params)
@@ -337,29 +332,6 @@ def _chunk_tick(
 
     slots = jax.vmap(iterations)(slots)
     return slots, ended, old_run, result
-
-
-def _iterations_batch_last(loop, cfg: EngineConfig, slots: Slot, shared_model, shared_sp):
-    """``cfg.iterations`` solver iterations of a chunk in the batch-last layout
-    (:mod:`rvdjax.solver.layout`): the chunk's OCPs and iterates move their slot axis last
-    once per tick, so that every operation of an iteration (barrier rows, residuals, step
-    lengths, the Riccati recursion) runs over the chunk in vector registers; a model shared
-    by the chunk keeps a trailing axis of size 1."""
-    fam = loop.family
-    ocp = to_last(slots.ocp)
-    if fam.model is not None:
-        if shared_model is not None:
-            model = shared_to_last(shared_model)
-        else:
-            model = to_last(jax.vmap(lambda p: fam.model(p, loop.config.family))(slots.params))
-        ocp = ocp._replace(**dict(zip(MODEL_FIELDS, model, strict=True)))
-    sp = shared_sp if slots.solver is None else to_last(slots.solver)
-    settings = loop.config.settings
-
-    def body(_, st):
-        return iterate(ocp, st, settings, sp, BATCH_LAST)
-
-    return to_first(lax.fori_loop(0, cfg.iterations, body, to_last(slots.solve)))
 
 
 @functools.lru_cache(maxsize=64)

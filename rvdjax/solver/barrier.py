@@ -21,7 +21,6 @@ import jax
 import jax.numpy as jnp
 
 from rvdjax.ocp import OCP
-from rvdjax.solver.layout import ONE, Layout
 
 __all__ = [
     "Rows",
@@ -83,17 +82,13 @@ def rows_in(ocp: OCP) -> Rows:
     return Rows(ocp.Fu, ocp.fu, ocp.u_mask, ocp.Fx, ocp.fx, ocp.x_mask, ocp.rho)
 
 
-def m_eff(rows: Rows, layout: Layout = ONE):
+def m_eff(rows: Rows):
     """Number of barrier terms: one per input row, two (s >= 0, s >= g) per soft row."""
-    return layout.total(rows.wu) + 2.0 * layout.total(rows.wx)
+    return jnp.sum(rows.wu) + 2.0 * jnp.sum(rows.wx)
 
 
-def all_finite(tree, layout: Layout = ONE):
-    """Every entry of every leaf is finite (per problem, in ``layout``)."""
-    ok = jnp.asarray(True)
-    for a in jax.tree.leaves(tree):
-        ok = ok & layout.every(jnp.isfinite(a))
-    return ok
+def all_finite(tree):
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(tree)]))
 
 
 def _soft_kappas(kappa):
@@ -140,8 +135,8 @@ def soft_penalty(g, rho, kappa):
     return phi, d1, d2
 
 
-def u_slack(rows: Rows, u, layout: Layout = ONE):
-    return rows.fu - layout.mv(rows.Fu, u)
+def u_slack(rows: Rows, u):
+    return rows.fu - jnp.einsum("tij,tj->ti", rows.Fu, u)
 
 
 def x_violation(rows: Rows, x):
@@ -208,16 +203,16 @@ def hessian(ocp: OCP, rows: Rows, u, x, kappa):
     return Phi_u, Phi_x
 
 
-def dyn_residual(ocp: OCP, u, x, layout: Layout = ONE):
+def dyn_residual(ocp: OCP, u, x):
     """r_p: x_{t+1} - A_t x_t - B_t u_t - c_t, shape (N, nx)."""
     x_prev = jnp.concatenate([ocp.x0[None], x[:-1]])
-    return x - layout.mv(ocp.A, x_prev) - layout.mv(ocp.B, u) - ocp.c
+    return x - jnp.einsum("tij,tj->ti", ocp.A, x_prev) - jnp.einsum("tij,tj->ti", ocp.B, u) - ocp.c
 
 
-def dual_residual(ocp: OCP, g_u, g_x, nu, layout: Layout = ONE):
+def dual_residual(ocp: OCP, g_u, g_x, nu):
     """r_d = grad f + C^T nu, split into the u and x blocks."""
-    r_u = g_u - layout.mtv(ocp.B, nu)
-    At_nu_next = layout.mtv(ocp.A[1:], nu[1:])
+    r_u = g_u - jnp.einsum("tij,ti->tj", ocp.B, nu)
+    At_nu_next = jnp.einsum("tij,ti->tj", ocp.A[1:], nu[1:])
     r_x = g_x + nu - jnp.concatenate([At_nu_next, jnp.zeros_like(nu[:1])])
     return r_u, r_x
 

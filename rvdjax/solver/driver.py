@@ -37,7 +37,6 @@ from rvdjax.solver.barrier import (
 from rvdjax.solver.clarabel import solve_clarabel_backend
 from rvdjax.solver.implicit import implicit_bwd, kkt_at
 from rvdjax.solver.kkt import kkt_solve
-from rvdjax.solver.layout import ONE, Layout
 from rvdjax.solver.newton import NewtonState, newton_iteration
 from rvdjax.solver.primal_dual import PDState, pd_iteration, pd_start
 from rvdjax.solver.start import drift, pull_inside, track_plan
@@ -47,7 +46,6 @@ __all__ = [
     "SolveState",
     "start",
     "iterate",
-    "batch_last_ok",
     "finished",
     "finish",
     "solve",
@@ -157,40 +155,18 @@ def finished(state: SolveState, settings: SolverSettings):
     return state.core.done | (state.core.it >= settings.max_iter)
 
 
-def iterate(
-    ocp: OCP,
-    state: SolveState,
-    settings: SolverSettings,
-    params: SolverParams,
-    layout: Layout = ONE,
-):
+def iterate(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
     """One iteration from ``state`` on the OCP returned by :func:`start`; a finished state is
-    returned unchanged.
-
-    ``layout`` (static): :data:`~rvdjax.solver.layout.BATCH_LAST` iterates a whole batch at
-    once on arrays that carry the batch on their trailing axis (:func:`batch_last_ok` says
-    which settings support it); the default is one problem (batch under ``vmap``)."""
+    returned unchanged."""
     params = _prepared(params, ocp.B.dtype)
     rows = rows_in(ocp)
-    if layout is not ONE and not batch_last_ok(settings):
-        raise ValueError(
-            f"layout BATCH_LAST needs mode='accurate' and method='riccati', got "
-            f"mode={settings.mode!r}, method={settings.method!r}"
-        )
     if settings.mode == "accurate":
-        new = pd_iteration(
-            ocp, rows, m_eff(rows, layout), state.x_scale, state.core, settings, params, layout
-        )
+        new = pd_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     else:
         new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     stop = finished(state, settings)
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
-
-
-def batch_last_ok(settings: SolverSettings) -> bool:
-    """The settings whose iterations :func:`iterate` runs in the batch-last layout."""
-    return settings.mode == "accurate" and settings.method == "riccati"
 
 
 def finish(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):

@@ -26,7 +26,6 @@ from rvdjax.solver.barrier import (
     x_violation,
 )
 from rvdjax.solver.kkt import kkt_factor, kkt_solve
-from rvdjax.solver.layout import ONE, Layout
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -69,7 +68,7 @@ def pd_start(rows, u0, x0s, nu0, kappa0, done, status) -> PDState:
     return PDState(u0, x0s, nu0, s0, lam, mu, pi, jnp.asarray(0), done, status, gap, inf)
 
 
-def _pd_step(rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, tau_s, method, L):
+def _pd_step(rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, tau_s, method):
     """One solve of the primal-dual Newton system for complementarity targets tau.
 
     Linearising lam su = tau_u, mu sx = tau_x, pi s = tau_s and rho = mu + pi, then eliminating
@@ -83,11 +82,11 @@ def _pd_step(rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, t
     a = st.mu / sx
     c = st.pi / st.s
     h = tau_x / sx + tau_s / st.s - rows.rho
-    g_u = base_u + L.mtv(rows.Fu, rows.wu * tau_u / su)
-    g_x = base_x + L.mtv(rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
+    g_u = base_u + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * tau_u / su)
+    g_x = base_x + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
     step = kkt_solve(kkt, g_u, g_x, rp, method)
-    Fdu = L.mv(rows.Fu, step.du)
-    Fdx = L.mv(rows.Fx, step.dx)
+    Fdu = jnp.einsum("tij,tj->ti", rows.Fu, step.du)
+    Fdx = jnp.einsum("tij,tj->ti", rows.Fx, step.dx)
     ds = (a * Fdx + h) / (a + c)
     dlam = tau_u / su - st.lam + Du * Fdu
     dmu = tau_x / sx - st.mu + a * (Fdx - ds)
@@ -97,59 +96,45 @@ def _pd_step(rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, t
     return step, ds, dlam, dmu, dpi, dsu, dsx
 
 
-def _max_step(pairs, wmask, L: Layout):
+def _max_step(pairs, wmask):
     """Largest alpha in (0, 1] keeping every (value + alpha * step) >= 0 on active rows."""
     alpha = jnp.asarray(1.0)
     for v, dv, w in zip(*pairs, wmask, strict=True):
         shrink = (w > 0) & (dv < 0)
         ratio = jnp.where(shrink, -v / jnp.where(shrink, dv, -1.0), jnp.inf)
-        alpha = jnp.minimum(alpha, L.smallest(ratio))
+        alpha = jnp.minimum(alpha, jnp.min(ratio))
     return alpha
 
 
 def pd_iteration(
-    ocp,
-    rows,
-    m_eff,
-    x_scale,
-    st: PDState,
-    settings: SolverSettings,
-    params: SolverParams,
-    layout: Layout = ONE,
+    ocp, rows, m_eff, x_scale, st: PDState, settings: SolverSettings, params: SolverParams
 ) -> PDState:
-    """One Mehrotra predictor-corrector iteration from ``st``.
-
-    ``layout`` (static): :data:`~rvdjax.solver.layout.ONE` for one problem's arrays, or
-    :data:`~rvdjax.solver.layout.BATCH_LAST` for a batch kept on the trailing axis of every
-    array (the KKT solve then runs its elementwise form directly on that layout)."""
-    L = layout
+    """One Mehrotra predictor-corrector iteration from ``st``."""
     method = settings.method
-    su = u_slack(rows, st.u, L)
-    Fx_x = L.mv(rows.Fx, st.x)
+    su = u_slack(rows, st.u)
+    Fx_x = jnp.einsum("tij,tj->ti", rows.Fx, st.x)
     sx = rows.fx - Fx_x + st.s
     # shared by the predictor and the corrector
-    base_u = 2.0 * L.mv(ocp.R, st.u) + ocp.r
-    base_x = 2.0 * L.mv(ocp.Q, st.x - ocp.x_ref) + ocp.q
-    rp = dyn_residual(ocp, st.u, st.x, L)
+    base_u = 2.0 * jnp.einsum("tij,tj->ti", ocp.R, st.u) + ocp.r
+    base_x = 2.0 * jnp.einsum("tij,tj->ti", ocp.Q, st.x - ocp.x_ref) + ocp.q
+    rp = dyn_residual(ocp, st.u, st.x)
     Du = rows.wu * st.lam / su
     a = st.mu / sx
     c = st.pi / st.s
-    Phi_u = 2.0 * ocp.R + L.gram(rows.Fu, Du)
-    Phi_x = 2.0 * ocp.Q + L.gram(rows.Fx, rows.wx * a * c / (a + c))
+    Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, Du, rows.Fu)
+    Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * a * c / (a + c), rows.Fx)
     kkt = kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, method)
     wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
 
     # Predictor: the affine-scaling direction (tau = 0).
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
-    aff = _pd_step(rows, st, kkt, base_u, base_x, rp, su, sx, zero_u, zero_x, zero_x, method, L)
+    aff = _pd_step(rows, st, kkt, base_u, base_x, rp, su, sx, zero_u, zero_x, zero_x, method)
     _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a = aff
     alpha_a = _max_step(
-        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)),
-        wmask,
-        L,
+        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
     )
     gap = st.gap
-    gap_a = L.total(rows.wu * (su + alpha_a * dsu_a) * (st.lam + alpha_a * dlam_a)) + L.total(
+    gap_a = jnp.sum(rows.wu * (su + alpha_a * dsu_a) * (st.lam + alpha_a * dlam_a)) + jnp.sum(
         rows.wx
         * (
             (sx + alpha_a * dsx_a) * (st.mu + alpha_a * dmu_a)
@@ -186,12 +171,9 @@ def pd_iteration(
         kappa - damp * dsx_a * dmu_a,
         kappa - damp * ds_a * dpi_a,
         method,
-        L,
     )
-    finite = all_finite((step, ds, dlam, dmu, dpi), L)
-    alpha = _max_step(
-        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, L
-    )
+    finite = all_finite((step, ds, dlam, dmu, dpi))
+    alpha = _max_step(((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite, alpha, 0.0)
 
@@ -202,37 +184,36 @@ def pd_iteration(
     lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
     pi = upd(st.pi, dpi, rows.wx)
     nu = upd(st.nu, step.nu - st.nu)
-    su_n = u_slack(rows, u, L)
-    g_n = L.mv(rows.Fx, x) - rows.fx  # soft-row values at the new point
+    su_n = u_slack(rows, u)
+    g_n = jnp.einsum("tij,tj->ti", rows.Fx, x) - rows.fx  # soft-row values at the new point
     sx_n = s_new - g_n
-    gap_n = L.total(rows.wu * su_n * lam) + L.total(rows.wx * (sx_n * mu + s_new * pi))
+    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
 
     # Stopping: gap and dual residual relative to the objective / gradient scale.
     e = x - ocp.x_ref
-    Ru = L.mv(ocp.R, u)
-    Qe = L.mv(ocp.Q, e)
+    Ru = jnp.einsum("tij,tj->ti", ocp.R, u)
+    Qe = jnp.einsum("tij,tj->ti", ocp.Q, e)
     grad_u = 2.0 * Ru + ocp.r
     grad_x = 2.0 * Qe + ocp.q
     r_u, r_x = dual_residual(
         ocp,
-        grad_u + L.mtv(rows.Fu, rows.wu * lam),
-        grad_x + L.mtv(rows.Fx, rows.wx * mu),
+        grad_u + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * lam),
+        grad_x + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * mu),
         nu,
-        L,
     )
     r_s = rows.wx * (rows.rho - mu - pi)
-    d_scale = 1.0 + jnp.maximum(L.largest(jnp.abs(grad_u)), L.largest(jnp.abs(grad_x)))
+    d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
     rel_d = jnp.maximum(
-        jnp.maximum(L.largest(jnp.abs(r_u)), L.largest(jnp.abs(r_x))) / d_scale,
-        L.largest(jnp.abs(r_s)) / (1.0 + L.largest(rows.wx * rows.rho)),
+        jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
+        jnp.max(jnp.abs(r_s)) / (1.0 + jnp.max(rows.wx * rows.rho)),
     )
     # the objective (barrier.objective) from the products above
     J = (
-        L.total(e * Qe)
-        + L.total(u * Ru)
-        + L.total(ocp.q * x)
-        + L.total(ocp.r * u)
-        + L.total(rows.wx * rows.rho * jnp.maximum(g_n, 0.0))
+        jnp.sum(e * Qe)
+        + jnp.sum(u * Ru)
+        + jnp.sum(ocp.q * x)
+        + jnp.sum(ocp.r * u)
+        + jnp.sum(rows.wx * rows.rho * jnp.maximum(g_n, 0.0))
     )
     scale = 1.0 + jnp.abs(J)
     tol = params.tol
