@@ -2,6 +2,11 @@
 
 import jax as _jax
 
+from rvdjax import xla_options as _xla_options
+
+# XLA CPU options for small batched blocks, before JAX starts its backend (rvdjax.xla_options).
+_xla_options.apply()
+
 # float64 by default: the RVD problems span ~1e7 in cost and ~1e-3 in docking speed.
 _jax.config.update("jax_enable_x64", True)
 

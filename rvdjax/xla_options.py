@@ -1,0 +1,75 @@
+"""XLA CPU compiler options that rvdjax sets when it is imported.
+
+rvdjax's arrays are small blocks (3-9 wide, a horizon of 15-60 stages) batched over slots.
+Two of XLA's CPU defaults cost it 1.6-1.7x in batches (docs/benchmark.md, "XLA's CPU
+options"):
+
+* ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib >= 0.9
+  hands small dot-like products (e.g. a stage's P [B A] with the model shared by a chunk of
+  slots) to YNNPACK, a library call per product and stage whose cost dwarfs the arithmetic
+  at these sizes; with the option off, XLA emits the loops itself.
+* ``--xla_cpu_use_fusion_emitters=false``: XLA's loop emitters instead of the newer MLIR
+  fusion emitters, faster here and ~40 % quicker to compile.
+
+XLA reads ``XLA_FLAGS`` once, when JAX creates its CPU backend, so the options are appended
+at import, before any computation; options the user set (to any value) are left alone, and
+``RVDJAX_XLA_OPTIONS=0`` keeps ``XLA_FLAGS`` untouched. An option is added only for jaxlib
+versions known to have it (XLA aborts on an unknown flag). If JAX already ran a computation
+before rvdjax was imported, nothing can be changed: a warning says so.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+__all__ = ["OPTIONS", "OPT_OUT", "apply", "wanted"]
+
+# (option, first jaxlib version that has it: checked in the released wheels)
+OPTIONS = (
+    ("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),
+    ("--xla_cpu_use_fusion_emitters=false", (0, 8)),
+)
+OPT_OUT = "RVDJAX_XLA_OPTIONS"
+
+
+def _version(text: str) -> tuple[int, ...]:
+    parts = []
+    for p in text.split(".")[:2]:
+        digits = "".join(c for c in p if c.isdigit())
+        parts.append(int(digits) if digits else 0)
+    return tuple(parts)
+
+
+def wanted(xla_flags: str, jaxlib_version: str) -> list[str]:
+    """The options to append to ``xla_flags`` for this jaxlib: those it has and the user
+    has not set."""
+    have = _version(jaxlib_version)
+    return [
+        opt for opt, since in OPTIONS if have >= since and opt.split("=")[0] + "=" not in xla_flags
+    ]
+
+
+def apply() -> list[str]:
+    """Append the options to ``XLA_FLAGS`` (see the module docstring); returns those added."""
+    if os.environ.get(OPT_OUT, "1").strip().lower() in ("0", "false", "no", "off"):
+        return []
+    import jaxlib.version
+
+    current = os.environ.get("XLA_FLAGS", "")
+    add = wanted(current, jaxlib.version.__version__)
+    if not add:
+        return []
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        warnings.warn(
+            "rvdjax was imported after JAX had started its backend, so its XLA CPU options "
+            f"({' '.join(add)}) are not in effect: batches run up to 1.7x slower. Import "
+            "rvdjax before running any JAX computation, or put them in XLA_FLAGS "
+            f"(set {OPT_OUT}=0 to silence this).",
+            stacklevel=3,
+        )
+        return []
+    os.environ["XLA_FLAGS"] = " ".join([current, *add]).strip()
+    return add

@@ -1,0 +1,87 @@
+"""XLA CPU options set at import (rvdjax.xla_options): which are added, that they reach the
+compiler (no YNNPACK fusion in a chunk's Riccati factorisation), the opt-out, and the
+warning when JAX started before rvdjax was imported. Each check that depends on XLA_FLAGS
+runs in a fresh interpreter, since XLA reads them once per process."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jaxlib.version
+import pytest
+
+from rvdjax import xla_options
+
+YNN = "--xla_cpu_experimental_ynn_fusion_type="
+EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+
+# A chunk of 32 slots factorising with the model they share (the engine's case, N = 30):
+# XLA 0.9+ turns the stage product [B A]' P [B A] into a YNNPACK fusion unless told not to.
+PROGRAM = textwrap.dedent(
+    """
+    import os
+    import rvdjax
+    import jax, jax.numpy as jnp
+    from rvdjax.solver.kkt import riccati_factor
+    N, nx, nu, b = 30, 6, 3, 32
+    A = jnp.eye(nx)[None].repeat(N, 0) * 1.01
+    B = jnp.ones((N, nx, nu))
+    Pu = jnp.broadcast_to(jnp.eye(nu), (b, N, nu, nu))
+    Px = jnp.broadcast_to(jnp.eye(nx), (b, N, nx, nx))
+    f = jax.jit(jax.vmap(riccati_factor, in_axes=(None, None, 0, 0)))
+    txt = f.lower(A, B, Pu, Px).compile().as_text()
+    print(os.environ.get("XLA_FLAGS", ""))
+    print(sum("__ynn_fusion" in line for line in txt.splitlines()))
+    """
+)
+
+
+def _run(code: str, **env) -> subprocess.CompletedProcess:
+    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", xla_options.OPT_OUT)}
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        env={**base, **env},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_wanted_respects_versions_and_the_users_flags():
+    assert xla_options.wanted("", "0.10.2") == [YNN, EMITTERS]
+    assert xla_options.wanted("", "0.9.0") == [YNN, EMITTERS]
+    assert xla_options.wanted("", "0.8.3") == [EMITTERS]  # no YNN option before 0.9
+    assert xla_options.wanted("", "0.4.30") == []
+    # a value the user chose is kept, whatever it is
+    assert xla_options.wanted("--xla_cpu_use_fusion_emitters=true", "0.10.2") == [YNN]
+    assert xla_options.wanted(f"{YNN}individual_dot {EMITTERS}", "0.10.2") == []
+
+
+@pytest.mark.skipif(
+    xla_options._version(jaxlib.version.__version__) < (0, 9), reason="no YNNPACK fusions"
+)
+def test_import_removes_ynnpack_fusions_and_the_opt_out_keeps_them():
+    on = _run(PROGRAM)
+    assert on.returncode == 0, on.stderr[-2000:]
+    flags, fusions = on.stdout.split("\n")[:2]
+    assert YNN in flags and EMITTERS in flags
+    assert int(fusions) == 0
+    off = _run(PROGRAM, **{xla_options.OPT_OUT: "0"})
+    assert off.returncode == 0, off.stderr[-2000:]
+    flags, fusions = off.stdout.split("\n")[:2]
+    assert flags == ""
+    assert int(fusions) >= 1  # XLA's default: the reason for the option
+
+
+def test_warns_when_jax_started_first():
+    late = _run("import jax; jax.numpy.ones(1).block_until_ready(); import rvdjax")
+    assert late.returncode == 0, late.stderr[-2000:]
+    assert "not in effect" in late.stderr and xla_options.OPT_OUT in late.stderr
+    quiet = _run(
+        "import jax; jax.numpy.ones(1).block_until_ready(); import rvdjax",
+        **{xla_options.OPT_OUT: "0"},
+    )
+    assert "not in effect" not in quiet.stderr
