@@ -1,15 +1,16 @@
 """XLA CPU compiler options that rvdjax sets when it is imported.
 
 rvdjax's arrays are small blocks (3-9 wide, a horizon of 15-60 stages) batched over slots.
-Two of XLA's CPU defaults cost it 1.6-1.7x in batches (docs/benchmark.md, "XLA's CPU
-options"):
+One of XLA's CPU defaults costs it up to 1.6x in batches (docs/benchmark.md, "XLA's CPU
+options"): ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib
+>= 0.9 hands small dot-like products (e.g. a stage's P [B A] with the model shared by a
+chunk of slots) to YNNPACK, a library call per product and stage whose cost dwarfs the
+arithmetic at these sizes; with the option off, XLA emits the loops itself.
 
-* ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib >= 0.9
-  hands small dot-like products (e.g. a stage's P [B A] with the model shared by a chunk of
-  slots) to YNNPACK, a library call per product and stage whose cost dwarfs the arithmetic
-  at these sizes; with the option off, XLA emits the loops itself.
-* ``--xla_cpu_use_fusion_emitters=false``: XLA's loop emitters instead of the newer MLIR
-  fusion emitters, faster here and ~40 % quicker to compile.
+Not set, although faster still: ``--xla_cpu_use_fusion_emitters=false`` (XLA's older loop
+emitters) made the accurate-mode solver return NONFINITE on two random test problems that
+it solves with the default emitters (tests/test_solver.py, shape classes "large" and
+"long", seed 0; jaxlib 0.10.2).
 
 XLA reads ``XLA_FLAGS`` once, when JAX creates its CPU backend, so the options are appended
 at import, before any computation; options the user set (to any value) are left alone, and
@@ -26,10 +27,7 @@ import warnings
 __all__ = ["OPTIONS", "OPT_OUT", "apply", "wanted"]
 
 # (option, first jaxlib version that has it: checked in the released wheels)
-OPTIONS = (
-    ("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),
-    ("--xla_cpu_use_fusion_emitters=false", (0, 8)),
-)
+OPTIONS = (("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),)
 OPT_OUT = "RVDJAX_XLA_OPTIONS"
 
 
@@ -65,7 +63,7 @@ def apply() -> list[str]:
     if xla_bridge.backends_are_initialized():
         warnings.warn(
             "rvdjax was imported after JAX had started its backend, so its XLA CPU options "
-            f"({' '.join(add)}) are not in effect: batches run up to 1.7x slower. Import "
+            f"({' '.join(add)}) are not in effect: batches run up to 1.6x slower. Import "
             "rvdjax before running any JAX computation, or put them in XLA_FLAGS "
             f"(set {OPT_OUT}=0 to silence this).",
             stacklevel=3,
