@@ -1,7 +1,7 @@
 """XLA CPU compiler options that rvdjax sets when it is imported.
 
 rvdjax's arrays are small blocks (3-9 wide, a horizon of 15-60 stages) batched over slots.
-One of XLA's CPU defaults costs it up to 1.6x in batches (docs/benchmark.md, "XLA's CPU
+One of XLA's CPU defaults slows its batches down (measured in docs/benchmark.md, "XLA's CPU
 options"): ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib
 >= 0.9 hands small dot-like products (e.g. a stage's P [B A] with the model shared by a
 chunk of slots) to YNNPACK, a library call per product and stage whose cost dwarfs the
@@ -48,6 +48,17 @@ def wanted(xla_flags: str, jaxlib_version: str) -> list[str]:
     ]
 
 
+def _backend_started() -> bool:
+    """JAX has created a backend (XLA_FLAGS already read). A private JAX function: if a JAX
+    version lacks it, assume not (the options are then appended, at worst without effect)."""
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return False
+
+
 def apply() -> list[str]:
     """Append the options to ``XLA_FLAGS`` (see the module docstring); returns those added."""
     if os.environ.get(OPT_OUT, "1").strip().lower() in ("0", "false", "no", "off"):
@@ -58,12 +69,10 @@ def apply() -> list[str]:
     add = wanted(current, jaxlib.version.__version__)
     if not add:
         return []
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized():
+    if _backend_started():
         warnings.warn(
             "rvdjax was imported after JAX had started its backend, so its XLA CPU options "
-            f"({' '.join(add)}) are not in effect: batches run up to 1.6x slower. Import "
+            f"({' '.join(add)}) are not in effect: batches run slower. Import "
             "rvdjax before running any JAX computation, or put them in XLA_FLAGS "
             f"(set {OPT_OUT}=0 to silence this).",
             stacklevel=3,
