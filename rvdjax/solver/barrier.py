@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from rvdjax.ocp import OCP
+from rvdjax.solver import stagewise as sw
 
 __all__ = [
     "Rows",
@@ -136,17 +137,17 @@ def soft_penalty(g, rho, kappa):
 
 
 def u_slack(rows: Rows, u):
-    return rows.fu - jnp.einsum("tij,tj->ti", rows.Fu, u)
+    return rows.fu - sw.mv(rows.Fu, u)
 
 
 def x_violation(rows: Rows, x):
-    return jnp.einsum("tij,tj->ti", rows.Fx, x) - rows.fx
+    return sw.mv(rows.Fx, x) - rows.fx
 
 
 def objective(ocp: OCP, u, x):
     """QP objective (paper 000 Eq. 1a, plus the exact penalty of the soft state rows)."""
     e = x - ocp.x_ref
-    quad = jnp.einsum("ti,tij,tj->", e, ocp.Q, e) + jnp.einsum("ti,tij,tj->", u, ocp.R, u)
+    quad = sw.quad(e, ocp.Q) + sw.quad(u, ocp.R)
     lin = jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u)
     rows = rows_of(ocp)
     pen = jnp.sum(rows.wx * rows.rho * jnp.maximum(x_violation(rows, x), 0.0))
@@ -179,16 +180,8 @@ def gradient(ocp: OCP, rows: Rows, u, x, kappa):
     su = u_slack(rows, u)
     du = rows.wu / su
     _, d1, _ = soft_penalty(x_violation(rows, x), rows.rho, k_x)
-    g_u = (
-        2.0 * jnp.einsum("tij,tj->ti", ocp.R, u)
-        + ocp.r
-        + jnp.einsum("tij,ti->tj", rows.Fu, k_u * du)
-    )
-    g_x = (
-        2.0 * jnp.einsum("tij,tj->ti", ocp.Q, x - ocp.x_ref)
-        + ocp.q
-        + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * d1)
-    )
+    g_u = 2.0 * sw.mv(ocp.R, u) + ocp.r + sw.mtv(rows.Fu, k_u * du)
+    g_x = 2.0 * sw.mv(ocp.Q, x - ocp.x_ref) + ocp.q + sw.mtv(rows.Fx, rows.wx * d1)
     return g_u, g_x
 
 
@@ -198,21 +191,21 @@ def hessian(ocp: OCP, rows: Rows, u, x, kappa):
     su = u_slack(rows, u)
     wu2 = k_u * rows.wu / (su * su)
     _, _, d2 = soft_penalty(x_violation(rows, x), rows.rho, k_x)
-    Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, wu2, rows.Fu)
-    Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * d2, rows.Fx)
+    Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, wu2)
+    Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * d2)
     return Phi_u, Phi_x
 
 
 def dyn_residual(ocp: OCP, u, x):
     """r_p: x_{t+1} - A_t x_t - B_t u_t - c_t, shape (N, nx)."""
     x_prev = jnp.concatenate([ocp.x0[None], x[:-1]])
-    return x - jnp.einsum("tij,tj->ti", ocp.A, x_prev) - jnp.einsum("tij,tj->ti", ocp.B, u) - ocp.c
+    return x - sw.mv(ocp.A, x_prev) - sw.mv(ocp.B, u) - ocp.c
 
 
 def dual_residual(ocp: OCP, g_u, g_x, nu):
     """r_d = grad f + C^T nu, split into the u and x blocks."""
-    r_u = g_u - jnp.einsum("tij,ti->tj", ocp.B, nu)
-    At_nu_next = jnp.einsum("tij,ti->tj", ocp.A[1:], nu[1:])
+    r_u = g_u - sw.mtv(ocp.B, nu)
+    At_nu_next = sw.mtv(ocp.A[1:], nu[1:])
     r_x = g_x + nu - jnp.concatenate([At_nu_next, jnp.zeros_like(nu[:1])])
     return r_u, r_x
 

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import (
     dual_residual,
     dyn_residual,
@@ -69,19 +70,19 @@ class _Ray(NamedTuple):
 
 def _ray(ocp, rows, s: NewtonState, du, dx, dnu) -> _Ray:
     e = s.x - ocp.x_ref
-    Qe = jnp.einsum("tij,tj->ti", ocp.Q, e)
-    Ru = jnp.einsum("tij,tj->ti", ocp.R, s.u)
-    Qdx = jnp.einsum("tij,tj->ti", ocp.Q, dx)
-    Rdu = jnp.einsum("tij,tj->ti", ocp.R, du)
+    Qe = sw.mv(ocp.Q, e)
+    Ru = sw.mv(ocp.R, s.u)
+    Qdx = sw.mv(ocp.Q, dx)
+    Rdu = sw.mv(ocp.R, du)
     grad_u = 2.0 * Ru + ocp.r
     grad_x = 2.0 * Qe + ocp.q
     ru0, rx0 = dual_residual(ocp, grad_u, grad_x, s.nu)
     ru1, rx1 = dual_residual(ocp, 2.0 * Rdu, 2.0 * Qdx, dnu)
     return _Ray(
         su=u_slack(rows, s.u),
-        dsu=-jnp.einsum("tij,tj->ti", rows.Fu, du),
+        dsu=-sw.mv(rows.Fu, du),
         g=x_violation(rows, s.x),
-        dg=jnp.einsum("tij,tj->ti", rows.Fx, dx),
+        dg=sw.mv(rows.Fx, dx),
         quad=jnp.sum(e * Qe) + jnp.sum(s.u * Ru) + jnp.sum(ocp.q * s.x) + jnp.sum(ocp.r * s.u),
         dquad=jnp.sum(grad_u * du) + jnp.sum(grad_x * dx),
         ddquad=jnp.sum(dx * Qdx) + jnp.sum(du * Rdu),
@@ -109,8 +110,8 @@ def _ray_residual(rows, ray: _Ray, t, kappa, x_scale):
     """(||r||_2, relative inf-norm residual) at (z, nu) + t (dz, dnu)."""
     su = ray.su + t * ray.dsu
     _, d1, _ = soft_penalty(ray.g + t * ray.dg, rows.rho, kappa)
-    gb_u = kappa * jnp.einsum("tij,ti->tj", rows.Fu, rows.wu / jnp.where(su > 0, su, 1.0))
-    gb_x = jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * d1)
+    gb_u = kappa * sw.mtv(rows.Fu, rows.wu / jnp.where(su > 0, su, 1.0))
+    gb_x = sw.mtv(rows.Fx, rows.wx * d1)
     r_u = ray.ru0 + t * ray.ru1 + gb_u
     r_x = ray.rx0 + t * ray.rx1 + gb_x
     r_p = (1.0 - t) * ray.rp
@@ -191,7 +192,7 @@ def newton_iteration(
     dnu = jnp.where(finite, step.nu, s.nu) - s.nu
     # Newton decrement lambda^2 = dz^T Phi dz (Boyd & Vandenberghe Sec. 10.2): lambda^2 / 2
     # estimates the suboptimality of the pre-step point for the barrier problem.
-    dec2 = jnp.einsum("ti,tij,tj->", du, Phi_u, du) + jnp.einsum("ti,tij,tj->", dx, Phi_x, dx)
+    dec2 = sw.quad(du, Phi_u) + sw.quad(dx, Phi_x)
 
     ray = _ray(ocp, rows, s, du, dx, dnu)
     t0 = _step_length(rows, ray, params.beta)

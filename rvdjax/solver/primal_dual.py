@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import (
     all_finite,
     dual_residual,
@@ -82,11 +83,11 @@ def _pd_step(rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, t
     a = st.mu / sx
     c = st.pi / st.s
     h = tau_x / sx + tau_s / st.s - rows.rho
-    g_u = base_u + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * tau_u / su)
-    g_x = base_x + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
+    g_u = base_u + sw.mtv(rows.Fu, rows.wu * tau_u / su)
+    g_x = base_x + sw.mtv(rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
     step = kkt_solve(kkt, g_u, g_x, rp, method)
-    Fdu = jnp.einsum("tij,tj->ti", rows.Fu, step.du)
-    Fdx = jnp.einsum("tij,tj->ti", rows.Fx, step.dx)
+    Fdu = sw.mv(rows.Fu, step.du)
+    Fdx = sw.mv(rows.Fx, step.dx)
     ds = (a * Fdx + h) / (a + c)
     dlam = tau_u / su - st.lam + Du * Fdu
     dmu = tau_x / sx - st.mu + a * (Fdx - ds)
@@ -112,17 +113,17 @@ def pd_iteration(
     """One Mehrotra predictor-corrector iteration from ``st``."""
     method = settings.method
     su = u_slack(rows, st.u)
-    Fx_x = jnp.einsum("tij,tj->ti", rows.Fx, st.x)
+    Fx_x = sw.mv(rows.Fx, st.x)
     sx = rows.fx - Fx_x + st.s
     # shared by the predictor and the corrector
-    base_u = 2.0 * jnp.einsum("tij,tj->ti", ocp.R, st.u) + ocp.r
-    base_x = 2.0 * jnp.einsum("tij,tj->ti", ocp.Q, st.x - ocp.x_ref) + ocp.q
+    base_u = 2.0 * sw.mv(ocp.R, st.u) + ocp.r
+    base_x = 2.0 * sw.mv(ocp.Q, st.x - ocp.x_ref) + ocp.q
     rp = dyn_residual(ocp, st.u, st.x)
     Du = rows.wu * st.lam / su
     a = st.mu / sx
     c = st.pi / st.s
-    Phi_u = 2.0 * ocp.R + jnp.einsum("tki,tk,tkj->tij", rows.Fu, Du, rows.Fu)
-    Phi_x = 2.0 * ocp.Q + jnp.einsum("tki,tk,tkj->tij", rows.Fx, rows.wx * a * c / (a + c), rows.Fx)
+    Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, Du)
+    Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
     kkt = kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, method)
     wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
 
@@ -185,20 +186,20 @@ def pd_iteration(
     pi = upd(st.pi, dpi, rows.wx)
     nu = upd(st.nu, step.nu - st.nu)
     su_n = u_slack(rows, u)
-    g_n = jnp.einsum("tij,tj->ti", rows.Fx, x) - rows.fx  # soft-row values at the new point
+    g_n = sw.mv(rows.Fx, x) - rows.fx  # soft-row values at the new point
     sx_n = s_new - g_n
     gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
 
     # Stopping: gap and dual residual relative to the objective / gradient scale.
     e = x - ocp.x_ref
-    Ru = jnp.einsum("tij,tj->ti", ocp.R, u)
-    Qe = jnp.einsum("tij,tj->ti", ocp.Q, e)
+    Ru = sw.mv(ocp.R, u)
+    Qe = sw.mv(ocp.Q, e)
     grad_u = 2.0 * Ru + ocp.r
     grad_x = 2.0 * Qe + ocp.q
     r_u, r_x = dual_residual(
         ocp,
-        grad_u + jnp.einsum("tij,ti->tj", rows.Fu, rows.wu * lam),
-        grad_x + jnp.einsum("tij,ti->tj", rows.Fx, rows.wx * mu),
+        grad_u + sw.mtv(rows.Fu, rows.wu * lam),
+        grad_x + sw.mtv(rows.Fx, rows.wx * mu),
         nu,
     )
     r_s = rows.wx * (rows.rho - mu - pi)

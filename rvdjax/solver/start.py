@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.ocp import OCP
+from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import Rows
 from rvdjax.solver.kkt import KKT_SOLVERS
 from rvdjax.solver.types import Plan, Solution
@@ -63,7 +64,7 @@ def shift_solution(sol: Solution | Plan) -> Plan:
 
 def pull_inside(rows: Rows, u, margin=0.99):
     """Scale each stage's u towards 0 (strictly feasible) until strictly feasible."""
-    Fu_u = jnp.einsum("tij,tj->ti", rows.Fu, u)
+    Fu_u = sw.mv(rows.Fu, u)
     ratio = jnp.where((rows.wu > 0) & (Fu_u > 0), rows.fu / jnp.where(Fu_u > 0, Fu_u, 1.0), 2.0)
     theta = jnp.minimum(1.0, margin * jnp.min(ratio, axis=-1))
     return u * theta[:, None]
@@ -79,6 +80,6 @@ def track_plan(ocp: OCP, u_prev, x_prev, method: str):
     Phi_u = 2.0 * ocp.R
     Phi_x = 2.0 * ocp.Q
     g_u = jnp.zeros_like(u_prev)
-    g_x = 2.0 * jnp.einsum("tij,tj->ti", ocp.Q, x_drift - x_prev)
+    g_x = 2.0 * sw.mv(ocp.Q, x_drift - x_prev)
     step = KKT_SOLVERS[method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, jnp.zeros_like(x_prev))
     return jnp.where(jnp.all(jnp.isfinite(step.du)), u_prev + step.du, u_prev)
