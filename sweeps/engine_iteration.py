@@ -32,8 +32,9 @@ def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
     loop = sc.loop("accurate")
     sp = sc.solver_params("accurate")
     settings = loop.config.settings
-    fam = loop.family
-    model = fam.model(params, loop.config.family) if fam.model is not None else None
+    # families with a model share it across the chunk, as the engine does
+    shared = loop.family.model is not None
+    model = loop.family.model(params, loop.config.family) if shared else None
     x0s = perturbed_states(x0, chunk)
     keys = jax.random.split(jax.random.key(1), chunk)
 
@@ -41,15 +42,15 @@ def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
     def started(x0s, keys):
         def one(x, k):
             nxt = prepare(loop, params, init(loop, params, x, k))
-            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=model is not None)
-            return (_strip_model(loop, ocp) if model is not None else ocp), solve
+            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=shared)
+            return (_strip_model(loop, ocp) if shared else ocp), solve
 
         return jax.vmap(one)(x0s, keys)
 
     @jax.jit
     def run(ocps, solves):
         def one(ocp, s):
-            ocp = _with_model(loop, ocp, model) if model is not None else ocp
+            ocp = _with_model(loop, ocp, model) if shared else ocp
             return lax.fori_loop(0, ITERATIONS, lambda _, st: iterate(ocp, st, settings, sp), s)
 
         return jax.vmap(one)(ocps, solves)
