@@ -1,11 +1,20 @@
 """XLA CPU compiler options that rvdjax sets when it is imported.
 
 rvdjax's arrays are small blocks (3-9 wide, a horizon of 15-60 stages) batched over slots.
-One of XLA's CPU defaults slows its batches down (measured in docs/benchmark.md, "XLA's CPU
-options"): ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib
->= 0.9 hands small dot-like products (e.g. a stage's P [B A] with the model shared by a
-chunk of slots) to YNNPACK, a library call per product and stage whose cost dwarfs the
-arithmetic at these sizes; with the option off, XLA emits the loops itself.
+Two of XLA's CPU defaults slow them down (measured in docs/benchmark.md, "XLA's CPU
+options"):
+
+- ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib >= 0.9
+  hands small dot-like products (e.g. a stage's P [B A] with the model shared by a chunk of
+  slots) to YNNPACK, a library call per product and stage whose cost dwarfs the arithmetic
+  at these sizes; with the option off, XLA emits the loops itself.
+- ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000``. XLA
+  runs a ``while`` loop (every ``lax.scan`` over stages) by dispatching each fused kernel of
+  its body in turn, a few dozen per Riccati stage; a loop whose buffers are below the
+  threshold is compiled into one function instead. 100 MB hoists every loop rvdjax runs.
+  The hoisted code contracts multiplies and adds into FMAs in other places than the
+  dispatched kernels do, which moved the last bits of the Riccati recursion's triangular
+  solves; the solver is written to be insensitive to that (:mod:`rvdjax.solver.kkt`).
 
 Not set, although faster still: ``--xla_cpu_use_fusion_emitters=false`` (XLA's older loop
 emitters) made the accurate-mode solver return NONFINITE on two random test problems that
@@ -27,7 +36,10 @@ import warnings
 __all__ = ["OPTIONS", "OPT_OUT", "apply", "wanted"]
 
 # (option, first jaxlib version that has it: checked in the released wheels)
-OPTIONS = (("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),)
+OPTIONS = (
+    ("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),
+    ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000", (0, 10)),
+)
 OPT_OUT = "RVDJAX_XLA_OPTIONS"
 
 

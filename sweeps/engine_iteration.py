@@ -1,11 +1,14 @@
 """Cost of one solver iteration as the batch engine runs it: a chunk of C started slots of a
 scenario (accurate mode, the model shared by the chunk when the family has one), three
 vmapped iterations per call, timed after a compile. Prints microseconds per problem and
-iteration (best and median of five timings of 20 calls).
+iteration (best and median of five timings of 20 calls). With ``--phases``, the three phases
+of an engine tick per slot instead: the OCP build and solver start of a new MPC step, the
+three iterations, and the finish, plant step and metrics of a solved step.
 
 Usage (one core; results in docs/benchmark.md)::
 
     taskset -c 0 python sweeps/engine_iteration.py --scenarios fastmpc-3d,thesis-vbar --chunk 1,32
+    taskset -c 0 python sweeps/engine_iteration.py --phases --scenarios fastmpc-3d
 """
 
 from __future__ import annotations
@@ -19,24 +22,29 @@ from jax import lax
 
 from rvdjax.bench import perturbed_states
 from rvdjax.loop.engine import _strip_model, _with_model
-from rvdjax.loop.kernel import init, prepare
+from rvdjax.loop.kernel import Prepared, advance, init, metrics, prepare
 from rvdjax.scenarios import get_scenario
-from rvdjax.solver.driver import iterate, start
+from rvdjax.solver.driver import finish, iterate, start
 
 ITERATIONS = 3
 
 
-def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
+def _setup(name: str, chunk: int):
+    """Scenario, accurate-mode loop and solver parameters, the model shared by the chunk (as
+    the engine shares it, when the family has one) and C perturbed initial states."""
     sc = get_scenario(name)
     params, x0 = sc.build()
     loop = sc.loop("accurate")
-    sp = sc.solver_params("accurate")
-    settings = loop.config.settings
-    # families with a model share it across the chunk, as the engine does
     shared = loop.family.model is not None
     model = loop.family.model(params, loop.config.family) if shared else None
     x0s = perturbed_states(x0, chunk)
     keys = jax.random.split(jax.random.key(1), chunk)
+    return loop, params, sc.solver_params("accurate"), shared, model, x0s, keys
+
+
+def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
+    loop, params, sp, shared, model, x0s, keys = _setup(name, chunk)
+    settings = loop.config.settings
 
     @jax.jit
     def started(x0s, keys):
@@ -75,13 +83,87 @@ def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
     )
 
 
+def _best_us(fn, args, per, repeats=20) -> float:
+    """Best of five timings of ``repeats`` calls, microseconds per ``per``."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            jax.block_until_ready(fn(*args))
+        times.append((time.perf_counter() - t0) / repeats / per * 1e6)
+    return min(times)
+
+
+def phase_costs(name: str, chunk: int) -> dict:
+    """Microseconds per slot of each phase of an engine tick, for a chunk of slots."""
+    loop, params, sp, shared, model, x0s, keys = _setup(name, chunk)
+    settings = loop.config.settings
+
+    def with_model(ocp):
+        return _with_model(loop, ocp, model) if shared else ocp
+
+    @jax.jit
+    def prepare_start(states):
+        def one(st):
+            nxt = prepare(loop, params, st)
+            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=shared)
+            return nxt, (_strip_model(loop, ocp) if shared else ocp), solve
+
+        return jax.vmap(one)(states)
+
+    @jax.jit
+    def iterations(ocps, solves):
+        def one(ocp, s):
+            ocp = with_model(ocp)
+            return lax.fori_loop(0, ITERATIONS, lambda _, st: iterate(ocp, st, settings, sp), s)
+
+        return jax.vmap(one)(ocps, solves)
+
+    @jax.jit
+    def step_done(states, nxts, ocps, solves):
+        def one(st, nxt, ocp, s):
+            ocp = with_model(ocp)
+            sol = finish(ocp, s, settings, sp)
+            new, _ = advance(
+                loop, params, sp, st, Prepared(nxt.guidance, ocp, nxt.hard, None, nxt.nav), sol
+            )
+            return new, metrics(loop, params, new)
+
+        return jax.vmap(one)(states, nxts, ocps, solves)
+
+    states = jax.jit(jax.vmap(lambda x, k: init(loop, params, x, k)))(x0s, keys)
+    nxts, ocps, solves = prepare_start(states)
+    solves = iterations(ocps, solves)
+    return dict(
+        scenario=name,
+        chunk=chunk,
+        prepare_start_us=_best_us(prepare_start, (states,), chunk),
+        iterations_us=_best_us(iterations, (ocps, solves), chunk),
+        step_done_us=_best_us(step_done, (states, nxts, ocps, solves), chunk),
+    )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--scenarios", default="fastmpc-3d,spot-2d-a,rotating-target-b,poseidyn-lqmpc,thesis-vbar"
     )
     ap.add_argument("--chunk", default="32")
+    ap.add_argument("--phases", action="store_true", help="time the phases of a tick instead")
     args = ap.parse_args(argv)
+    if args.phases:
+        print(
+            f"{'scenario':<20}{'chunk':>6}{'prepare+start':>15}"
+            f"{f'{ITERATIONS} iterations':>14}{'finish+advance':>16}  (us per slot)"
+        )
+        for name in args.scenarios.split(","):
+            for c in (int(v) for v in args.chunk.split(",")):
+                r = phase_costs(name, c)
+                print(
+                    f"{name:<20}{c:>6}{r['prepare_start_us']:>15.1f}{r['iterations_us']:>14.1f}{r['step_done_us']:>16.1f}"
+                )
+        return
     print(f"{'scenario':<20}{'chunk':>6}{'us best':>10}{'us median':>11}{'compile s':>11}")
     for name in args.scenarios.split(","):
         for c in (int(v) for v in args.chunk.split(",")):

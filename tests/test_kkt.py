@@ -26,8 +26,8 @@ def _problems(batch, seed=0):
     return tuple(jnp.asarray(a) for a in (A, B, spd(NU), spd(NX), vec(NU), vec(NX), vec(NX)))
 
 
-def _dense_kkt(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-    """The KKT system assembled densely in NumPy and solved by LAPACK: the reference."""
+def _dense_matrix(A, B, Phi_u, Phi_x):
+    """The KKT matrix assembled densely in NumPy, unknowns (u_0, x_1, u_1, ..., nu)."""
     A, B, Phi_u, Phi_x = (np.asarray(a) for a in (A, B, Phi_u, Phi_x))
     ns = NU + NX
     nz = N * ns
@@ -40,7 +40,14 @@ def _dense_kkt(A, B, Phi_u, Phi_x, g_u, g_x, rp):
         C[t * NX : (t + 1) * NX, z[1]] = np.eye(NX)
         if t > 0:
             C[t * NX : (t + 1) * NX, (t - 1) * ns + NU : t * ns] = -A[t]
-    KKT = np.block([[H, C.T], [C, np.zeros((N * NX, N * NX))]])
+    return np.block([[H, C.T], [C, np.zeros((N * NX, N * NX))]])
+
+
+def _dense_kkt(A, B, Phi_u, Phi_x, g_u, g_x, rp):
+    """The KKT system assembled densely in NumPy and solved by LAPACK: the reference."""
+    KKT = _dense_matrix(A, B, Phi_u, Phi_x)
+    nz = N * (NU + NX)
+    ns = NU + NX
     g = np.concatenate([np.asarray(g_u), np.asarray(g_x)], axis=1).reshape(-1)
     sol = np.linalg.solve(KKT, -np.concatenate([g, np.asarray(rp).reshape(-1)]))
     dz = sol[:nz].reshape(N, ns)
@@ -95,3 +102,24 @@ def test_derivatives_match_central_differences_batched_or_not():
     assert g == pytest.approx(fd, rel=1e-6)
     g_batch = jax.vmap(jax.grad(loss), in_axes=(None, 0))(1.3, data)
     assert float(g_batch[0]) == pytest.approx(g, rel=1e-10)
+
+
+def test_residual_and_refinement_against_the_dense_system():
+    """kkt_residual is the dense KKT matrix times the step plus the right-hand side; one
+    refinement step takes a perturbed solution back to the dense solve's."""
+    A, B, Phi_u, Phi_x, g_u, g_x, rp = (a[0] for a in _problems(1, seed=2))
+    kkt = K.kkt_factor(A, B, Phi_u, Phi_x, "riccati")
+    rng = np.random.default_rng(3)
+    z = K.NewtonStep(*(jnp.asarray(rng.standard_normal(s)) for s in ((N, NU), (N, NX), (N, NX))))
+    r_u, r_x, r_p = K.kkt_residual(kkt, g_u, g_x, rp, z)
+    flat = np.concatenate([np.concatenate([z.du, z.dx], axis=1).reshape(-1), np.ravel(z.nu)])
+    g = np.concatenate([np.asarray(g_u), np.asarray(g_x)], axis=1).reshape(-1)
+    want = _dense_matrix(A, B, Phi_u, Phi_x) @ flat + np.concatenate([g, np.ravel(rp)])
+    got = np.concatenate([np.concatenate([r_u, r_x], axis=1).reshape(-1), np.ravel(r_p)])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+    ref = _dense_kkt(A, B, Phi_u, Phi_x, g_u, g_x, rp)
+    off = K.NewtonStep(*(jnp.asarray(w) * (1 + 1e-4 * rng.standard_normal(w.shape)) for w in ref))
+    fixed = K.kkt_refine(kkt, g_u, g_x, rp, off, "riccati")
+    for a, want in zip(fixed, ref, strict=True):
+        np.testing.assert_allclose(np.asarray(a), want, rtol=1e-9, atol=1e-9)

@@ -17,6 +17,7 @@ from rvdjax import xla_options
 
 YNN = "--xla_cpu_experimental_ynn_fusion_type="
 EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+HOIST = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
 
 # A chunk of 32 slots factorising with the model they share (the engine's case, N = 30):
 # XLA 0.9+ turns the stage product [B A]' P [B A] into a YNNPACK fusion unless told not to.
@@ -35,6 +36,7 @@ PROGRAM = textwrap.dedent(
     txt = f.lower(A, B, Pu, Px).compile().as_text()
     print(os.environ.get("XLA_FLAGS", ""))
     print(sum("__ynn_fusion" in line for line in txt.splitlines()))
+    print(txt.count("xla_cpu_small_call"))  # a while loop compiled into one function
     """
 )
 
@@ -51,28 +53,33 @@ def _run(code: str, **env) -> subprocess.CompletedProcess:
 
 
 def test_wanted_respects_versions_and_the_users_flags():
-    assert xla_options.wanted("", "0.10.2") == [YNN]
-    assert xla_options.wanted("", "0.9.0") == [YNN]
+    assert xla_options.wanted("", "0.10.2") == [YNN, HOIST]
+    assert xla_options.wanted("", "0.9.0") == [YNN]  # hoisting only from the version checked
     assert xla_options.wanted("", "0.8.3") == []  # no YNN option before 0.9
-    assert xla_options.wanted(EMITTERS, "0.10.2") == [YNN]  # other flags are kept beside it
+    # other flags are kept beside them
+    assert xla_options.wanted(EMITTERS, "0.10.2") == [YNN, HOIST]
     # a value the user chose is kept, whatever it is
-    assert xla_options.wanted(f"{YNN}individual_dot", "0.10.2") == []
+    assert xla_options.wanted(f"{YNN}individual_dot", "0.10.2") == [HOIST]
+    assert xla_options.wanted("--xla_backend_extra_options=a=1", "0.10.2") == [YNN]
 
 
 @pytest.mark.skipif(
     xla_options._version(jaxlib.version.__version__) < (0, 9), reason="no YNNPACK fusions"
 )
-def test_import_removes_ynnpack_fusions_and_the_opt_out_keeps_them():
+def test_import_sets_the_options_and_the_opt_out_keeps_xlas_defaults():
     on = _run(PROGRAM)
     assert on.returncode == 0, on.stderr[-2000:]
-    flags, fusions = on.stdout.split("\n")[:2]
-    assert flags.split() == [YNN]
+    flags, fusions, hoisted = on.stdout.split("\n")[:3]
+    want = xla_options.wanted("", jaxlib.version.__version__)
+    assert flags.split() == want
     assert int(fusions) == 0
+    assert (int(hoisted) >= 1) == (HOIST in want)  # the Riccati scan compiled as one function
     off = _run(PROGRAM, **{xla_options.OPT_OUT: "0"})
     assert off.returncode == 0, off.stderr[-2000:]
-    flags, fusions = off.stdout.split("\n")[:2]
+    flags, fusions, hoisted = off.stdout.split("\n")[:3]
     assert flags == ""
     assert int(fusions) >= 1  # XLA's default: the reason for the option
+    assert int(hoisted) == 0
 
 
 def test_warns_when_jax_started_first():

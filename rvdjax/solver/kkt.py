@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.solver import stagewise as sw
+
 __all__ = [
     "NewtonStep",
     "RiccatiFactor",
@@ -155,11 +157,26 @@ def _factor(A, B, Phi_u, Phi_x, ops: _Products) -> RiccatiFactor:
 
     def backward(P, stage):
         M_t, Phu, Phx = stage
-        G = ops.mtm(M_t, ops.mm(P, M_t))  # [[B'PB, B'PA], [A'PB, A'PA]]
-        L = _small_chol(Phu + _sym(G[:nu, :nu]))
-        BPA = G[:nu, nu:]
+        B_t, A_t = M_t[:, :nu], M_t[:, nu:]
+        PM = ops.mm(P, M_t)  # [PB, PA]
+        BPM = ops.mtm(B_t, PM)  # [B'PB, B'PA]
+        H = Phu + _sym(BPM[:, :nu])
+        L = _small_chol(H)
+        BPA = BPM[:, nu:]
         K = -_chol_solve(L, BPA)
-        P_new = Phx + _sym(G[nu:, nu:]) + _sym(ops.mtm(BPA, K))
+        # Late in a solve the barrier weights reach 1e9-1e12 and H's condition number
+        # follows. The two substitutions then move the last bits of their inputs into K's
+        # leading digits, and XLA may evaluate the same substitution with different
+        # FMA contractions in different consumers: with its loops compiled whole, K was
+        # 1e-9 away (backward error) from the H it came from and the factorisation
+        # broke down. One refinement step against H restores K to rounding level.
+        K = K - _chol_solve(L, ops.mm(H, K) + BPA)
+        # Joseph form (A + BK)' P (A + BK) + K' Phu K: a sum of PSD terms, so P stays PSD
+        # whatever K's rounding, and an error in K enters P at second order only (the
+        # subtractive form A'PA - A'PB H^-1 B'PA takes it at first order).
+        PAcl = PM[:, nu:] + ops.mm(PM[:, :nu], K)
+        Acl = A_t + ops.mm(B_t, K)
+        P_new = Phx + _sym(ops.mtm(Acl, PAcl)) + _sym(ops.mtm(K, ops.mm(Phu, K)))
         return P_new, (L, K, BPA, P)
 
     _, (L, K, BPA, P) = lax.scan(backward, Phi_x[-1], (M, Phi_u, _shift(Phi_x)), reverse=True)
@@ -280,8 +297,9 @@ def riccati_factor(A, B, Phi_u, Phi_x) -> RiccatiFactor:
     """Backward Riccati sweep over the KKT matrix (paper 000 Eqs. 24-26 by stage elimination).
 
     The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx with P_N = Phi_x[N-1] and
-    P_t = Phi_x[t-1] + A^T P A - A^T P B (Phi_u + B^T P B)^-1 B^T P A. The three products
-    B^T P B, B^T P A, A^T P A come from one product [B A]^T P [B A].
+    P_t = Phi_x[t-1] + A^T P A - A^T P B H^-1 B^T P A, H = Phi_u + B^T P B, evaluated in the
+    equal Joseph form Phi_x[t-1] + (A + B K)^T P (A + B K) + K^T Phi_u K with the gain
+    K = -H^-1 B^T P A refined once against H (the reasons are in the code).
 
     Args:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
@@ -367,6 +385,30 @@ def kkt_factor(A, B, Phi_u, Phi_x, method: str) -> KKT:
     """Factorise (Riccati) or keep (dense) the Newton matrix of the given Hessian blocks."""
     factor = riccati_factor(A, B, Phi_u, Phi_x) if method == "riccati" else None
     return KKT(A, B, Phi_u, Phi_x, factor)
+
+
+def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
+    """K z + (g, rp) for z = (du, dx, nu): the residual of the stage-structured Newton system
+    (the rows of :func:`dense_solve`'s matrix, applied stage by stage)."""
+    A, B = kkt.A, kkt.B
+    r_u = sw.mv(kkt.Phi_u, step.du) - sw.mtv(B, step.nu) + g_u
+    At_nu = sw.mtv(A, step.nu)  # A_t^T nu_t; row t of x_{t+1} takes A_{t+1}^T nu_{t+1}
+    r_x = (
+        sw.mv(kkt.Phi_x, step.dx)
+        + step.nu
+        - jnp.concatenate([At_nu[1:], jnp.zeros_like(At_nu[:1])])
+        + g_x
+    )
+    r_p = step.dx - sw.mv(B, step.du) - sw.mv(A, _shift(step.dx)) + rp
+    return r_u, r_x, r_p
+
+
+def kkt_refine(kkt: KKT, g_u, g_x, rp, step: NewtonStep, method: str) -> NewtonStep:
+    """One step of iterative refinement: ``step`` plus the solve of its residual with the same
+    factorisation (one more :func:`riccati_apply`)."""
+    r_u, r_x, r_p = kkt_residual(kkt, g_u, g_x, rp, step)
+    d = kkt_solve(kkt, r_u, r_x, r_p, method)
+    return NewtonStep(step.du + d.du, step.dx + d.dx, step.nu + d.nu)
 
 
 def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str) -> NewtonStep:
