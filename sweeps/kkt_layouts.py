@@ -7,11 +7,11 @@ batch sizes on random stage data of ``fastmpc-3d``'s size (N = 30, nx = 6, nu = 
   batch first under ``vmap``;
 * ``rvdjax``: :func:`rvdjax.solver.kkt.riccati_factor` / ``riccati_apply`` as the solver
   calls them: the elementwise form unbatched and, under ``vmap``, with the batch moved last
-  (up to ``BATCH_LAST_MAX`` problems) or the dot form (more).
+  (up to ``BATCH_LAST_MAX`` problems) or the elementwise form with the batch first (more).
 
 Usage (one core; results in docs/benchmark.md)::
 
-    taskset -c 0 python sweeps/kkt_layouts.py --batch 1,8,32,64,96,128,256
+    taskset -c 0 python sweeps/kkt_layouts.py --batch 1,32,64,128,256,512,1024
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The structured KKT solve: the same step unbatched, in small batches (batch-last elementwise
-form), in large batches (dot form) and with a shared model; derivatives of the dot form."""
+form), in large batches (batch first) and with a shared model; derivatives of the dot form."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ SOLVE_SHARED = jax.jit(jax.vmap(_solve, in_axes=(None, None, 0, 0, 0, 0, 0)))
 
 @pytest.mark.parametrize("batch", [3, K.BATCH_LAST_MAX + 5])
 def test_every_form_solves_the_kkt_system(batch):
-    """Unbatched (elementwise), a small batch (batch last) and a large one (dot form, above
+    """Unbatched (elementwise), a small batch (batch last) and a large one (batch first, above
     BATCH_LAST_MAX) against the dense NumPy solve; a model shared by the batch gives the
     same steps as the model repeated per problem."""
     data = _problems(batch)

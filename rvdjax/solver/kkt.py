@@ -209,12 +209,14 @@ def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
 #
 # Unbatched, the elementwise form runs (fewer, fused operations on 6x6 blocks). Under
 # ``vmap`` (custom_vmap) a batch of at most BATCH_LAST_MAX problems moves its batch axis last
-# and runs the elementwise form; a larger batch runs the dot form with the batch first: past
-# ~100 problems the batch-last working set leaves the cache and the dot form is 3x faster on
-# this CPU. Derivatives (custom_jvp) are those of the dot form: custom_vmap has no
-# reverse-mode rule, and both forms compute the same function.
+# and runs the elementwise form; a larger batch runs the elementwise form with the batch first
+# (an ordinary vmap): past a few hundred problems the batch-last working set leaves the cache.
+# With XLA's loops compiled whole (rvdjax.xla_options) the elementwise form beats the dot form
+# at every batch size measured (sweeps/kkt_layouts.py, docs/benchmark.md). Derivatives
+# (custom_jvp) are those of the dot form: custom_vmap has no reverse-mode rule, and both
+# forms compute the same function.
 
-BATCH_LAST_MAX = 96
+BATCH_LAST_MAX = 512
 
 
 def _full(axis_size, a, batched):
@@ -232,10 +234,10 @@ def _to_first(a):
     return jnp.moveaxis(a, -1, 0)
 
 
-def _dot_vmap(fn, in_batched, args, out_batched):
-    """The dot form under an ordinary ``vmap`` (batches above BATCH_LAST_MAX)."""
+def _first_vmap(fn, in_batched, args, out_batched):
+    """The elementwise form under an ordinary ``vmap`` (batches above BATCH_LAST_MAX)."""
     axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
-    return jax.vmap(lambda *a: fn(*a, _DOT), in_axes=axes)(*args), out_batched
+    return jax.vmap(lambda *a: fn(*a, _ELEMENTWISE), in_axes=axes)(*args), out_batched
 
 
 @jax.custom_batching.custom_vmap
@@ -246,7 +248,7 @@ def _factor_batched(A, B, Phi_u, Phi_x):
 @_factor_batched.def_vmap
 def _factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     if axis_size > BATCH_LAST_MAX:
-        return _dot_vmap(
+        return _first_vmap(
             _factor, in_batched, (A, B, Phi_u, Phi_x), RiccatiFactor(True, True, True, True, True)
         )
     bA, bB, bPu, bPx = in_batched
@@ -271,7 +273,7 @@ def _apply_batched(f, g_u, g_x, rp):
 @_apply_batched.def_vmap
 def _apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     if axis_size > BATCH_LAST_MAX:
-        return _dot_vmap(_apply, in_batched, (f, g_u, g_x, rp), NewtonStep(True, True, True))
+        return _first_vmap(_apply, in_batched, (f, g_u, g_x, rp), NewtonStep(True, True, True))
     fb, bu, bx, br = in_batched
     # every operand but M carries the batch
     f = RiccatiFactor(
