@@ -1,7 +1,7 @@
 """XLA CPU compiler options that rvdjax sets when it is imported.
 
 rvdjax's arrays are small blocks (3-9 wide, a horizon of 15-60 stages) batched over slots.
-Two of XLA's CPU defaults slow them down (measured in docs/benchmark.md, "XLA's CPU
+Three of XLA's CPU defaults slow them down (measured in docs/benchmark.md, "XLA's CPU
 options"):
 
 - ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions). jaxlib >= 0.9
@@ -15,6 +15,9 @@ options"):
   The hoisted code contracts multiplies and adds into FMAs in other places than the
   dispatched kernels do, which moved the last bits of the Riccati recursion's triangular
   solves; the solver is written to be insensitive to that (:mod:`rvdjax.solver.kkt`).
+- ``--xla_cpu_prefer_vector_width=512``, on CPUs with AVX-512 only. LLVM's default for x86
+  is 256-bit vectors; a chunk's arrays carry 32 slots on their last axis, four 512-bit
+  vectors of float64.
 
 Not set, although faster still: ``--xla_cpu_use_fusion_emitters=false`` (XLA's older loop
 emitters) made the accurate-mode solver return NONFINITE on two random test problems that
@@ -33,13 +36,14 @@ from __future__ import annotations
 import os
 import warnings
 
-__all__ = ["OPTIONS", "OPT_OUT", "apply", "wanted"]
+__all__ = ["AVX512_OPTIONS", "OPTIONS", "OPT_OUT", "apply", "has_avx512", "wanted"]
 
 # (option, first jaxlib version that has it: checked in the released wheels)
 OPTIONS = (
     ("--xla_cpu_experimental_ynn_fusion_type=", (0, 9)),
     ("--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000", (0, 10)),
 )
+AVX512_OPTIONS = (("--xla_cpu_prefer_vector_width=512", (0, 10)),)
 OPT_OUT = "RVDJAX_XLA_OPTIONS"
 
 
@@ -51,13 +55,23 @@ def _version(text: str) -> tuple[int, ...]:
     return tuple(parts)
 
 
-def wanted(xla_flags: str, jaxlib_version: str) -> list[str]:
-    """The options to append to ``xla_flags`` for this jaxlib: those it has and the user
-    has not set."""
+def wanted(xla_flags: str, jaxlib_version: str, avx512: bool = False) -> list[str]:
+    """The options to append to ``xla_flags`` for this jaxlib (and CPU): those it has and the
+    user has not set."""
     have = _version(jaxlib_version)
+    options = OPTIONS + (AVX512_OPTIONS if avx512 else ())
     return [
-        opt for opt, since in OPTIONS if have >= since and opt.split("=")[0] + "=" not in xla_flags
+        opt for opt, since in options if have >= since and opt.split("=")[0] + "=" not in xla_flags
     ]
+
+
+def has_avx512() -> bool:
+    """The CPU has AVX-512F (Linux: /proc/cpuinfo; elsewhere assumed not)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("flags") and " avx512f" in line for line in f)
+    except OSError:
+        return False
 
 
 def _backend_started() -> bool:
@@ -78,7 +92,7 @@ def apply() -> list[str]:
     import jaxlib.version
 
     current = os.environ.get("XLA_FLAGS", "")
-    add = wanted(current, jaxlib.version.__version__)
+    add = wanted(current, jaxlib.version.__version__, has_avx512())
     if not add:
         return []
     if _backend_started():

@@ -18,6 +18,7 @@ from rvdjax import xla_options
 YNN = "--xla_cpu_experimental_ynn_fusion_type="
 EMITTERS = "--xla_cpu_use_fusion_emitters=false"
 HOIST = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
+WIDE = "--xla_cpu_prefer_vector_width=512"
 
 # A chunk of 32 slots factorising with the model they share (the engine's case, N = 30):
 # XLA 0.9+ turns the stage product [B A]' P [B A] into a YNNPACK fusion unless told not to.
@@ -61,6 +62,9 @@ def test_wanted_respects_versions_and_the_users_flags():
     # a value the user chose is kept, whatever it is
     assert xla_options.wanted(f"{YNN}individual_dot", "0.10.2") == [HOIST]
     assert xla_options.wanted("--xla_backend_extra_options=a=1", "0.10.2") == [YNN]
+    # 512-bit vectors only where the CPU has them
+    assert xla_options.wanted("", "0.10.2", avx512=True) == [YNN, HOIST, WIDE]
+    assert xla_options.wanted(f"{WIDE[:-3]}256", "0.10.2", avx512=True) == [YNN, HOIST]
 
 
 @pytest.mark.skipif(
@@ -70,7 +74,7 @@ def test_import_sets_the_options_and_the_opt_out_keeps_xlas_defaults():
     on = _run(PROGRAM)
     assert on.returncode == 0, on.stderr[-2000:]
     flags, fusions, hoisted = on.stdout.split("\n")[:3]
-    want = xla_options.wanted("", jaxlib.version.__version__)
+    want = xla_options.wanted("", jaxlib.version.__version__, xla_options.has_avx512())
     assert flags.split() == want
     assert int(fusions) == 0
     assert (int(hoisted) >= 1) == (HOIST in want)  # the Riccati scan compiled as one function
