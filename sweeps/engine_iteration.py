@@ -29,76 +29,17 @@ from rvdjax.solver.driver import finish, iterate, start
 ITERATIONS = 3
 
 
-def _setup(name: str, chunk: int):
-    """Scenario, accurate-mode loop and solver parameters, the model shared by the chunk (as
-    the engine shares it, when the family has one) and C perturbed initial states."""
+def _chunk(name: str, chunk: int):
+    """The phases of an engine tick for a chunk of C slots of a scenario (accurate mode, the
+    model shared by the chunk as the engine shares it, when the family has one), jitted and
+    vmapped over the chunk, and C started slots to time them on."""
     sc = get_scenario(name)
     params, x0 = sc.build()
     loop = sc.loop("accurate")
+    sp = sc.solver_params("accurate")
+    settings = loop.config.settings
     shared = loop.family.model is not None
     model = loop.family.model(params, loop.config.family) if shared else None
-    x0s = perturbed_states(x0, chunk)
-    keys = jax.random.split(jax.random.key(1), chunk)
-    return loop, params, sc.solver_params("accurate"), shared, model, x0s, keys
-
-
-def iteration_cost(name: str, chunk: int, repeats: int = 20) -> dict:
-    loop, params, sp, shared, model, x0s, keys = _setup(name, chunk)
-    settings = loop.config.settings
-
-    @jax.jit
-    def started(x0s, keys):
-        def one(x, k):
-            nxt = prepare(loop, params, init(loop, params, x, k))
-            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=shared)
-            return (_strip_model(loop, ocp) if shared else ocp), solve
-
-        return jax.vmap(one)(x0s, keys)
-
-    @jax.jit
-    def run(ocps, solves):
-        def one(ocp, s):
-            ocp = _with_model(loop, ocp, model) if shared else ocp
-            return lax.fori_loop(0, ITERATIONS, lambda _, st: iterate(ocp, st, settings, sp), s)
-
-        return jax.vmap(one)(ocps, solves)
-
-    ocps, solves = started(x0s, keys)
-    t0 = time.perf_counter()
-    compiled = run.lower(ocps, solves).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(ocps, solves))
-    per = []
-    for _ in range(5):
-        t0 = time.perf_counter()
-        for _ in range(repeats):
-            jax.block_until_ready(compiled(ocps, solves))
-        per.append((time.perf_counter() - t0) / repeats / ITERATIONS / chunk * 1e6)
-    return dict(
-        scenario=name,
-        chunk=chunk,
-        best_us=min(per),
-        median_us=float(np.median(per)),
-        compile_s=compile_s,
-    )
-
-
-def _best_us(fn, args, per, repeats=20) -> float:
-    """Best of five timings of ``repeats`` calls, microseconds per ``per``."""
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(5):
-        t0 = time.perf_counter()
-        for _ in range(repeats):
-            jax.block_until_ready(fn(*args))
-        times.append((time.perf_counter() - t0) / repeats / per * 1e6)
-    return min(times)
-
-
-def phase_costs(name: str, chunk: int) -> dict:
-    """Microseconds per slot of each phase of an engine tick, for a chunk of slots."""
-    loop, params, sp, shared, model, x0s, keys = _setup(name, chunk)
-    settings = loop.config.settings
 
     def with_model(ocp):
         return _with_model(loop, ocp, model) if shared else ocp
@@ -132,15 +73,51 @@ def phase_costs(name: str, chunk: int) -> dict:
 
         return jax.vmap(one)(states, nxts, ocps, solves)
 
+    x0s = perturbed_states(x0, chunk)
+    keys = jax.random.split(jax.random.key(1), chunk)
     states = jax.jit(jax.vmap(lambda x, k: init(loop, params, x, k)))(x0s, keys)
+    return states, prepare_start, iterations, step_done
+
+
+def _timings_us(fn, args, per, repeats=20) -> list[float]:
+    """Five timings of ``repeats`` calls (after one untimed call), microseconds per ``per``."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            jax.block_until_ready(fn(*args))
+        times.append((time.perf_counter() - t0) / repeats / per * 1e6)
+    return times
+
+
+def iteration_cost(name: str, chunk: int) -> dict:
+    states, prepare_start, iterations, _ = _chunk(name, chunk)
+    _, ocps, solves = prepare_start(states)
+    t0 = time.perf_counter()
+    compiled = iterations.lower(ocps, solves).compile()
+    compile_s = time.perf_counter() - t0
+    per = _timings_us(compiled, (ocps, solves), ITERATIONS * chunk)
+    return dict(
+        scenario=name,
+        chunk=chunk,
+        best_us=min(per),
+        median_us=float(np.median(per)),
+        compile_s=compile_s,
+    )
+
+
+def phase_costs(name: str, chunk: int) -> dict:
+    """Microseconds per slot of each phase of an engine tick, for a chunk of slots."""
+    states, prepare_start, iterations, step_done = _chunk(name, chunk)
     nxts, ocps, solves = prepare_start(states)
     solves = iterations(ocps, solves)
     return dict(
         scenario=name,
         chunk=chunk,
-        prepare_start_us=_best_us(prepare_start, (states,), chunk),
-        iterations_us=_best_us(iterations, (ocps, solves), chunk),
-        step_done_us=_best_us(step_done, (states, nxts, ocps, solves), chunk),
+        prepare_start_us=min(_timings_us(prepare_start, (states,), chunk)),
+        iterations_us=min(_timings_us(iterations, (ocps, solves), chunk)),
+        step_done_us=min(_timings_us(step_done, (states, nxts, ocps, solves), chunk)),
     )
 
 

@@ -203,7 +203,8 @@ def dyn_residual(ocp: OCP, u, x):
 
 
 def dual_residual(ocp: OCP, g_u, g_x, nu):
-    """r_d = grad f + C^T nu, split into the u and x blocks."""
+    """r_d = grad f + C^T nu, split into the u and x blocks. Reads only the stage model
+    ``ocp.A``, ``ocp.B``, so a :class:`rvdjax.solver.kkt.KKT` serves as well."""
     r_u = g_u - sw.mtv(ocp.B, nu)
     At_nu_next = sw.mtv(ocp.A[1:], nu[1:])
     r_x = g_x + nu - jnp.concatenate([At_nu_next, jnp.zeros_like(nu[:1])])

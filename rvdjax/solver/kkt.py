@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.solver import stagewise as sw
+from rvdjax.solver.barrier import dual_residual
 
 __all__ = [
     "NewtonStep",
@@ -392,16 +393,10 @@ def kkt_factor(A, B, Phi_u, Phi_x, method: str) -> KKT:
 def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
     """K z + (g, rp) for z = (du, dx, nu): the residual of the stage-structured Newton system
     (the rows of :func:`dense_solve`'s matrix, applied stage by stage)."""
-    A, B = kkt.A, kkt.B
-    r_u = sw.mv(kkt.Phi_u, step.du) - sw.mtv(B, step.nu) + g_u
-    At_nu = sw.mtv(A, step.nu)  # A_t^T nu_t; row t of x_{t+1} takes A_{t+1}^T nu_{t+1}
-    r_x = (
-        sw.mv(kkt.Phi_x, step.dx)
-        + step.nu
-        - jnp.concatenate([At_nu[1:], jnp.zeros_like(At_nu[:1])])
-        + g_x
+    r_u, r_x = dual_residual(
+        kkt, sw.mv(kkt.Phi_u, step.du) + g_u, sw.mv(kkt.Phi_x, step.dx) + g_x, step.nu
     )
-    r_p = step.dx - sw.mv(B, step.du) - sw.mv(A, _shift(step.dx)) + rp
+    r_p = step.dx - sw.mv(kkt.B, step.du) - sw.mv(kkt.A, _shift(step.dx)) + rp
     return r_u, r_x, r_p
 
 
