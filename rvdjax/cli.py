@@ -12,12 +12,15 @@ PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 
 def _one_thread():
-    """Pin XLA's CPU backend to one thread (must run before JAX first computes)."""
+    """Keep XLA's CPU backend off Eigen's thread pool (must run before JAX first computes).
+
+    Only real XLA options go into ``XLA_FLAGS``: XLA stops reading the variable at the first
+    token it does not know (the folklore ``intra_op_parallelism_threads=1`` is one), so
+    everything after it, rvdjax's own options included, would silently be dropped. For
+    single-core timings pin the process as well (``taskset -c 0``)."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if "intra_op_parallelism_threads" not in flags:
-        os.environ["XLA_FLAGS"] = (
-            flags + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-        ).strip()
+    if "--xla_cpu_multi_thread_eigen=" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
 
@@ -902,8 +905,7 @@ def main(argv=None) -> int:
     devices = getattr(args, "devices", 1)
     if devices > 1 and "xla_force_host_platform_device_count" not in os.environ.get(
         "XLA_FLAGS", ""
-    ):  # on a CPU, one XLA host device per core asked for (before JAX starts); first, since
-        # XLA stops reading its flags at the bare "intra_op_parallelism_threads=1" token
+    ):  # on a CPU, one XLA host device per core asked for (before JAX starts)
         os.environ["XLA_FLAGS"] = (
             f"--xla_force_host_platform_device_count={devices} " + os.environ.get("XLA_FLAGS", "")
         ).strip()

@@ -50,65 +50,76 @@ def to_qp(ocp: OCP, soft: bool = True) -> QP:
     N, nx, nu = o.B.shape
     ns = nu + nx
     n_plan = N * ns
-    iu = [t * ns + np.arange(nu) for t in range(N)]
-    ix = [t * ns + nu + np.arange(nx) for t in range(N)]
+    # column indices of u_t and x_{t+1}, (N, nu) and (N, nx); assembled as COO triplets
+    # (vectorised: the reference loops call this once per MPC step)
+    iu = np.arange(N)[:, None] * ns + np.arange(nu)
+    ix = iu[:, :1] + nu + np.arange(nx)
 
-    x_rows = [np.flatnonzero(o.x_mask[t] > 0) for t in range(N)]
-    n_slack = sum(len(r) for r in x_rows) if soft else 0
+    def block(rows, cols, values):
+        """Triplets of the dense blocks values[t] at rows[t] x cols[t]."""
+        r = np.broadcast_to(rows[..., :, None], values.shape)
+        c = np.broadcast_to(cols[..., None, :], values.shape)
+        return r.ravel(), c.ravel(), values.ravel()
+
+    def rows_of(rows, cols, values):
+        """Triplets of single rows: values[k] at row rows[k], columns cols[k]."""
+        return np.broadcast_to(rows[:, None], values.shape).ravel(), cols.ravel(), values.ravel()
+
+    u_act = o.u_mask > 0
+    x_act = o.x_mask > 0
+    n_slack = int(x_act.sum()) if soft else 0
     nz = n_plan + n_slack
 
     # Cost (paper convention, no 1/2): (x-xr)^T Q (x-xr) + u^T R u + q^T x + r^T u.
-    P = sp.lil_matrix((nz, nz))
+    P = _csc(nz, nz, [block(iu, iu, 2.0 * o.R), block(ix, ix, 2.0 * o.Q)])
     qv = np.zeros(nz)
-    const = 0.0
-    for t in range(N):
-        P[np.ix_(iu[t], iu[t])] = 2.0 * o.R[t]
-        P[np.ix_(ix[t], ix[t])] = 2.0 * o.Q[t]
-        qv[iu[t]] = o.r[t]
-        qv[ix[t]] = o.q[t] - 2.0 * o.Q[t] @ o.x_ref[t]
-        const += float(o.x_ref[t] @ o.Q[t] @ o.x_ref[t])
+    qv[iu] = o.r
+    qv[ix] = o.q - 2.0 * np.einsum("tij,tj->ti", o.Q, o.x_ref)
+    const = float(np.einsum("ti,tij,tj->", o.x_ref, o.Q, o.x_ref))
 
     # Dynamics: x_{t+1} - A_t x_t - B_t u_t = c_t (+ A_0 x0 at t = 0).
-    Aeq = sp.lil_matrix((N * nx, nz))
-    beq = np.zeros(N * nx)
-    for t in range(N):
-        rows = t * nx + np.arange(nx)
-        Aeq[np.ix_(rows, ix[t])] = np.eye(nx)
-        Aeq[np.ix_(rows, iu[t])] = -o.B[t]
-        beq[rows] = o.c[t]
-        if t == 0:
-            beq[rows] += o.A[0] @ o.x0
-        else:
-            Aeq[np.ix_(rows, ix[t - 1])] = -o.A[t]
+    eq = np.arange(N)[:, None] * nx + np.arange(nx)  # (N, nx) rows of stage t
+    eye = np.broadcast_to(np.eye(nx), (N, nx, nx))
+    Aeq = _csc(
+        N * nx,
+        nz,
+        [block(eq, ix, eye), block(eq, iu, -o.B), block(eq[1:], ix[:-1], -o.A[1:])],
+    )
+    beq = o.c.copy()
+    beq[0] += o.A[0] @ o.x0
+    beq = beq.ravel()
 
-    G_blocks, h_parts = [], []
-    slack = n_plan
-    for t in range(N):
-        ru = np.flatnonzero(o.u_mask[t] > 0)
-        if len(ru):
-            g = sp.lil_matrix((len(ru), nz))
-            g[:, iu[t]] = o.Fu[t][ru]
-            G_blocks.append(g)
-            h_parts.append(o.fu[t][ru])
-        rx = x_rows[t]
-        if len(rx):
-            g = sp.lil_matrix((len(rx), nz))
-            g[:, ix[t]] = o.Fx[t][rx]
-            if soft:
-                cols = slack + np.arange(len(rx))
-                g[np.arange(len(rx)), cols] = -1.0
-                gs = sp.lil_matrix((len(rx), nz))
-                gs[np.arange(len(rx)), cols] = -1.0  # s >= 0
-                G_blocks += [g, gs]
-                h_parts += [o.fx[t][rx], np.zeros(len(rx))]
-                qv[cols] = o.rho[t][rx]
-                slack += len(rx)
-            else:
-                G_blocks.append(g)
-                h_parts.append(o.fx[t][rx])
-    G = sp.vstack(G_blocks).tocsc() if G_blocks else sp.csc_matrix((0, nz))
-    h = np.concatenate(h_parts) if h_parts else np.zeros(0)
-    return QP(P.tocsc(), qv, Aeq.tocsc(), beq, G, h, const, n_plan)
+    # Inequalities, stage by stage: active input rows, active state rows (with their slack in
+    # the soft form), then the slacks' s >= 0 rows.
+    cu = u_act.sum(1)
+    cx = x_act.sum(1)
+    per_stage = cu + cx * (2 if soft else 1)
+    first = np.concatenate([[0], np.cumsum(per_stage)[:-1]])
+    tu, ku = np.nonzero(u_act)
+    tx, kx = np.nonzero(x_act)
+    row_u = first[tu] + (np.cumsum(u_act, 1) - 1)[tu, ku]
+    row_x = first[tx] + cu[tx] + (np.cumsum(x_act, 1) - 1)[tx, kx]
+    parts = [rows_of(row_u, iu[tu], o.Fu[tu, ku]), rows_of(row_x, ix[tx], o.Fx[tx, kx])]
+    n_ineq = int(per_stage.sum())
+    h = np.zeros(n_ineq)
+    h[row_u] = o.fu[tu, ku]
+    h[row_x] = o.fx[tx, kx]
+    if soft:
+        cols = n_plan + np.arange(n_slack)  # the slacks in (stage, row) order
+        minus = -np.ones(n_slack)
+        parts += [(row_x, cols, minus), (row_x + cx[tx], cols, minus)]  # Fx x - s <= fx; -s <= 0
+        qv[cols] = o.rho[tx, kx]
+    G = _csc(n_ineq, nz, parts)
+    return QP(P, qv, Aeq, beq, G, h, const, n_plan)
+
+
+def _csc(n_rows: int, n_cols: int, parts) -> sp.csc_matrix:
+    """A CSC matrix from (rows, cols, values) triplets, explicit zeros dropped."""
+    r, c, v = (np.concatenate(a) for a in zip(*parts, strict=True))
+    keep = v != 0.0
+    m = sp.coo_matrix((v[keep], (r[keep], c[keep])), shape=(n_rows, n_cols)).tocsc()
+    m.sum_duplicates()
+    return m
 
 
 def split_solution(z: np.ndarray, N: int, nx: int, nu: int) -> tuple[np.ndarray, np.ndarray]:

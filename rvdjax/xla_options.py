@@ -24,8 +24,11 @@ emitters) made the accurate-mode solver return NONFINITE on two random test prob
 it solves with the default emitters (tests/test_solver.py, shape classes "large" and
 "long", seed 0; jaxlib 0.10.2).
 
-XLA reads ``XLA_FLAGS`` once, when JAX creates its CPU backend, so the options are appended
-at import, before any computation; options the user set (to any value) are left alone, and
+XLA reads ``XLA_FLAGS`` once, when JAX creates its CPU backend, so the options are added at
+import, before any computation. They go in front of the user's flags: XLA stops reading at
+the first token that is not an option (the folklore ``intra_op_parallelism_threads=1`` is
+one; rvdjax warns about it), and options after it are silently dropped. Options the user set
+(to any value) are left alone, and
 ``RVDJAX_XLA_OPTIONS=0`` keeps ``XLA_FLAGS`` untouched. An option is added only for jaxlib
 versions known to have it (XLA aborts on an unknown flag). If JAX already ran a computation
 before rvdjax was imported, nothing can be changed: a warning says so.
@@ -36,7 +39,15 @@ from __future__ import annotations
 import os
 import warnings
 
-__all__ = ["AVX512_OPTIONS", "OPTIONS", "OPT_OUT", "apply", "has_avx512", "wanted"]
+__all__ = [
+    "AVX512_OPTIONS",
+    "OPTIONS",
+    "OPT_OUT",
+    "apply",
+    "has_avx512",
+    "stray_tokens",
+    "wanted",
+]
 
 # (option, first jaxlib version that has it: checked in the released wheels)
 OPTIONS = (
@@ -63,6 +74,11 @@ def wanted(xla_flags: str, jaxlib_version: str, avx512: bool = False) -> list[st
     return [
         opt for opt, since in options if have >= since and opt.split("=")[0] + "=" not in xla_flags
     ]
+
+
+def stray_tokens(xla_flags: str) -> list[str]:
+    """The tokens of ``xla_flags`` that are not ``--options``: XLA stops reading there."""
+    return [t for t in xla_flags.split() if not t.startswith("--")]
 
 
 def has_avx512() -> bool:
@@ -92,6 +108,13 @@ def apply() -> list[str]:
     import jaxlib.version
 
     current = os.environ.get("XLA_FLAGS", "")
+    stray = stray_tokens(current)
+    if stray:
+        warnings.warn(
+            f"XLA_FLAGS holds {' '.join(stray)!r}, which is not an XLA option: XLA ignores "
+            "everything from there on (rvdjax puts its own options first).",
+            stacklevel=3,
+        )
     add = wanted(current, jaxlib.version.__version__, has_avx512())
     if not add:
         return []
@@ -104,5 +127,5 @@ def apply() -> list[str]:
             stacklevel=3,
         )
         return []
-    os.environ["XLA_FLAGS"] = " ".join([current, *add]).strip()
+    os.environ["XLA_FLAGS"] = " ".join([*add, current]).strip()
     return add

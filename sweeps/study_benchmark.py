@@ -12,8 +12,11 @@ engine flies a queue of ``--batch-runs`` runs through ``--slots`` slots, as a st
 queue longer than the slots keeps the batch full; with as many slots as runs the wall time is
 the longest run's). The Python loop calls the jitted MPC step once per step (the host solver
 inside it through a callback: QP assembly in SciPy included), as a user without rvdjax's
-engine would, on ``--single-runs`` runs spread evenly over the queue. Maneuvers differ in
-length (0.15-2.5 km), so the ratio is given per maneuver and per MPC step flown.
+engine would, on ``--single-runs`` runs spread evenly over the queue (its step compiled
+first, by one untimed run). Maneuvers differ in length (0.15-2.5 km), so the ratio is given
+per maneuver and per MPC step flown. The Python loop's rows also give its milliseconds per
+step and, on the first step's QP of the same runs, the assembly and the host solve alone:
+the solve alone bounds what any engine speed can make of the ratio.
 Memory: `rvdjax study montecarlo` in a fresh process per size (peak RSS of that process).
 """
 
@@ -21,15 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
 
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "")
-    + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-)
+import rvdjax  # noqa: F401  (its XLA options, before JAX starts)
+from rvdjax.cli import _one_thread
+
+_one_thread()
 
 import numpy as np  # noqa: E402
 
@@ -37,7 +39,6 @@ import numpy as np  # noqa: E402
 def throughput(args) -> list[dict]:
     import jax
 
-    import rvdjax  # noqa: F401
     from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
     from rvdjax.loop.reference import reference_loop
     from rvdjax.scenarios import get_scenario
@@ -77,8 +78,9 @@ def throughput(args) -> list[dict]:
     )
     subset = np.unique(np.linspace(0, args.batch_runs - 1, args.single_runs).round().astype(int))
     for backend in args.peers.split(","):
-        # compile the step once (first run's first step), then time whole maneuvers
-        reference_loop(loop.replace(n_steps=1), params, rs.x0[0], rs.keys[0], backend=backend)
+        # compile the step (the loop itself: its step length is static, a shorter loop would
+        # compile another step) by flying the first run once untimed, then time whole maneuvers
+        reference_loop(loop, params, rs.x0[subset[0]], rs.keys[subset[0]], backend=backend)
         secs, steps, agree = 0.0, 0, []
         for i in subset:
             _, mi, s = reference_loop(loop, params, rs.x0[i], rs.keys[i], backend=backend)
@@ -90,6 +92,7 @@ def throughput(args) -> list[dict]:
                 <= 1e-3 * max(1.0, float(m.delta_v_m_s[i]))
             )
         rate = len(subset) / secs
+        assembly_ms, solve_ms = _host_parts(loop, params, rs, subset, backend)
         rows.append(
             {
                 "method": f"Python loop, {backend} per step",
@@ -99,11 +102,44 @@ def throughput(args) -> list[dict]:
                 "ratio": engine_rate / rate,
                 "ratio_per_step": engine_steps / (steps / secs),
                 "same_outcome_as_engine": f"{sum(agree)}/{len(agree)}",
+                "ms_per_step": 1e3 * secs / steps,
+                "qp_assembly_ms": assembly_ms,
+                "host_solve_ms": solve_ms,
             }
         )
         print(rows[-1], file=sys.stderr)
     del jax
     return rows
+
+
+def _host_parts(loop, params, rs, subset, backend: str, repeats: int = 5):
+    """Milliseconds of the Python loop's two host parts on the first MPC step's QP of the
+    timed runs: the SciPy assembly (rvdjax.qp.to_qp) and the host solver alone."""
+    import jax
+
+    from rvdjax import peers
+    from rvdjax.loop.kernel import init, prepare
+    from rvdjax.qp import to_qp
+
+    solve = {"clarabel": peers.solve_clarabel, "piqp": peers.solve_piqp}.get(
+        backend, peers.solve_daqp
+    )
+    build, solved = [], []
+    for i in subset:
+        st = init(loop, params, rs.x0[i], rs.keys[i])
+        ocp = jax.tree.map(np.asarray, prepare(loop, params, st).ocp)
+        qp = to_qp(ocp, soft=True)
+        solve(qp)
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            to_qp(ocp, soft=True)
+        t1 = time.perf_counter()
+        for _ in range(repeats):
+            solve(qp)
+        t2 = time.perf_counter()
+        build.append((t1 - t0) / repeats)
+        solved.append((t2 - t1) / repeats)
+    return 1e3 * float(np.mean(build)), 1e3 * float(np.mean(solved))
 
 
 def memory(args) -> list[dict]:
@@ -147,7 +183,7 @@ def main() -> None:
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args()
     rows = throughput(args) if args.what == "throughput" else memory(args)
-    keys = list(rows[0])
+    keys = list(dict.fromkeys(k for r in rows for k in r))
     print(" | ".join(keys))
     for r in rows:
         print(" | ".join(f"{r.get(k):.4g}" if isinstance(r.get(k), float) else str(r.get(k))

@@ -86,6 +86,21 @@ def test_import_sets_the_options_and_the_opt_out_keeps_xlas_defaults():
     assert int(hoisted) == 0
 
 
+def test_options_go_before_a_token_xla_would_stop_at():
+    assert xla_options.stray_tokens("--a=1 intra_op_parallelism_threads=1 --b") == [
+        "intra_op_parallelism_threads=1"
+    ]
+    assert xla_options.stray_tokens("--xla_cpu_multi_thread_eigen=false") == []
+    r = _run(PROGRAM, XLA_FLAGS="--xla_cpu_multi_thread_eigen=false stray=1")
+    assert r.returncode == 0, r.stderr[-2000:]
+    flags, fusions, hoisted = r.stdout.split("\n")[:3]
+    want = xla_options.wanted("", jaxlib.version.__version__, xla_options.has_avx512())
+    assert flags.split()[: len(want)] == want  # in front of the stray token
+    if want:
+        assert int(fusions) == 0  # and they reached the compiler
+    assert "stray=1" in r.stderr and "not an XLA option" in r.stderr
+
+
 def test_warns_when_jax_started_first():
     late = _run("import jax; jax.numpy.ones(1).block_until_ready(); import rvdjax")
     assert late.returncode == 0, late.stderr[-2000:]
