@@ -39,6 +39,7 @@ import numpy as np
 __all__ = [
     "Block",
     "stack",
+    "exclusive",
     "margins",
     "block_margin",
     "hard_mask",
@@ -73,12 +74,15 @@ class Block:
         name: static name (the key of the block's margin in the loop's records).
         kind: static "hard", "penalty" or "monitor".
         acts_on: static "x" or "u".
+        hard: (N, m) 1.0 on "hard" rows, where hardness differs from row to row (blocks made
+            by :func:`exclusive`); None: every row is of ``kind``.
     """
 
     F: jnp.ndarray
     f: jnp.ndarray
     rho: jnp.ndarray
     mask: jnp.ndarray
+    hard: jnp.ndarray | None = None
     name: str = dataclasses.field(default="rows", metadata=dict(static=True))
     kind: str = dataclasses.field(default="hard", metadata=dict(static=True))
     acts_on: str = dataclasses.field(default="x", metadata=dict(static=True))
@@ -140,9 +144,59 @@ def stack(blocks: Sequence[Block]):
     )
 
 
+def _hard_rows(b: Block):
+    if b.hard is not None:
+        return b.hard
+    return jnp.full(b.mask.shape, 1.0 if b.kind == "hard" else 0.0, b.mask.dtype)
+
+
 def hard_mask(blocks: Sequence[Block]):
     """(N, m) 1.0 on the active rows of the "hard" blocks, in :func:`stack` order."""
-    return jnp.concatenate([b.mask * (1.0 if b.kind == "hard" else 0.0) for b in blocks], axis=1)
+    return jnp.concatenate([b.mask * _hard_rows(b) for b in blocks], axis=1)
+
+
+def exclusive(alternatives: Sequence[Sequence[Block]], index, name: str = "exclusive") -> Block:
+    """One block carrying the stacked rows of ``alternatives[index]`` (``index`` may be traced).
+
+    Sets of blocks that are never active together (the phases of a phased guidance) share
+    rows instead of being stacked one after the other: the OCP carries the largest set's
+    count of rows rather than the sum, and the solver's work on the state rows grows with that
+    count. Rows past the chosen set's own count are padding (mask 0). Hardness is kept per row
+    (``Block.hard``), so :func:`hard_mask` still marks the chosen set's "hard" rows; ``kind``
+    of the result is only a label.
+    """
+    if not alternatives or any(len(alt) == 0 for alt in alternatives):
+        raise ValueError("exclusive needs at least one block in every alternative")
+    sides = {b.acts_on for alt in alternatives for b in alt}
+    if len(sides) != 1:
+        raise ValueError("exclusive takes state blocks or input blocks, not both")
+    parts = [
+        (*stack(alt), jnp.concatenate([_hard_rows(b) for b in alt], axis=1)) for alt in alternatives
+    ]
+    m = max(p[0].shape[1] for p in parts)
+
+    def pad(a, value):
+        widths = [(0, 0)] * a.ndim
+        widths[1] = (0, m - a.shape[1])
+        return jnp.pad(a, widths, constant_values=value)
+
+    # padding rows: zero normal, unit offset and penalty, inactive (as the solver neutralises)
+    fill = (0.0, 1.0, 1.0, 0.0, 0.0)  # F, f, rho, mask, hard
+    padded = [tuple(pad(a, v) for a, v in zip(p, fill, strict=True)) for p in parts]
+
+    def pick(k):
+        return jnp.stack([p[k] for p in padded])[index]
+
+    return Block(
+        F=pick(0),
+        f=pick(1),
+        rho=pick(2),
+        mask=pick(3),
+        hard=pick(4),
+        name=name,
+        kind="hard",
+        acts_on=sides.pop(),
+    )
 
 
 def block_margin(block: Block, v):

@@ -285,3 +285,42 @@ def test_jit_vmap_grad():
     assert gv[0].shape == gv[1].shape == (3,)
     assert np.all(np.isfinite(gv[0])) and np.all(np.isfinite(gv[1]))
     assert np.isclose(gv[0][1], total(1.0))  # batched value matches the eager one
+
+
+def test_exclusive_shares_rows_between_alternatives():
+    N, nx = 4, 6
+    rng = np.random.default_rng(0)
+
+    def blk(m, kind, name, on=1.0):
+        b = C.Block(
+            F=jnp.asarray(rng.normal(size=(N, m, nx))),
+            f=jnp.asarray(rng.normal(size=(N, m))),
+            rho=jnp.asarray(rng.uniform(1, 2, size=(N, m))),
+            mask=jnp.ones((N, m)),
+            name=name,
+            kind=kind,
+        )
+        return b.masked(on)
+
+    alts = [
+        [blk(1, "hard", "a"), blk(4, "penalty", "b", on=jnp.array([0, 0, 0, 1.0]))],
+        [blk(4, "penalty", "c"), blk(1, "hard", "d")],
+        [blk(4, "hard", "e"), blk(6, "hard", "f")],
+    ]
+    pick = jax.jit(lambda i: C.exclusive(alts, i))
+    for i, alt in enumerate(alts):
+        b = pick(i)
+        assert b.F.shape == (N, 10, nx)  # the largest alternative's rows, not 16
+        F, f, rho, mask = C.stack(alt)
+        m = F.shape[1]
+        np.testing.assert_array_equal(b.F[:, :m], F)
+        np.testing.assert_array_equal(b.f[:, :m], f)
+        np.testing.assert_array_equal(b.rho[:, :m], rho)
+        np.testing.assert_array_equal(b.mask[:, :m], mask)
+        assert np.all(b.mask[:, m:] == 0) and np.all(b.F[:, m:] == 0)
+        # hardness follows the chosen alternative row by row
+        want = C.hard_mask(alt)
+        np.testing.assert_array_equal(C.hard_mask([b])[:, :m], want)
+        assert np.all(C.hard_mask([b])[:, m:] == 0)
+    with pytest.raises(ValueError, match="every alternative"):
+        C.exclusive([alts[0], []], 0)

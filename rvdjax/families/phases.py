@@ -45,6 +45,7 @@ from rvdjax.constraints import (
     approach_cone,
     approach_cone_penalty,
     cost_rows,
+    exclusive,
     keep_out_plane,
     overshoot,
     sphere_keep_out,
@@ -439,17 +440,22 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     x_ref = jnp.stack([ref0, ref1, ref2])[phase]
 
     normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n, x[3:])
-    blocks = [
-        keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0),
-        approach_cone_penalty(
-            jnp.zeros((N, 3), dtype), axis, p.half_angle[phase], p.lam[phase], 6, POS, nf
-        ).masked(jnp.where(p0, last, on * p1)),
-        overshoot(axis, p.r2, 6, POS, rho=p.rho).masked(on * p1),
-        approach_cone(
-            port, axis, p.half_angle[2], nf, 6, POS, rho=p.rho, name="docking_cone"
-        ).masked(on * p2),
-        velocity_bound(p.v_max, N, 6, VEL, rho=p.rho).masked(on * p2),
+    # The phases' rows are never active together, so they share rows (constraints.exclusive):
+    # 10 state rows per stage instead of 16 (the solver's row work scales with the count).
+    cone_penalty = approach_cone_penalty(
+        jnp.zeros((N, 3), dtype), axis, p.half_angle[phase], p.lam[phase], 6, POS, nf
+    ).masked(jnp.where(p0, last, on * p1))
+    per_phase = [
+        [keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0)],
+        [cone_penalty, overshoot(axis, p.r2, 6, POS, rho=p.rho).masked(on * p1)],
+        [
+            approach_cone(
+                port, axis, p.half_angle[2], nf, 6, POS, rho=p.rho, name="docking_cone"
+            ).masked(on * p2),
+            velocity_bound(p.v_max, N, 6, VEL, rho=p.rho).masked(on * p2),
+        ],
     ]
+    per_phase[0].append(cone_penalty)
 
     eye = jnp.eye(6, dtype=dtype)
     A = jnp.where(real[:, None, None], p.A[phase], eye)
@@ -467,7 +473,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         # state terms: each row of W (Q, Q_f on the terminal stage) gives a cost-row pair
         W = jnp.where((stage < n_real - 1)[:, None, None], p.Q[0], p.Q_f[0])
         Wr = jnp.einsum("tij,tj->ti", W, x_ref)
-        blocks.append(cost_rows(W, Wr, name="lp_state_cost").masked(on * p0))
+        per_phase[0].append(cost_rows(W, Wr, name="lp_state_cost").masked(on * p0))
         Q = jnp.where(p0, 0.0, Q)
         # input: six variables v = [v1; v2] in every phase (one shape). Rendezvous: the split
         # u = v1 - v2 with 0 <= v1, v2 <= u_max, so sum_i R_ii |u_i| = w^T (v1 + v2) at the
@@ -496,6 +502,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         lo = jnp.where(p0, LP_EPS, 1.0) * um
         fu = jnp.broadcast_to(jnp.concatenate([hi, lo]), (N, 12))
 
+    blocks = [exclusive(per_phase, phase, name="phase_rows")]
     Fx, fx, rho, x_mask = stack(blocks)
     problem = OCP(
         A=A,
