@@ -53,6 +53,10 @@ class PDState(NamedTuple):
     status: jnp.ndarray
     gap: jnp.ndarray  # complementarity sum (the duality gap of a dual-feasible point)
     res: jnp.ndarray  # relative dual residual
+    # Row values, updated with the steps as primal variables (not recomputed from u and x:
+    # each product reads the row matrices, and the row work is memory bound, docs/benchmark.md)
+    su: jnp.ndarray  # fu - Fu u (input-row slacks)
+    g: jnp.ndarray  # Fx x - fx (soft-row values)
 
 
 def pd_start(rows, u0, x0s, nu0, kappa0, done, status) -> PDState:
@@ -60,13 +64,14 @@ def pd_start(rows, u0, x0s, nu0, kappa0, done, status) -> PDState:
     su = u_slack(rows, u0)
     # s minimises rho s - kappa0 log s - kappa0 log(s - g) (closed form, see soft_slack), so
     # mu s_x = pi s = kappa0 and mu + pi = rho hold from the first iterate, whatever rho.
-    s0, sx = soft_slack(x_violation(rows, x0s), rows.rho, kappa0)
+    g = x_violation(rows, x0s)
+    s0, sx = soft_slack(g, rows.rho, kappa0)
     lam = jnp.where(rows.wu > 0, kappa0 / jnp.where(su > 0, su, 1.0), 1.0)
     mu = kappa0 / sx
     pi = kappa0 / s0
     gap = jnp.sum(rows.wu * su * lam) + jnp.sum(rows.wx * (sx * mu + s0 * pi))
     inf = jnp.asarray(jnp.inf, gap.dtype)
-    return PDState(u0, x0s, nu0, s0, lam, mu, pi, jnp.asarray(0), done, status, gap, inf)
+    return PDState(u0, x0s, nu0, s0, lam, mu, pi, jnp.asarray(0), done, status, gap, inf, su, g)
 
 
 def _pd_step(
@@ -79,7 +84,7 @@ def _pd_step(
     input-row weight lam/su and soft-row weight a c / (a + c) (a = mu/sx, c = pi/s). ``base_u``,
     ``base_x`` are the cost gradient (2 R u + r, 2 Q (x - x_ref) + q) and ``rp`` the dynamics
     residual, shared by the predictor and the corrector. Returns the full steps of every
-    variable.
+    variable and Fx dx.
     """
     Du = rows.wu * st.lam / su
     a = st.mu / sx
@@ -102,7 +107,7 @@ def _pd_step(
     dpi = tau_s / st.s - st.pi - c * ds
     dsu = -Fdu
     dsx = -Fdx + ds
-    return step, ds, dlam, dmu, dpi, dsu, dsx
+    return step, ds, dlam, dmu, dpi, dsu, dsx, Fdx
 
 
 def _max_step(pairs, wmask):
@@ -120,9 +125,8 @@ def pd_iteration(
 ) -> PDState:
     """One Mehrotra predictor-corrector iteration from ``st``."""
     method = settings.method
-    su = u_slack(rows, st.u)
-    Fx_x = sw.mv(rows.Fx, st.x)
-    sx = rows.fx - Fx_x + st.s
+    su = st.su
+    sx = st.s - st.g
     # shared by the predictor and the corrector
     base_u = 2.0 * sw.mv(ocp.R, st.u) + ocp.r
     base_x = 2.0 * sw.mv(ocp.Q, st.x - ocp.x_ref) + ocp.q
@@ -138,7 +142,7 @@ def pd_iteration(
     # Predictor: the affine-scaling direction (tau = 0).
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
     aff = _pd_step(rows, st, kkt, base_u, base_x, rp, su, sx, zero_u, zero_x, zero_x, method)
-    _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a = aff
+    _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a, _ = aff
     alpha_a = _max_step(
         ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
     )
@@ -167,7 +171,7 @@ def pd_iteration(
     # for dozens of iterations (up to 82 per solve). Damping by alpha_a (one factor, as the
     # centring target also moves with the step) halved the iterations per solve there.
     damp = alpha_a
-    step, ds, dlam, dmu, dpi, dsu, dsx = _pd_step(
+    step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_step(
         rows,
         st,
         kkt,
@@ -182,7 +186,7 @@ def pd_iteration(
         method,
         refine=True,
     )
-    finite = all_finite((step, ds, dlam, dmu, dpi))
+    finite = all_finite((step, ds, dlam, dmu, dpi, dsu, Fdx))
     alpha = _max_step(((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite, alpha, 0.0)
@@ -194,8 +198,8 @@ def pd_iteration(
     lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
     pi = upd(st.pi, dpi, rows.wx)
     nu = upd(st.nu, step.nu - st.nu)
-    su_n = u_slack(rows, u)
-    g_n = sw.mv(rows.Fx, x) - rows.fx  # soft-row values at the new point
+    su_n = upd(su, dsu)
+    g_n = upd(st.g, Fdx)  # soft-row values at the new point
     sx_n = s_new - g_n
     gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
 
@@ -240,4 +244,4 @@ def pd_iteration(
         jnp.where(converged, Status.CONVERGED, Status.MAX_ITER),
     )
     done = converged | ~finite
-    return PDState(u, x, nu, s_new, lam, mu, pi, st.it + 1, done, status, gap_n, rel_d)
+    return PDState(u, x, nu, s_new, lam, mu, pi, st.it + 1, done, status, gap_n, rel_d, su_n, g_n)
