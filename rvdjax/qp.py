@@ -61,7 +61,7 @@ def to_qp(ocp: OCP, soft: bool = True) -> QP:
         c = np.broadcast_to(cols[..., None, :], values.shape)
         return r.ravel(), c.ravel(), values.ravel()
 
-    def rows_of(rows, cols, values):
+    def row_triplets(rows, cols, values):
         """Triplets of single rows: values[k] at row rows[k], columns cols[k]."""
         return np.broadcast_to(rows[:, None], values.shape).ravel(), cols.ravel(), values.ravel()
 
@@ -99,7 +99,7 @@ def to_qp(ocp: OCP, soft: bool = True) -> QP:
     tx, kx = np.nonzero(x_act)
     row_u = first[tu] + (np.cumsum(u_act, 1) - 1)[tu, ku]
     row_x = first[tx] + cu[tx] + (np.cumsum(x_act, 1) - 1)[tx, kx]
-    parts = [rows_of(row_u, iu[tu], o.Fu[tu, ku]), rows_of(row_x, ix[tx], o.Fx[tx, kx])]
+    parts = [row_triplets(row_u, iu[tu], o.Fu[tu, ku]), row_triplets(row_x, ix[tx], o.Fx[tx, kx])]
     n_ineq = int(per_stage.sum())
     h = np.zeros(n_ineq)
     h[row_u] = o.fu[tu, ku]

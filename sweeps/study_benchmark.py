@@ -117,13 +117,13 @@ def _host_parts(loop, params, rs, subset, backend: str, repeats: int = 5):
     timed runs: the SciPy assembly (rvdjax.qp.to_qp) and the host solver alone."""
     import jax
 
-    from rvdjax import peers
     from rvdjax.loop.kernel import init, prepare
     from rvdjax.qp import to_qp
+    from rvdjax.solver.clarabel import _host_solve  # the loop's own dispatch to the peers
 
-    solve = {"clarabel": peers.solve_clarabel, "piqp": peers.solve_piqp}.get(
-        backend, peers.solve_daqp
-    )
+    def solve(qp):
+        return _host_solve(backend, qp)
+
     build, solved = [], []
     for i in subset:
         st = init(loop, params, rs.x0[i], rs.keys[i])

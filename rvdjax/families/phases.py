@@ -446,7 +446,10 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         jnp.zeros((N, 3), dtype), axis, p.half_angle[phase], p.lam[phase], 6, POS, nf
     ).masked(jnp.where(p0, last, on * p1))
     per_phase = [
-        [keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0)],
+        [
+            keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0),
+            cone_penalty,
+        ],
         [cone_penalty, overshoot(axis, p.r2, 6, POS, rho=p.rho).masked(on * p1)],
         [
             approach_cone(
@@ -455,7 +458,6 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
             velocity_bound(p.v_max, N, 6, VEL, rho=p.rho).masked(on * p2),
         ],
     ]
-    per_phase[0].append(cone_penalty)
 
     eye = jnp.eye(6, dtype=dtype)
     A = jnp.where(real[:, None, None], p.A[phase], eye)
