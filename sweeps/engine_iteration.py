@@ -3,12 +3,17 @@ scenario (accurate mode, the model shared by the chunk when the family has one),
 vmapped iterations per call, timed after a compile. Prints microseconds per problem and
 iteration (best and median of five timings of 20 calls). With ``--phases``, the three phases
 of an engine tick per slot instead: the OCP build and solver start of a new MPC step, the
-three iterations, and the finish, plant step and metrics of a solved step.
+three iterations, and the finish, plant step and metrics of a solved step. With
+``--unbatched``, the cost of an iteration of one problem without ``vmap`` against the same
+problem's share of a chunk, each from the difference of 30 and 3 iterations per call (so the
+call's own overhead, ~80-95 us for one problem, cancels): the most that batching can save per
+iteration on this machine.
 
 Usage (one core; results in docs/benchmark.md)::
 
     taskset -c 0 python sweeps/engine_iteration.py --scenarios fastmpc-3d,thesis-vbar --chunk 1,32
     taskset -c 0 python sweeps/engine_iteration.py --phases --scenarios fastmpc-3d
+    taskset -c 0 python sweeps/engine_iteration.py --unbatched
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from rvdjax.solver.driver import finish, iterate, start
 ITERATIONS = 3
 
 
-def _chunk(name: str, chunk: int):
+def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: bool = False):
     """The phases of an engine tick for a chunk of C slots of a scenario (accurate mode, the
     model shared by the chunk as the engine shares it, when the family has one), jitted and
     vmapped over the chunk, and C started slots to time them on."""
@@ -57,8 +62,10 @@ def _chunk(name: str, chunk: int):
     def iterations(ocps, solves):
         def one(ocp, s):
             ocp = with_model(ocp)
-            return lax.fori_loop(0, ITERATIONS, lambda _, st: iterate(ocp, st, settings, sp), s)
+            return lax.fori_loop(0, n_iterations, lambda _, st: iterate(ocp, st, settings, sp), s)
 
+        if unbatched:  # the first problem alone, no batch axis
+            return one(*jax.tree.map(lambda a: a[0], (ocps, solves)))
         return jax.vmap(one)(ocps, solves)
 
     @jax.jit
@@ -107,6 +114,24 @@ def iteration_cost(name: str, chunk: int) -> dict:
     )
 
 
+def unbatched_cost(name: str, chunk: int) -> dict:
+    """Microseconds per problem and iteration, one problem without vmap against a chunk of
+    ``chunk``: (time of 30 iterations - time of 3) / 27 per call, so the call's overhead
+    cancels."""
+    out = dict(scenario=name, chunk=chunk)
+    for key, c, unb in (("unbatched_us", 1, True), ("chunk_us", chunk, False)):
+        t = {}
+        for k in (3, 30):
+            states, prepare_start, iterations, _ = _chunk(name, c, n_iterations=k, unbatched=unb)
+            _, ocps, solves = prepare_start(states)
+            t[k] = min(_timings_us(iterations, (ocps, solves), 1, repeats=20 if k == 3 else 5))
+        out[key] = (t[30] - t[3]) / 27 / c
+        if unb:
+            out["call_overhead_us"] = t[3] - 3 * out[key]
+    out["ratio"] = out["unbatched_us"] / out["chunk_us"]
+    return out
+
+
 def phase_costs(name: str, chunk: int) -> dict:
     """Microseconds per slot of each phase of an engine tick, for a chunk of slots."""
     states, prepare_start, iterations, step_done = _chunk(name, chunk)
@@ -128,7 +153,23 @@ def main(argv=None):
     )
     ap.add_argument("--chunk", default="32")
     ap.add_argument("--phases", action="store_true", help="time the phases of a tick instead")
+    ap.add_argument(
+        "--unbatched", action="store_true", help="one problem without vmap against a chunk"
+    )
     args = ap.parse_args(argv)
+    if args.unbatched:
+        print(
+            f"{'scenario':<20}{'unbatched us':>14}{'chunk':>7}{'us / problem':>14}{'ratio':>7}"
+            f"{'call overhead us':>18}"
+        )
+        for name in args.scenarios.split(","):
+            for c in (int(v) for v in args.chunk.split(",")):
+                r = unbatched_cost(name, c)
+                print(
+                    f"{name:<20}{r['unbatched_us']:>14.2f}{c:>7}{r['chunk_us']:>14.2f}"
+                    f"{r['ratio']:>7.2f}{r['call_overhead_us']:>18.0f}"
+                )
+        return
     if args.phases:
         print(
             f"{'scenario':<20}{'chunk':>6}{'prepare+start':>15}"
