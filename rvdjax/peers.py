@@ -20,6 +20,10 @@ Solvers (``PEERS`` registry; :func:`available_peers` lists the importable ones):
   is (R, Q > 0 on the inputs and states), but the slack block of the soft form is zero. DAQP's
   default automatic proximal regularisation (``eps_prox < 0``) handles that; pass the hard
   form (``to_qp(ocp, soft=False)``) for a strict comparison.
+- ``daqp-condensed`` (optional): DAQP on the condensed problem (:func:`rvdjax.qp.condense`:
+  the states eliminated through the dynamics, w = (u, s) dense, thrust boxes and s >= 0 as
+  DAQP's simple bounds), the form a dense active-set solver is meant for in MPC. Solved cold;
+  ``setup_ms`` is the condensing.
 - ``osqp`` (optional): ADMM, sparse, ``l <= A z <= u`` with ``l = u`` on the equality rows,
   solution polishing on, ``eps_abs = eps_rel = 1e-5``. Only accurate to ~1e-5.
 - ``qpax`` (optional): interior point in JAX, dense. Its stopping test is an *absolute*
@@ -54,6 +58,7 @@ __all__ = [
     "solve_clarabel",
     "solve_piqp",
     "solve_daqp",
+    "solve_daqp_condensed",
     "solve_osqp",
     "solve_qpax",
     "qpax_batch_solver",
@@ -222,6 +227,29 @@ def solve_daqp(qp: QP, **settings) -> PeerResult:
     x, _fval, exitflag, info = daqp.solve(H, f, A, bu, bl, sense, **settings)
     solve_ms = _ms(t0)
     z = np.asarray(x, dtype=float)
+    status = _DAQP_EXIT.get(int(exitflag), f"EXIT_{int(exitflag)}")
+    return PeerResult(z, qp_objective(qp, z), int(info["iterations"]), status, solve_ms, setup_ms)
+
+
+def solve_daqp_condensed(qp: QP, **settings) -> PeerResult:
+    """Solve with DAQP on the condensed problem (:func:`rvdjax.qp.condense`); ``z`` mapped
+    back to the standard form. Bounds first (DAQP reads the first ``nw`` entries of the bound
+    vectors as bounds on w), then the general rows."""
+    import daqp
+
+    from rvdjax.qp import condense
+
+    t0 = time.perf_counter()
+    c = condense(qp)
+    big = 1e30  # DAQP's "no bound"
+    bu = np.concatenate([np.minimum(c.ub, big), c.h])
+    bl = np.concatenate([np.maximum(c.lb, -big), np.full(c.h.size, -big)])
+    H, f, A = (np.ascontiguousarray(a, dtype=np.float64) for a in (c.H, c.f, c.G))
+    setup_ms = _ms(t0)
+    t0 = time.perf_counter()
+    w, _fval, exitflag, info = daqp.solve(H, f, A, bu, bl, **settings)
+    solve_ms = _ms(t0)
+    z = c.Z @ np.asarray(w, dtype=float) + c.z0
     status = _DAQP_EXIT.get(int(exitflag), f"EXIT_{int(exitflag)}")
     return PeerResult(z, qp_objective(qp, z), int(info["iterations"]), status, solve_ms, setup_ms)
 
@@ -463,6 +491,7 @@ PEERS: dict[str, Callable[..., PeerResult]] = {
     "clarabel": solve_clarabel,
     "piqp": solve_piqp,
     "daqp": solve_daqp,
+    "daqp-condensed": solve_daqp_condensed,
     "osqp": solve_osqp,
     "qpax": solve_qpax,
 }
@@ -470,4 +499,7 @@ PEERS: dict[str, Callable[..., PeerResult]] = {
 
 def available_peers() -> list[str]:
     """Names in :data:`PEERS` whose solver package is importable."""
-    return [name for name in PEERS if importlib.util.find_spec(name) is not None]
+    return [name for name in PEERS if importlib.util.find_spec(_MODULE.get(name, name)) is not None]
+
+
+_MODULE = {"daqp-condensed": "daqp"}  # peer name -> the package it needs

@@ -18,10 +18,11 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve_triangular
 
 from rvdjax.ocp import OCP
 
-__all__ = ["QP", "to_qp", "split_solution", "qp_objective"]
+__all__ = ["QP", "CondensedQP", "to_qp", "condense", "split_solution", "qp_objective"]
 
 
 class QP(NamedTuple):
@@ -35,6 +36,8 @@ class QP(NamedTuple):
     h: np.ndarray
     const: float  # constant term: sum_t xr_t^T Q_t xr_t
     n_plan: int  # number of plan variables N*(nu+nx); slacks follow
+    nu: int = 0  # inputs per stage (0: unknown, e.g. a QP not built by to_qp)
+    nx: int = 0  # states per stage
 
 
 def to_qp(ocp: OCP, soft: bool = True) -> QP:
@@ -110,7 +113,7 @@ def to_qp(ocp: OCP, soft: bool = True) -> QP:
         parts += [(row_x, cols, minus), (row_x + cx[tx], cols, minus)]  # Fx x - s <= fx; -s <= 0
         qv[cols] = o.rho[tx, kx]
     G = _csc(n_ineq, nz, parts)
-    return QP(P, qv, Aeq, beq, G, h, const, n_plan)
+    return QP(P, qv, Aeq, beq, G, h, const, n_plan, nu, nx)
 
 
 def _csc(n_rows: int, n_cols: int, parts) -> sp.csc_matrix:
@@ -132,3 +135,69 @@ def qp_objective(qp: QP, z: np.ndarray) -> float:
     """Objective of the standard-form QP at z, including the constant term."""
     z = np.asarray(z)
     return float(0.5 * z @ (qp.P @ z) + qp.q @ z + qp.const)
+
+
+class CondensedQP(NamedTuple):
+    """The QP with the states eliminated through the dynamics (dense; w = (u, s))::
+
+        minimise   1/2 w^T H w + f^T w + const   subject to   lb <= w <= ub,   G w <= h
+
+    and z = Z w + z0 maps w back to the standard form's variables. Input and slack rows with a
+    single nonzero (thrust boxes, s >= 0) are bounds; the other rows stay general rows."""
+
+    H: np.ndarray  # (nw, nw)
+    f: np.ndarray  # (nw,)
+    lb: np.ndarray  # (nw,) -inf where none
+    ub: np.ndarray  # (nw,) +inf where none
+    G: np.ndarray  # (m, nw)
+    h: np.ndarray  # (m,)
+    const: float
+    Z: np.ndarray  # (nz, nw)
+    z0: np.ndarray  # (nz,)
+
+
+def condense(qp: QP) -> CondensedQP:
+    """Eliminate the states x = (x_1 .. x_N) of a QP built by :func:`to_qp` through its
+    dynamics rows (the "condensed" or "dense" MPC formulation: Borrelli, Bemporad & Morari,
+    *Predictive Control*, Sec. 11.3.1): x = X^{-1} (b_eq - W w), where X and W are the dynamics
+    rows' state and free (u, s) columns; X is unit lower block bidiagonal, so the solve is a
+    forward substitution. Dense in w: N nu inputs plus one slack per active soft row."""
+    if qp.nu <= 0 or qp.nx <= 0:
+        raise ValueError("qp must come from rvdjax.qp.to_qp (its nu and nx are not set)")
+    nz = qp.P.shape[0]
+    ns = qp.nu + qp.nx
+    N = qp.n_plan // ns
+    is_x = np.zeros(nz, bool)
+    is_x[(np.arange(N)[:, None] * ns + qp.nu + np.arange(qp.nx)).ravel()] = True
+    xc, wc = np.flatnonzero(is_x), np.flatnonzero(~is_x)
+    X = qp.A_eq[:, xc].tocsr()
+    W = qp.A_eq[:, wc].toarray()
+    sol = spsolve_triangular(X, np.column_stack([qp.b_eq, -W]), lower=True)
+    Z = np.zeros((nz, wc.size))
+    Z[xc] = sol[:, 1:]
+    Z[wc, np.arange(wc.size)] = 1.0
+    z0 = np.zeros(nz)
+    z0[xc] = sol[:, 0]
+    PZ = qp.P @ Z
+    H = Z.T @ PZ
+    H = 0.5 * (H + H.T)
+    Pz0 = qp.P @ z0
+    f = Z.T @ (Pz0 + qp.q)
+    const = float(0.5 * z0 @ Pz0 + qp.q @ z0 + qp.const)
+    G = np.asarray(qp.G @ Z)
+    h = qp.h - qp.G @ z0
+    # rows over a single w: bounds (their coefficient's sign says which)
+    nnz = np.count_nonzero(G, axis=1)
+    single = nnz == 1
+    col = np.argmax(G != 0, axis=1)
+    coef = G[np.arange(G.shape[0]), col]
+    lb = np.full(wc.size, -np.inf)
+    ub = np.full(wc.size, np.inf)
+    for r in np.flatnonzero(single):
+        v = h[r] / coef[r]
+        if coef[r] > 0:
+            ub[col[r]] = min(ub[col[r]], v)
+        else:
+            lb[col[r]] = max(lb[col[r]], v)
+    keep = ~single & (nnz > 0)
+    return CondensedQP(H, f, lb, ub, G[keep], h[keep], const, Z, z0)

@@ -1,6 +1,6 @@
 """Study benchmark: the batch engine against the same maneuvers flown one by one from a Python
-loop with Clarabel, PIQP or DAQP solving every MPC step; and the memory of a study against its
-number of runs.
+loop with Clarabel, PIQP or DAQP (sparse and condensed) solving every MPC step; and the memory
+of a study against its number of runs.
 
     python sweeps/study_benchmark.py throughput [--scenario thesis-vbar] [--batch-runs 256]
         [--slots 64] [--single-runs 8] [--json FILE]
@@ -174,7 +174,7 @@ def main() -> None:
     ap.add_argument("--batch-runs", type=int, default=256)
     ap.add_argument("--slots", type=int, default=64)
     ap.add_argument("--single-runs", type=int, default=8)
-    ap.add_argument("--peers", default="clarabel,piqp,daqp")
+    ap.add_argument("--peers", default="clarabel,piqp,daqp,daqp-condensed")
     ap.add_argument("--time-limit-s", type=float, default=12000.0)
     ap.add_argument("--n-steps", type=int, default=2600)
     ap.add_argument("--runs", type=lambda t: [int(v) for v in t.split(",")], default=[1000, 100000])

@@ -59,7 +59,7 @@ def reference(problems) -> dict[str, peers.PeerResult]:
 
 
 def test_registry():
-    assert set(peers.PEERS) == {"clarabel", "piqp", "daqp", "osqp", "qpax"}
+    assert set(peers.PEERS) == {"clarabel", "piqp", "daqp", "daqp-condensed", "osqp", "qpax"}
     avail = peers.available_peers()
     assert "clarabel" in avail
     assert set(avail) <= set(peers.PEERS)
@@ -114,6 +114,7 @@ def test_clarabel_bad_mode(problems):
 PEER_CASES = [
     ("piqp", "PIQP_SOLVED", 1e-7),
     ("daqp", "EXIT_OPTIMAL", 1e-7),
+    ("daqp-condensed", "EXIT_OPTIMAL", 1e-7),
     ("osqp", "solved", 1e-3),
     ("qpax", "converged", 1e-5),
 ]
@@ -122,7 +123,7 @@ PEER_CASES = [
 @pytest.mark.parametrize("name", ["hard", "soft", "soft_violated"])
 @pytest.mark.parametrize(("peer", "status", "rtol"), PEER_CASES)
 def test_peer_agrees_with_clarabel(problems, reference, peer, status, rtol, name):
-    pytest.importorskip(peer)
+    pytest.importorskip(peers._MODULE.get(peer, peer))
     qp, ref = problems[name], reference[name]
     res = peers.PEERS[peer](qp)
     assert res.status == status

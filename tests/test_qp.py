@@ -68,3 +68,63 @@ def test_to_qp_evaluates_the_ocp(seed, soft):
         else:
             rows += [o.Fx[t, k] @ x[t] - o.fx[t, k] for k in x_rows[t]]
     np.testing.assert_allclose(qp.G @ z - qp.h, np.asarray(rows), atol=1e-10)
+
+
+def _condensed_as_qp(c):
+    """The condensed problem in the standard form (bounds as rows, no equalities)."""
+    import scipy.sparse as sp
+
+    from rvdjax.qp import QP
+
+    nw = c.H.shape[0]
+    eye = np.eye(nw)
+    up, lo = np.isfinite(c.ub), np.isfinite(c.lb)
+    G = np.vstack([c.G, eye[up], -eye[lo]])
+    h = np.concatenate([c.h, c.ub[up], -c.lb[lo]])
+    return QP(
+        sp.csc_matrix(c.H), c.f, sp.csc_matrix((0, nw)), np.zeros(0), sp.csc_matrix(G), h,
+        c.const, nw,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("soft", [True, False])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_condense_same_problem(seed, soft):
+    """The condensed QP (states eliminated) is the same problem: its points map to points that
+    satisfy the dynamics with the same objective, and its optimum (Clarabel) is the sparse
+    form's optimum (Clarabel)."""
+    from rvdjax import peers
+    from rvdjax.qp import condense, qp_objective
+
+    o = random_ocp(seed, SHAPE_CLASSES["medium"])
+    o = type(o)(*(np.asarray(a, dtype=float) for a in o))
+    N, nx, nu = o.B.shape
+    qp = to_qp(o, soft=soft)
+    c = condense(qp)
+    n_slack = qp.P.shape[0] - qp.n_plan
+    assert c.H.shape == (N * nu + n_slack,) * 2
+    # thrust boxes and s >= 0 became bounds: every input has both, every slack a lower one
+    assert np.all(np.isfinite(c.lb[: N * nu])) and np.all(np.isfinite(c.ub[: N * nu]))
+    assert np.all(c.lb[N * nu :] == 0.0)
+
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=c.H.shape[0])
+    z = c.Z @ w + c.z0
+    np.testing.assert_allclose(qp.A_eq @ z, qp.b_eq, atol=1e-9 * (1 + np.abs(qp.b_eq).max()))
+    J_w = 0.5 * w @ c.H @ w + c.f @ w + c.const
+    assert J_w == pytest.approx(qp_objective(qp, z), rel=1e-10)
+
+    ref = peers.solve_clarabel(qp)
+    res = peers.solve_clarabel(_condensed_as_qp(c))
+    assert ref.status == res.status == "Solved"
+    z_c = c.Z @ res.z + c.z0
+    assert qp_objective(qp, z_c) == pytest.approx(ref.objective, rel=1e-8, abs=1e-8)
+    np.testing.assert_allclose(z_c[: qp.n_plan], ref.z[: qp.n_plan], atol=1e-5)
+
+
+def test_condense_needs_to_qp_shapes():
+    from rvdjax.qp import condense
+
+    qp = to_qp(random_ocp(0, SHAPE_CLASSES["small"]))
+    with pytest.raises(ValueError, match="to_qp"):
+        condense(qp._replace(nu=0))

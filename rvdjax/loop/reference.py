@@ -22,7 +22,8 @@ __all__ = ["reference_loop", "clarabel_loop"]
 
 
 def clarabel_loop(loop: Loop, backend: str = "clarabel") -> Loop:
-    """The same loop with Clarabel (or the peer ``backend``: "piqp", "daqp") as the solver."""
+    """The same loop with Clarabel (or the peer ``backend``: "piqp", "daqp",
+    "daqp-condensed") as the solver."""
     return loop.replace(settings=SolverSettings(backend=backend))
 
 
@@ -46,7 +47,7 @@ def reference_loop(
         params, x0, key: as :func:`rvdjax.loop.fly`.
         stop_when_done: stop calling the step once the run has finished (the idle steps of
             ``fly`` are not flown).
-        backend: the host solver, "clarabel" (default), "piqp" or "daqp".
+        backend: the host solver, "clarabel" (default), "piqp", "daqp" or "daqp-condensed".
 
     Returns:
         (list of per-step :class:`~rvdjax.loop.StepInfo` (NumPy), Metrics (NumPy), seconds).

@@ -3,9 +3,9 @@ inside a jitted program.
 
 ``SolverSettings(backend="clarabel")`` routes every solve through ``jax.pure_callback``: the
 reference "Clarabel in the loop" for any jitted closed loop (QP assembly in SciPy included).
-``backend="piqp"`` (sparse interior point) and ``backend="daqp"`` (dense active set on the
-sparse-form QP) are the peers of the study benchmarks. Not differentiable; a vmapped batch is
-solved one problem at a time.
+``backend="piqp"`` (sparse interior point), ``backend="daqp"`` (dense active set on the
+sparse-form QP) and ``backend="daqp-condensed"`` (the same on the condensed QP) are the peers
+of the study benchmarks. Not differentiable; a vmapped batch is solved one problem at a time.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ def _host_solve(name: str, qp):
         return peers.solve_clarabel(qp)
     if name == "piqp":
         return peers.solve_piqp(qp)
+    if name == "daqp-condensed":
+        return peers.solve_daqp_condensed(qp)
     return peers.solve_daqp(qp)
 
 
@@ -58,8 +60,8 @@ def _clarabel_host(*leaves, solver: str = "clarabel"):
 
 
 def solve_clarabel_backend(ocp: OCP, solver: str = "clarabel") -> Solution:
-    """Solve ``ocp`` with Clarabel (or ``solver``: "piqp", "daqp") through a host callback
-    (objective filled in by the caller)."""
+    """Solve ``ocp`` with Clarabel (or a peer ``solver``: "piqp", "daqp", "daqp-condensed")
+    through a host callback (objective filled in by the caller)."""
     dtype = ocp.B.dtype
     shapes = (
         jax.ShapeDtypeStruct((ocp.N, ocp.nu), dtype),

@@ -19,7 +19,7 @@ __all__ = ["Status", "SolverSettings", "SolverParams", "Solution", "Plan"]
 
 MODES = ("paper", "accurate", "barrier")
 METHODS = ("riccati", "dense")
-BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp")
+BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
 
 
@@ -62,7 +62,8 @@ class SolverSettings:
         backend: "rvdjax" (this solver) or "clarabel": the same OCP solved by Clarabel on the
             host through ``jax.pure_callback`` — the reference "Clarabel in the loop" for any
             jitted closed loop (not differentiable; batches are solved one by one); "piqp",
-            "daqp": the same with a peer solver (the ``peers`` extra).
+            "daqp", "daqp-condensed": the same with a peer solver (the ``peers`` extra;
+            :mod:`rvdjax.peers`).
         paper_start: paper mode's starting states. "feasible" (default): the states the
             warm-start inputs produce through the dynamics, so the equality residual is zero
             from the first iterate and an iterate cut at ``max_iter`` is a flyable plan.
