@@ -5,9 +5,11 @@ Flies every scenario (accurate mode, CW truth, the published initial state) with
 step, the solver statuses over the steps and the maneuver's delta-v and time to dock (so that a
 solver change that lowers the iterations can be seen not to change the answers). With
 ``--disturbed K`` the disturbed rows fly K PRNG keys of ``thesis-vbar`` (with the navigation
-filter) and ``rotating-target-b``.
+filter) and ``rotating-target-b``. With ``--tols 1e-9,1e-6,...`` each scenario flies once per gap
+tolerance instead, its delta-v and applied inputs compared with the first tolerance's.
 
     python sweeps/solver_iterations.py [--scenarios a,b,...] [--disturbed 8] [--json]
+    python sweeps/solver_iterations.py --scenarios thesis-vbar,fastmpc-3d --tols 1e-9,1e-8,1e-7,1e-6
 """
 
 from __future__ import annotations
@@ -42,12 +44,18 @@ def _row(name, infos, m, runs):
     }
 
 
-def nominal(name: str) -> dict:
+def nominal(name: str, tol: float | None = None) -> dict:
     sc = get_scenario(name)
     params, x0 = sc.build()
     loop = sc.loop("accurate")
-    infos, m = jax.jit(lambda p: kernel.fly(loop, p, jnp.asarray(x0)))(params)
-    return _row(name, infos, m, 1)
+    sp = sc.solver_params("accurate")
+    if tol is not None:
+        sp = sp._replace(tol=jnp.asarray(tol))
+    infos, m = jax.jit(lambda p, sp: kernel.fly(loop, p, jnp.asarray(x0), None, sp))(params, sp)
+    row = _row(name if tol is None else f"{name}, tol {tol:g}", infos, m, 1)
+    active = np.asarray(infos.active)
+    row["u"] = np.asarray(infos.u)[active]
+    return row
 
 
 def disturbed(name: str, nav_filter: bool, runs: int) -> dict:
@@ -66,11 +74,32 @@ def main(argv=None) -> None:
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated names")
     ap.add_argument("--disturbed", type=int, default=8, help="PRNG keys per disturbed row")
     ap.add_argument("--json", action="store_true", help="one JSON object per row")
+    ap.add_argument(
+        "--tols",
+        help="comma-separated gap tolerances: nominal rows per tolerance, with the delta-v and "
+        "the applied inputs compared with the first tolerance's",
+    )
     args = ap.parse_args(argv)
     names = [n for n in args.scenarios.split(",") if n]
     for n in names:
         get_scenario(n)  # unknown names fail before anything compiles
+    if args.tols:
+        for n in names:
+            tols = [float(t) for t in args.tols.split(",")]
+            base = nominal(n, tols[0])
+            for t in tols:
+                r = nominal(n, t)
+                du = np.max(np.abs(r["u"] - base["u"])) / np.max(np.abs(base["u"]))
+                ddv = abs(r["delta_v_m_s"] - base["delta_v_m_s"]) / base["delta_v_m_s"]
+                print(
+                    f"{r['scenario']:<32} iterations/step {r['iterations_mean']:6.2f} (p90 "
+                    f"{r['iterations_p90']:3.0f})  dv {r['delta_v_m_s']:.9f} m/s (rel. change "
+                    f"{ddv:.1e})  max |u - u_first| / max |u_first| {du:.1e}"
+                )
+        return
     rows = [nominal(n) for n in names]
+    for r in rows:
+        r.pop("u")
     if args.disturbed > 0:
         rows += [disturbed(n, nav, args.disturbed) for n, nav in DISTURBED]
     for r in rows:
