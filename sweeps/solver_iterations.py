@@ -5,11 +5,12 @@ Flies every scenario (accurate mode, CW truth, the published initial state) with
 step, the solver statuses over the steps and the maneuver's delta-v and time to dock (so that a
 solver change that lowers the iterations can be seen not to change the answers). With
 ``--disturbed K`` the disturbed rows fly K PRNG keys of ``thesis-vbar`` (with the navigation
-filter) and ``rotating-target-b``. With ``--tols 1e-9,1e-6,...`` each scenario flies once per gap
-tolerance instead, its delta-v and applied inputs compared with the first tolerance's.
+filter) and ``rotating-target-b``. With ``--vary NAME=V1,V2,...`` each scenario flies once
+per value of a solver parameter instead, its delta-v and applied inputs compared with the
+first value's.
 
     python sweeps/solver_iterations.py [--scenarios a,b,...] [--disturbed 8] [--json]
-    python sweeps/solver_iterations.py --scenarios thesis-vbar,fastmpc-3d --tols 1e-9,1e-8,1e-7,1e-6
+    python sweeps/solver_iterations.py --scenarios thesis-vbar,fastmpc-3d --vary tol=1e-9,1e-6
 """
 
 from __future__ import annotations
@@ -44,15 +45,16 @@ def _row(name, infos, m, runs):
     }
 
 
-def nominal(name: str, tol: float | None = None) -> dict:
+def nominal(name: str, setting: tuple[str, float] | None = None) -> dict:
     sc = get_scenario(name)
     params, x0 = sc.build()
     loop = sc.loop("accurate")
     sp = sc.solver_params("accurate")
-    if tol is not None:
-        sp = sp._replace(tol=jnp.asarray(tol))
+    if setting is not None:
+        sp = sp._replace(**{setting[0]: jnp.asarray(setting[1])})
     infos, m = jax.jit(lambda p, sp: kernel.fly(loop, p, jnp.asarray(x0), None, sp))(params, sp)
-    row = _row(name if tol is None else f"{name}, tol {tol:g}", infos, m, 1)
+    label = name if setting is None else f"{name}, {setting[0]} {setting[1]:g}"
+    row = _row(label, infos, m, 1)
     active = np.asarray(infos.active)
     row["u"] = np.asarray(infos.u)[active]
     return row
@@ -75,24 +77,27 @@ def main(argv=None) -> None:
     ap.add_argument("--disturbed", type=int, default=8, help="PRNG keys per disturbed row")
     ap.add_argument("--json", action="store_true", help="one JSON object per row")
     ap.add_argument(
-        "--tols",
-        help="comma-separated gap tolerances: nominal rows per tolerance, with the delta-v and "
-        "the applied inputs compared with the first tolerance's",
+        "--vary",
+        metavar="NAME=V1,V2,...",
+        help="a solver parameter (rvdjax.solver.SolverParams field, e.g. tol or kappa0_rel): "
+        "nominal rows per value, with the delta-v and the applied inputs compared with the "
+        "first value's",
     )
     args = ap.parse_args(argv)
     names = [n for n in args.scenarios.split(",") if n]
     for n in names:
         get_scenario(n)  # unknown names fail before anything compiles
-    if args.tols:
+    if args.vary:
+        field, _, values = args.vary.partition("=")
+        values = [float(v) for v in values.split(",")]
         for n in names:
-            tols = [float(t) for t in args.tols.split(",")]
-            base = nominal(n, tols[0])
-            for t in tols:
-                r = nominal(n, t)
+            base = nominal(n, (field, values[0]))
+            for v in values:
+                r = nominal(n, (field, v))
                 du = np.max(np.abs(r["u"] - base["u"])) / np.max(np.abs(base["u"]))
                 ddv = abs(r["delta_v_m_s"] - base["delta_v_m_s"]) / base["delta_v_m_s"]
                 print(
-                    f"{r['scenario']:<32} iterations/step {r['iterations_mean']:6.2f} (p90 "
+                    f"{r['scenario']:<36} iterations/step {r['iterations_mean']:6.2f} (p90 "
                     f"{r['iterations_p90']:3.0f})  dv {r['delta_v_m_s']:.9f} m/s (rel. change "
                     f"{ddv:.1e})  max |u - u_first| / max |u_first| {du:.1e}"
                 )
