@@ -497,9 +497,9 @@ PEERS: dict[str, Callable[..., PeerResult]] = {
 }
 
 
+_MODULE = {"daqp-condensed": "daqp"}  # peer name -> the package it needs, where they differ
+
+
 def available_peers() -> list[str]:
     """Names in :data:`PEERS` whose solver package is importable."""
     return [name for name in PEERS if importlib.util.find_spec(_MODULE.get(name, name)) is not None]
-
-
-_MODULE = {"daqp-condensed": "daqp"}  # peer name -> the package it needs

@@ -8,8 +8,9 @@ The standard form used by Clarabel and the peer solvers::
 with z = (u_0, x_1, u_1, x_2, ..., u_{N-1}, x_N[, s]) — stage-interleaved, so the KKT matrix is
 banded — followed, in the soft form, by one slack per active state row (s >= 0,
 Fx x - s <= fx, cost rho * s: the exact L1 penalty of :mod:`rvdjax.ocp`). Inactive (masked)
-rows are dropped. This runs in NumPy/SciPy on concrete arrays: it feeds reference solvers and
-benchmarks, never a jitted path.
+rows are dropped. :func:`condense` eliminates the states of such a QP (the dense form of a
+dense active-set solver). This runs in NumPy/SciPy on concrete arrays: it feeds reference
+solvers and benchmarks, never a jitted path.
 """
 
 from __future__ import annotations
