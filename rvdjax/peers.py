@@ -59,6 +59,7 @@ __all__ = [
     "solve_piqp",
     "solve_daqp",
     "solve_daqp_condensed",
+    "daqp_condensed_data",
     "solve_osqp",
     "solve_qpax",
     "qpax_batch_solver",
@@ -231,23 +232,30 @@ def solve_daqp(qp: QP, **settings) -> PeerResult:
     return PeerResult(z, qp_objective(qp, z), int(info["iterations"]), status, solve_ms, setup_ms)
 
 
+def daqp_condensed_data(c) -> tuple[np.ndarray, ...]:
+    """(H, f, A, bupper, blower) of ``daqp.solve`` for a :class:`rvdjax.qp.CondensedQP`:
+    the bounds on w first (DAQP reads the first ``nw`` entries of the bound vectors as bounds
+    on the variables), then the general rows; 1e30 stands for "no bound"."""
+    big = 1e30
+    bu = np.concatenate([np.minimum(c.ub, big), c.h])
+    bl = np.concatenate([np.maximum(c.lb, -big), np.full(c.h.size, -big)])
+    H, f, A = (np.ascontiguousarray(a, dtype=np.float64) for a in (c.H, c.f, c.G))
+    return H, f, A, bu, bl
+
+
 def solve_daqp_condensed(qp: QP, **settings) -> PeerResult:
-    """Solve with DAQP on the condensed problem (:func:`rvdjax.qp.condense`); ``z`` mapped
-    back to the standard form. Bounds first (DAQP reads the first ``nw`` entries of the bound
-    vectors as bounds on w), then the general rows."""
+    """Solve with DAQP on the condensed problem (:func:`rvdjax.qp.condense`,
+    :func:`daqp_condensed_data`); ``z`` mapped back to the standard form."""
     import daqp
 
     from rvdjax.qp import condense
 
     t0 = time.perf_counter()
     c = condense(qp)
-    big = 1e30  # DAQP's "no bound"
-    bu = np.concatenate([np.minimum(c.ub, big), c.h])
-    bl = np.concatenate([np.maximum(c.lb, -big), np.full(c.h.size, -big)])
-    H, f, A = (np.ascontiguousarray(a, dtype=np.float64) for a in (c.H, c.f, c.G))
+    data = daqp_condensed_data(c)
     setup_ms = _ms(t0)
     t0 = time.perf_counter()
-    w, _fval, exitflag, info = daqp.solve(H, f, A, bu, bl, **settings)
+    w, _fval, exitflag, info = daqp.solve(*data, **settings)
     solve_ms = _ms(t0)
     z = c.Z @ np.asarray(w, dtype=float) + c.z0
     status = _DAQP_EXIT.get(int(exitflag), f"EXIT_{int(exitflag)}")

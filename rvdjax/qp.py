@@ -194,11 +194,8 @@ def condense(qp: QP) -> CondensedQP:
     coef = G[np.arange(G.shape[0]), col]
     lb = np.full(wc.size, -np.inf)
     ub = np.full(wc.size, np.inf)
-    for r in np.flatnonzero(single):
-        v = h[r] / coef[r]
-        if coef[r] > 0:
-            ub[col[r]] = min(ub[col[r]], v)
-        else:
-            lb[col[r]] = max(lb[col[r]], v)
+    upper, lower = single & (coef > 0), single & (coef < 0)
+    np.minimum.at(ub, col[upper], h[upper] / coef[upper])
+    np.maximum.at(lb, col[lower], h[lower] / coef[lower])
     keep = ~single & (nnz > 0)
     return CondensedQP(H, f, lb, ub, G[keep], h[keep], const, Z, z0)

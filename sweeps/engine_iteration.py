@@ -157,38 +157,44 @@ def main(argv=None):
         "--unbatched", action="store_true", help="one problem without vmap against a chunk"
     )
     args = ap.parse_args(argv)
+    # (measure, columns: (header, key, format)) of the chosen table
     if args.unbatched:
-        print(
-            f"{'scenario':<20}{'unbatched us':>14}{'chunk':>7}{'us / problem':>14}{'ratio':>7}"
-            f"{'call overhead us':>18}"
+        measure, columns = (
+            unbatched_cost,
+            [
+                ("unbatched us", "unbatched_us", ">14.2f"),
+                ("chunk", "chunk", ">7"),
+                ("us / problem", "chunk_us", ">14.2f"),
+                ("ratio", "ratio", ">7.2f"),
+                ("call overhead us", "call_overhead_us", ">18.0f"),
+            ],
         )
-        for name in args.scenarios.split(","):
-            for c in (int(v) for v in args.chunk.split(",")):
-                r = unbatched_cost(name, c)
-                print(
-                    f"{name:<20}{r['unbatched_us']:>14.2f}{c:>7}{r['chunk_us']:>14.2f}"
-                    f"{r['ratio']:>7.2f}{r['call_overhead_us']:>18.0f}"
-                )
-        return
-    if args.phases:
-        print(
-            f"{'scenario':<20}{'chunk':>6}{'prepare+start':>15}"
-            f"{f'{ITERATIONS} iterations':>14}{'finish+advance':>16}  (us per slot)"
+    elif args.phases:
+        measure, columns = (
+            phase_costs,
+            [
+                ("chunk", "chunk", ">6"),
+                ("prepare+start", "prepare_start_us", ">15.1f"),
+                (f"{ITERATIONS} iterations", "iterations_us", ">14.1f"),
+                ("finish+advance", "step_done_us", ">16.1f"),
+            ],
         )
-        for name in args.scenarios.split(","):
-            for c in (int(v) for v in args.chunk.split(",")):
-                r = phase_costs(name, c)
-                print(
-                    f"{name:<20}{c:>6}{r['prepare_start_us']:>15.1f}{r['iterations_us']:>14.1f}{r['step_done_us']:>16.1f}"
-                )
-        return
-    print(f"{'scenario':<20}{'chunk':>6}{'us best':>10}{'us median':>11}{'compile s':>11}")
+    else:
+        measure, columns = (
+            iteration_cost,
+            [
+                ("chunk", "chunk", ">6"),
+                ("us best", "best_us", ">10.2f"),
+                ("us median", "median_us", ">11.2f"),
+                ("compile s", "compile_s", ">11.1f"),
+            ],
+        )
+    # a header takes its column's width: the digits between ">" and "." of the format
+    print(f"{'scenario':<20}" + "".join(f"{h:>{f[1:].split('.')[0]}}" for h, _, f in columns))
     for name in args.scenarios.split(","):
         for c in (int(v) for v in args.chunk.split(",")):
-            r = iteration_cost(name, c)
-            print(
-                f"{name:<20}{c:>6}{r['best_us']:>10.2f}{r['median_us']:>11.2f}{r['compile_s']:>11.1f}"
-            )
+            r = measure(name, c)
+            print(f"{name:<20}" + "".join(f"{r[k]:{f}}" for _, k, f in columns))
 
 
 if __name__ == "__main__":

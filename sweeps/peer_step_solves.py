@@ -37,14 +37,12 @@ def _cases(qp):
     from rvdjax.qp import condense
 
     c = condense(qp)
-    big = 1e30
-    bu = np.concatenate([np.minimum(c.ub, big), c.h])
-    bl = np.concatenate([np.maximum(c.lb, -big), np.full(c.h.size, -big)])
-    _, _, _, info = daqp.solve(c.H, c.f, c.G, bu, bl)
+    data = peers.daqp_condensed_data(c)
+    _, _, _, info = daqp.solve(*data)
     active = (np.abs(np.asarray(info["lam"])) > 0).astype(np.int32)
 
     def warm():
-        return daqp.solve(c.H, c.f, c.G, bu, bl, active.copy())
+        return daqp.solve(*data, active.copy())
 
     return c, {
         "Clarabel (sparse)": (lambda: peers.solve_clarabel(qp, mode="benchmark"), None),

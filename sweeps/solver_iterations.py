@@ -55,8 +55,8 @@ def nominal(name: str, setting: tuple[str, float] | None = None) -> dict:
     infos, m = jax.jit(lambda p, sp: kernel.fly(loop, p, jnp.asarray(x0), None, sp))(params, sp)
     label = name if setting is None else f"{name}, {setting[0]} {setting[1]:g}"
     row = _row(label, infos, m, 1)
-    active = np.asarray(infos.active)
-    row["u"] = np.asarray(infos.u)[active]
+    if setting is not None:  # the applied inputs, compared across settings
+        row["u"] = np.asarray(infos.u)[np.asarray(infos.active)]
     return row
 
 
@@ -103,8 +103,6 @@ def main(argv=None) -> None:
                 )
         return
     rows = [nominal(n) for n in names]
-    for r in rows:
-        r.pop("u")
     if args.disturbed > 0:
         rows += [disturbed(n, nav, args.disturbed) for n, nav in DISTURBED]
     for r in rows:

@@ -28,13 +28,7 @@ _OK = {"Solved", "solved", "EXIT_OPTIMAL"}
 def _host_solve(name: str, qp):
     from rvdjax import peers
 
-    if name == "clarabel":
-        return peers.solve_clarabel(qp)
-    if name == "piqp":
-        return peers.solve_piqp(qp)
-    if name == "daqp-condensed":
-        return peers.solve_daqp_condensed(qp)
-    return peers.solve_daqp(qp)
+    return peers.PEERS[name](qp)
 
 
 def _clarabel_host(*leaves, solver: str = "clarabel"):
