@@ -400,8 +400,14 @@ def closed_loop_batch_benchmark(
     chunk: int = 32,
     iterations: int = 3,
     progress=print,
+    thrusters: bool = False,
 ) -> list[dict]:
     """Maneuvers per second flown one jitted maneuver at a time and by the batch engine.
+
+    ``thrusters``: fly every scenario twice in the same run, with ideal forces and with its
+    thruster set (allocation, modulation, the truth under valve pulses); the rows say which
+    (``plant``) and the thruster rows give their slowdown against the ideal-force row of the
+    same scenario, method and batch (``slowdown``).
 
     For each scenario, ``runs`` distinct initial states (:func:`perturbed_states`; with
     ``disturbed`` also distinct PRNG keys) are flown by the engine with B slots for every B in
@@ -416,10 +422,12 @@ def closed_loop_batch_benchmark(
     from rvdjax.scenarios import get_scenario
 
     rows = []
-    for name in names:
+    plants = ("ideal", "thrusters") if thrusters else ("ideal",)
+    for name, plant in ((n, pl) for n in names for pl in plants):
         sc = get_scenario(name)
-        params, x0 = sc.build()
-        loop = sc.loop(mode, disturbed=disturbed)
+        on = plant == "thrusters"
+        params, x0 = sc.build(thrusters=on)
+        loop = sc.loop(mode, disturbed=disturbed, thrusters=on)
         sp = sc.solver_params(mode)
         x0s = perturbed_states(x0, runs)
         keys = jax.random.split(jax.random.key(1), runs)
@@ -441,6 +449,7 @@ def closed_loop_batch_benchmark(
                 family=sc.family,
                 mode=mode,
                 disturbed=disturbed,
+                plant=plant,
                 method="one at a time (jitted fly)",
                 batch=1,
                 runs=n1,
@@ -453,7 +462,7 @@ def closed_loop_batch_benchmark(
                 mean_iterations=float(its),
             )
         )
-        progress(f"{name}: one at a time {single_rate:.2f} maneuvers/s ({n1} runs)")
+        progress(f"{name} ({plant}): one at a time {single_rate:.2f} maneuvers/s ({n1} runs)")
         for B in batches:
             cfg = EngineConfig(slots=B, chunk=chunk, iterations=iterations)
             source = arrays_source(x0s, keys)
@@ -470,6 +479,7 @@ def closed_loop_batch_benchmark(
                     family=sc.family,
                     mode=mode,
                     disturbed=disturbed,
+                    plant=plant,
                     method=f"engine (chunk {cfg.chunk_size}, {iterations} iterations / tick)",
                     batch=B,
                     runs=runs,
@@ -487,9 +497,17 @@ def closed_loop_batch_benchmark(
                 )
             )
             progress(
-                f"{name}: B={B} {rate:.2f} maneuvers/s ({rate / single_rate:.1f}x), "
+                f"{name} ({plant}): B={B} {rate:.2f} maneuvers/s ({rate / single_rate:.1f}x), "
                 f"{mem_mb:.0f} MB, docked {np.mean(m.docked):.2f}"
             )
+    ideal = {
+        (r["scenario"], r["method"], r["batch"]): r["maneuvers_per_s"]
+        for r in rows
+        if r["plant"] == "ideal"
+    }
+    for r in rows:
+        ref = ideal.get((r["scenario"], r["method"], r["batch"]))
+        r["slowdown"] = ref / r["maneuvers_per_s"] if ref else float("nan")
     return rows
 
 
@@ -500,8 +518,9 @@ def _hist_quantile(hist, q: float) -> int:
 
 def format_closed_loop(rows: list[dict]) -> str:
     head = (
-        f"{'scenario':<20}{'method':<40}{'B':>5}{'runs':>6}{'man/s':>9}{'x single':>9}"
-        f"{'mem MB':>8}{'docked':>8}{'its/step':>9}{'p50/p90/max':>13}"
+        f"{'scenario':<20}{'plant':<10}{'method':<40}{'B':>5}{'runs':>6}{'man/s':>9}"
+        f"{'x single':>9}{'slower':>8}{'mem MB':>8}{'docked':>8}{'its/step':>9}"
+        f"{'p50/p90/max':>13}"
     )
     out = [head]
     for r in rows:
@@ -511,9 +530,11 @@ def format_closed_loop(rows: list[dict]) -> str:
             else "-"
         )
         mem = "-" if np.isnan(r["peak_memory_mb"]) else f"{r['peak_memory_mb']:.0f}"
+        slower = r.get("slowdown", float("nan"))
+        slower = "-" if r.get("plant", "ideal") == "ideal" or np.isnan(slower) else f"{slower:.2f}"
         out.append(
-            f"{r['scenario']:<20}{r['method']:<40}{r['batch']:>5}{r['runs']:>6}"
-            f"{r['maneuvers_per_s']:>9.2f}{r['speedup']:>9.1f}{mem:>8}"
+            f"{r['scenario']:<20}{r.get('plant', 'ideal'):<10}{r['method']:<40}{r['batch']:>5}"
+            f"{r['runs']:>6}{r['maneuvers_per_s']:>9.2f}{r['speedup']:>9.1f}{slower:>8}{mem:>8}"
             f"{r['docked_fraction']:>8.2f}{r['mean_iterations']:>9.2f}{dist:>13}"
         )
     return "\n".join(out)

@@ -166,8 +166,12 @@ def run_scenario(
     run: int = 0,
     nav_filter: bool = False,
     tuned: str | None = None,
+    thrusters: bool = False,
 ):
     """Fly a named scenario once (jitted). Returns (scenario, params, infos, metrics, ms/step).
+
+    ``thrusters``: fly the scenario's thruster set (allocation, modulation, valve pulses in the
+    truth) instead of ideal forces.
 
     ``disturbed``: navigation noise, thrust-amplitude error and minimum impulse bit of the
     scenario's disturbance parameters, drawn from PRNG key ``seed``. ``study``, ``run``: fly
@@ -188,8 +192,10 @@ def run_scenario(
             raise ValueError(f"run {run} of {study} flies {spec.scenario!r}, not {name!r}")
     else:
         sc = get_scenario(name)
-        params, x0 = sc.build()
-        loop = sc.loop(mode, truth=truth, disturbed=disturbed, nav_filter=nav_filter)
+        params, x0 = sc.build(thrusters=thrusters)
+        loop = sc.loop(
+            mode, truth=truth, disturbed=disturbed, nav_filter=nav_filter, thrusters=thrusters
+        )
         sc.check(params, x0, loop)
         sp = sc.solver_params(mode)
         key = jax.random.key(int(seed))
@@ -235,6 +241,10 @@ def metrics_dict(m) -> dict:
             Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
         },
         "mean_iterations": float(m.mean_iterations),
+        "thruster_impulse_N_s": val(m.thruster_impulse_N_s),
+        "propellant_kg": val(m.propellant_kg),
+        "valve_openings": int(m.valve_openings),
+        "pulses_dropped": int(m.pulses_dropped),
     }
 
 
@@ -315,7 +325,14 @@ def cmd_run(args) -> int:
     from rvdjax.scenarios import get_scenario
 
     check_output(args.plot, "--plot", PLOT_FORMATS)
-    get_scenario(args.scenario)  # unknown names fail before anything is compiled
+    if args.plot and args.thrusters:
+        stem, ext = os.path.splitext(args.plot)
+        check_output(f"{stem}-firings{ext}", "--plot (its firing timeline)", PLOT_FORMATS)
+    scenario = get_scenario(args.scenario)  # unknown names fail before anything is compiled
+    if args.thrusters and scenario.thrusters is None:
+        raise ValueError(f"--thrusters: scenario {scenario.name!r} has no thruster set")
+    if args.thrusters and args.study is not None:
+        raise ValueError("--thrusters with --study: a replay flies the study's own set-up")
     if (args.study is None) != (args.run is None):
         raise ValueError("--study DIR and --run R go together (replay run R of a study)")
     if args.nav_filter and not args.disturbed:
@@ -330,14 +347,27 @@ def cmd_run(args) -> int:
         args.run,
         args.nav_filter,
         args.params,
+        args.thrusters,
     )
+    ideal = None
+    if args.thrusters:  # the same maneuver with ideal forces, for the side-by-side figures
+        ideal = run_scenario(
+            args.scenario,
+            args.mode,
+            args.truth,
+            args.disturbed,
+            args.seed,
+            nav_filter=args.nav_filter,
+            tuned=args.params,
+        )[3]
     if args.study is not None:
         from rvdjax.study.table import read_config
 
         cfg = read_config(args.study)["spec"]
         args.mode, args.truth, args.disturbed = cfg["mode"], cfg["truth"], cfg["disturbed"]
         args.nav_filter = cfg["nav_filter"]
-    notes = list(sc.notes(args.mode))
+        args.thrusters = cfg.get("thrusters", False)
+    notes = list(sc.notes(args.mode, thrusters=args.thrusters))
     if args.params is not None:
         notes.append(f"tuned values from {args.params} replace the scenario's (rvdjax tune)")
     if args.disturbed:
@@ -364,7 +394,9 @@ def cmd_run(args) -> int:
         "seed": args.seed if args.disturbed and args.study is None else None,
         "study_run": None if args.study is None else {"study": args.study, "run": args.run},
         "tuned_params": args.params,
+        "thrusters": sc.thrusters.describe() if args.thrusters else None,
         **metrics_dict(m),
+        "ideal_forces": None if ideal is None else metrics_dict(ideal),
         "delta_v_norm": "sum_k ||dv_k||_2 (force inputs: sum_k ||u_k||_2 dt / m)",
         "mean_solve_ms": ms_per_step,
         "mean_solve_ms_note": "wall time of the jitted closed loop per MPC step, after compile",
@@ -374,11 +406,14 @@ def cmd_run(args) -> int:
     }
     comparisons = []
     for key, refs in sc.published.items():
-        ours = result[key]
+        # with thrusters, the figure as the paper defines it (e.g. paper 002 Eq. 11)
+        mine = sc.thruster_metrics.get(key, key) if args.thrusters else key
+        ours = result[mine]
         if ours is None:
             continue
         for label, value in refs.items():
-            comparisons.append((f"{key} vs {label}", ours, value))
+            figure = f"{mine} vs {label}"
+            comparisons.append((figure, ours, value))
     result["comparison"] = [
         {"figure": f, "rvdjax": ours, "paper": ref, "rel_diff": (ours - ref) / ref}
         for f, ours, ref in comparisons
@@ -401,6 +436,8 @@ def cmd_run(args) -> int:
             ("mean solver iterations / step", result["mean_iterations"], ""),
             ("wall time / MPC step", ms_per_step, "ms"),
         ]
+        if ideal is not None:
+            rows = _thruster_rows(result, result["ideal_forces"], ms_per_step)
         for label, value, unit in rows:
             text = f"{value:.4g}" if isinstance(value, float) else str(value)
             print(f"  {label:<38}{text} {unit}")
@@ -417,7 +454,50 @@ def cmd_run(args) -> int:
     if args.plot:
         sc.family_.plot(args.plot, sc, params, infos)
         print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
+        if args.thrusters:
+            from rvdjax.plots import firing_timeline
+
+            stem, ext = os.path.splitext(args.plot)
+            path = f"{stem}-firings{ext}"
+            firing_timeline(path, sc, infos)
+            print(
+                f"firing timeline written to {path}", file=sys.stderr if args.json else sys.stdout
+            )
     return 0
+
+
+def _thruster_rows(flown: dict, ideal: dict, ms_per_step: float) -> list:
+    """Rows (label, "ideal forces | thrusters" text, unit) of a run with thrusters."""
+
+    def cell(v):
+        if v is None:
+            return "-"
+        return f"{v:.5g}" if isinstance(v, float) else str(v)
+
+    def pair(key):
+        return f"{cell(ideal[key]):>12} | {cell(flown[key]):<12}"
+
+    rows = [("", f"{'ideal forces':>12} | {'thrusters':<12}", "")]
+    for label, key, unit in (
+        ("docked", "docked", ""),
+        ("time to dock", "time_to_dock_s", "s"),
+        ("total impulse, L1 (per-axis sum)", "effort_l1_N_s", "N s"),
+        ("total impulse, L2 (vector norm)", "total_impulse_N_s", "N s"),
+        ("delta-v (L2)", "delta_v_m_s", "m/s"),
+        ("torque impulse |tau| dt", "torque_l1_N_m_s", "N m s"),
+        ("largest constraint violation (truth)", "max_violation_m", "m"),
+        ("mean solver iterations / step", "mean_iterations", ""),
+    ):
+        rows.append((label, pair(key), unit))
+    for label, key, unit in (
+        ("thruster impulse, all thrusters", "thruster_impulse_N_s", "N s"),
+        ("propellant", "propellant_kg", "kg"),
+        ("valve openings", "valve_openings", ""),
+        ("pulses dropped (minimum on-time)", "pulses_dropped", ""),
+    ):
+        rows.append((label, f"{'':>12} | {cell(flown[key]):<12}", unit))
+    rows.append(("wall time / MPC step (thrusters)", ms_per_step, "ms"))
+    return rows
 
 
 def cmd_compare(args) -> int:
@@ -456,7 +536,8 @@ def cmd_bench(args) -> int:
 
         names = args.scenarios.split(",") if args.scenarios else FAMILY_SCENARIOS
         for n in names:
-            get_scenario(n)
+            if args.thrusters and get_scenario(n).thrusters is None:
+                raise ValueError(f"--thrusters: scenario {n!r} has no thruster set")
         rows = closed_loop_batch_benchmark(
             names,
             batches=tuple(args.batch or (1, 16, 64, 256)),
@@ -467,6 +548,7 @@ def cmd_bench(args) -> int:
             chunk=args.chunk,
             iterations=args.iterations,
             progress=progress,
+            thrusters=args.thrusters,
         )
         text = format_closed_loop(rows)
     else:
@@ -516,6 +598,21 @@ def _grid(text: str):
     return name, vals
 
 
+def _fault(text: str) -> tuple:
+    """--fault I:KIND[:T] -> (index, kind, time [s])."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"--fault expects INDEX:stuck-off|stuck-on[:TIME_S], got {text!r}")
+    try:
+        index = int(parts[0])
+        when = float(parts[2]) if len(parts) == 3 else 0.0
+    except ValueError:
+        raise ValueError(
+            f"--fault expects INDEX:stuck-off|stuck-on[:TIME_S], got {text!r}"
+        ) from None
+    return index, parts[1], when
+
+
 def _study_spec(args):
     from rvdjax.scenarios import get_scenario
     from rvdjax.study import StudySpec
@@ -547,6 +644,8 @@ def _study_spec(args):
         mode=args.mode,
         disturbed=bool(args.disturbed or kind == "robustness"),
         nav_filter=bool(args.nav_filter),
+        thrusters=bool(args.thrusters),
+        faults=tuple(_fault(f) for f in (args.fault or ())),
         time_limit_s=args.time_limit_s,
         n_steps=args.n_steps,
         slots=args.slots,
@@ -693,7 +792,18 @@ def main(argv=None) -> int:
     p.add_argument(
         "--params", metavar="FILE", help="fly the tuned values in FILE (written by rvdjax tune)"
     )
-    p.add_argument("--plot", metavar="FILE", help="write the trajectory plot to FILE (png, pdf)")
+    p.add_argument(
+        "--thrusters",
+        action="store_true",
+        help="fly the vehicle's thrusters (allocation, pulse modulation, valve pulses in the "
+        "truth) and print the figures next to the ideal-force run's",
+    )
+    p.add_argument(
+        "--plot",
+        metavar="FILE",
+        help="write the trajectory plot to FILE (png, pdf); with --thrusters also the firing "
+        "timeline to FILE-firings",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_run)
 
@@ -775,6 +885,12 @@ def main(argv=None) -> int:
         "--closed-loop",
         action="store_true",
         help="whole maneuvers: one jitted maneuver at a time against the batch engine",
+    )
+    p.add_argument(
+        "--thrusters",
+        action="store_true",
+        help="closed loop: fly every scenario with ideal forces and with its thrusters in the "
+        "same run (slowdown column)",
     )
     p.add_argument(
         "--batch", type=_ints, help="batch sizes (QP: vmapped batches; closed loop: slots)"
@@ -862,6 +978,20 @@ def main(argv=None) -> int:
         )
         q.add_argument(
             "--nav-filter", action="store_true", help="Kalman filter on the measurements"
+        )
+        q.add_argument(
+            "--thrusters",
+            action="store_true",
+            help="fly the vehicle's thrusters (then --vary/--grid also take thruster_thrust_N, "
+            "thruster_valve_s, thruster_min_on_s, thruster_isp_s, thruster_magnitude_error[i], "
+            "thruster_misalignment[3i+j], thruster_fault_time_s[i])",
+        )
+        q.add_argument(
+            "--fault",
+            action="append",
+            metavar="I:KIND[:T]",
+            help="with --thrusters: thruster I stuck-off or stuck-on from T seconds (default 0) "
+            "in every run; the allocation knows it (FDIR) unless the set says otherwise",
         )
         q.add_argument("--seed", type=int, default=0, help="study seed (default 0)")
         q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")

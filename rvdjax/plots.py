@@ -399,3 +399,47 @@ def plot_phases(path, scenario, params, infos, title: str | None = None):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def firing_timeline(path, scenario, infos, title: str | None = None):
+    """The valve pulses of a run with thrusters: one row of on-bars per thruster over time.
+
+    Args:
+        infos: the run's StepInfo (leading step axis) with ``pulses`` (steps, T, P) [s].
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(infos.t)
+    active = np.asarray(infos.active)
+    start = np.asarray(infos.pulses.start)[active]
+    width = np.asarray(infos.pulses.width)[active]
+    t = t[active]
+    T = start.shape[1]
+    fig, ax = plt.subplots(figsize=(9, 0.45 * T + 1.4))
+    for i in range(T):
+        on = width[:, i, :] > 0
+        bars = [
+            (t[k] + start[k, i, p], width[k, i, p]) for k, p in zip(*np.nonzero(on), strict=True)
+        ]
+        ax.broken_barh(bars, (i - 0.35, 0.7), color="C0")
+    labels = []
+    for i, (d, r) in enumerate(
+        zip(scenario.thrusters.direction, scenario.thrusters.position_m, strict=True)
+    ):
+        k = int(np.argmax(np.abs(d)))
+        lever = np.cross(r, d)[2]
+        arm = "" if abs(lever) < 1e-9 else (" ccw" if lever > 0 else " cw")
+        labels.append(f"{i}: {'+-'[int(d[k] < 0)]}{'xyz'[k]}{arm}")
+    ax.set_yticks(range(T), labels)
+    ax.set_ylim(T - 0.5, -0.5)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("thruster")
+    tset = scenario.thrusters
+    ax.set_title(title or f"{scenario.name}: valve pulses ({tset.name}, {tset.modulator})")
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)

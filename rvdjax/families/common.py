@@ -128,3 +128,9 @@ def field_tunable(field: str, description: str, **options):
         set=lambda p, v: p._replace(**{field: v}),
         **options,
     )
+
+
+def continuous_fields(Ac, Bc) -> dict:
+    """Params fields ``Ac``, ``Bc``: the continuous model with its force input [N, N m], which
+    the truth integrates under thruster pulses (:mod:`rvdjax.actuators.response`)."""
+    return dict(Ac=jnp.asarray(Ac), Bc=jnp.asarray(Bc))

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
+from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
     entry_cone,
     holding_radius,
@@ -45,6 +46,7 @@ from rvdjax.constraints import (
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
+    continuous_fields,
     control,
     derive_terminal,
     field_tunable,
@@ -130,6 +132,9 @@ class Params(NamedTuple):
     orbit: None = None
     drag: None = None
     disturbances: Disturbances | None = None
+    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
+    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
+    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,6 +280,7 @@ def make_params(
         dock_tol=f(float(dock_tol)),
         mass=f(float(mass)),
         disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
+        **continuous_fields(*planar3dof_continuous(mass, inertia)),
     )
 
 

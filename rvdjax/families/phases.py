@@ -41,6 +41,7 @@ import numpy as np
 from jax import lax
 
 from rvdjax import checks
+from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
     approach_cone,
     approach_cone_penalty,
@@ -55,7 +56,13 @@ from rvdjax.constraints import (
 )
 from rvdjax.disturbances import THESIS_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.families.common import field_tunable, smooth_excess, smooth_norm, weight_tunables
+from rvdjax.families.common import (
+    continuous_fields,
+    field_tunable,
+    smooth_excess,
+    smooth_norm,
+    weight_tunables,
+)
 from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.ocp import OCP
 from rvdjax.propagate import Drag, Orbit, circular_orbit
@@ -142,6 +149,9 @@ class Params(NamedTuple):
     orbit: Orbit | None = None
     drag: Drag | None = None
     disturbances: Disturbances | None = None
+    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
+    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
+    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,6 +321,7 @@ def make_params(
             b_target=f(cd_target * target_area_m2 / target_mass),
         ),
         disturbances=make_disturbances(**{**THESIS_DISTURBANCES, **(disturbances or {})}),
+        **continuous_fields(*cw_continuous(n, mass)),
     )
 
 

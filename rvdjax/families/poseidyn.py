@@ -34,10 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
+from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out, thrust_box
 from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
+    continuous_fields,
     control,
     derive_terminal,
     field_tunable,
@@ -107,6 +109,9 @@ class Params(NamedTuple):
     orbit: None = None
     drag: None = None
     disturbances: Disturbances | None = None
+    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
+    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
+    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,6 +244,7 @@ def make_params(
         dock_speed_tol=f(float(dock_speed_tol)),
         mass=f(float(mass)),
         disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
+        **continuous_fields(*planar2dof_continuous(mass)),
     )
 
 

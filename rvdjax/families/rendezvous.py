@@ -19,10 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
+from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import sphere_keep_out, thrust_box
 from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
+    continuous_fields,
     control,
     derive_terminal,
     model,
@@ -87,6 +89,9 @@ class Params(NamedTuple):
     orbit: Orbit | None = None
     drag: Drag | None = None
     disturbances: Disturbances | None = None
+    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
+    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
+    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,6 +194,7 @@ def make_params(
         stop_radius=f(float(stop_radius)),
         orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
         disturbances=make_disturbances(**(disturbances or {})),
+        **continuous_fields(*cw_continuous(n, mass)),
     )
 
 

@@ -28,6 +28,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.actuators.fire import fire
+from rvdjax.actuators.modulation import Pulses
+from rvdjax.actuators.thrusters import G0, Actuation
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, gm_step, measure, minimum_impulse_bit, thrust_factor
 from rvdjax.loop.family import Family
@@ -40,7 +43,7 @@ from rvdjax.loop.navigation import (
     process_noise,
     thrust_error_fraction,
 )
-from rvdjax.loop.plant import TRUTHS, impulse_per_unit, truth_step
+from rvdjax.loop.plant import TRUTHS, impulse_per_unit, truth_step, truth_step_pulses
 from rvdjax.ocp import OCP
 from rvdjax.solver import (
     Plan,
@@ -106,6 +109,11 @@ class LoopConfig:
         nav_filter: the guidance sees the estimate of a Kalman filter fed by the noisy
             measurements instead of the measurements (:mod:`rvdjax.loop.navigation`; rvdjax's
             choice, the thesis has no filter). Needs ``disturbed``.
+        actuation: fly the vehicle's thrusters (``params.thrusters``): the command is
+            allocated, modulated into valve pulses and the truth integrates the pulses
+            (:mod:`rvdjax.actuators`); with ``disturbed`` the Gauss-Markov thrust error acts
+            per thruster and the thrusters' own minimum on-time replaces the disturbances'
+            minimum impulse bit. None: the truth applies the command exactly (ideal forces).
     """
 
     family: Any
@@ -116,6 +124,7 @@ class LoopConfig:
     disturbed: bool = False
     time_limit_s: float | None = None
     nav_filter: bool = False
+    actuation: Actuation | None = None
 
     def __post_init__(self):
         if self.truth not in TRUTHS:
@@ -133,6 +142,12 @@ class LoopConfig:
             raise ValueError(
                 "nav_filter=True needs disturbed=True (the filter works on the noisy "
                 "measurements of a disturbed run)"
+            )
+        act = self.actuation
+        if act is not None and act.modulator == "delta-sigma" and self.truth != "linear":
+            raise ValueError(
+                "the delta-sigma modulator needs truth='linear' (the nonlinear truths "
+                "integrate pulses that start with the control period: pwm or schmitt)"
             )
 
 
@@ -175,6 +190,9 @@ class Accumulator(NamedTuple):
     status_counts: jnp.ndarray  # (4,) solver statuses
     iterations: jnp.ndarray  # () solver iterations
     histogram: jnp.ndarray  # (HIST_BINS,) MPC steps per iteration count
+    thrust_impulse: jnp.ndarray  # () sum over thrusters of thrust x on-time [N s]
+    openings: jnp.ndarray  # () valve openings
+    dropped: jnp.ndarray  # () pulses dropped by the minimum on-time
 
 
 class LoopState(NamedTuple):
@@ -196,6 +214,8 @@ class LoopState(NamedTuple):
         acc: the :class:`Accumulator`.
         nav: with ``nav_filter``, the filter's :class:`NavState` predicted to this step (a
             placeholder before the first measurement, k = 0); None otherwise.
+        mod: with thrusters, (T,) the modulator's state (carried on-time, Schmitt state or
+            delta-sigma integrator); None otherwise.
     """
 
     x: jnp.ndarray
@@ -212,6 +232,7 @@ class LoopState(NamedTuple):
     key: jnp.ndarray
     acc: Accumulator
     nav: NavState | None = None
+    mod: jnp.ndarray | None = None
 
 
 class Prepared(NamedTuple):
@@ -243,6 +264,7 @@ class StepInfo(NamedTuple):
     active: jnp.ndarray  # the run was in progress at this step
     margins: dict  # name -> (m,) truth row slacks over the step [m] (+inf: row inactive)
     guidance: Any  # the family's guidance state used by this step
+    pulses: Pulses | None = None  # with thrusters: the valve pulses of the step (T, P) [s]
 
 
 class Metrics(NamedTuple):
@@ -268,6 +290,10 @@ class Metrics(NamedTuple):
     status_counts: jnp.ndarray  # (4,) solver statuses over the steps flown
     mean_iterations: jnp.ndarray
     iteration_histogram: jnp.ndarray  # (HIST_BINS,) steps per solver iteration count
+    thruster_impulse_N_s: jnp.ndarray  # sum_i F_i t_on,i over every thruster (paper 002 Eq. 11)
+    propellant_kg: jnp.ndarray  # thruster impulse / (Isp g0)
+    valve_openings: jnp.ndarray  # number of pulses fired
+    pulses_dropped: jnp.ndarray  # pulses under the minimum on-time not fired
 
 
 # --------------------------------------------------------------------------------------------
@@ -297,6 +323,9 @@ def _empty_acc(loop: Loop, params, x0, g, dtype) -> Accumulator:
         status_counts=jnp.zeros(4, jnp.int32),
         iterations=jnp.zeros((), jnp.int32),
         histogram=jnp.zeros(HIST_BINS, jnp.int32),
+        thrust_impulse=zero,
+        openings=jnp.zeros((), jnp.int32),
+        dropped=jnp.zeros((), jnp.int32),
     )
 
 
@@ -308,13 +337,23 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
     key = jax.random.key(0) if key is None else key
     g = fam.init(params, fc, x0)
     plan = fam.initial_plan(params, fc, g, x0)
-    nu = fam.layout.nu
+    act = loop.config.actuation
+    mod = None
+    if act is not None:
+        thr = getattr(params, "thrusters", None)
+        if thr is None or thr.thrust.shape != (act.n,):
+            raise ValueError(
+                f"a loop with thrusters needs params.thrusters of {act.n} thrusters "
+                "(Scenario.build(thrusters=True))"
+            )
+        mod = jnp.zeros(act.n, dtype)
+    n_axes = fam.layout.nu if act is None else act.n  # thrust errors per axis / per thruster
     if loop.config.disturbed:
         if params.disturbances is None:
             raise ValueError("a disturbed run needs params.disturbances")
-        gm = gm_init(jax.random.fold_in(key, 0), params.disturbances, nu)
+        gm = gm_init(jax.random.fold_in(key, 0), params.disturbances, n_axes)
     else:
-        gm = jnp.zeros((nu, 2), dtype)
+        gm = jnp.zeros((n_axes, 2), dtype)
     orbit = params.orbit if loop.config.truth != "linear" else None
     if loop.config.truth != "linear" and orbit is None:
         raise ValueError(f"truth={loop.config.truth!r} needs params.orbit (the target's orbit)")
@@ -338,6 +377,7 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
         key=key,
         acc=_empty_acc(loop, params, x0, g, dtype),
         nav=nav,
+        mod=mod,
     )
 
 
@@ -413,7 +453,29 @@ def advance(
     u = u_cmd
     gm = state.gm
     u_believed = u_cmd  # the input the navigation filter predicts with
-    if cfg.disturbed:
+    fired = None
+    if cfg.actuation is not None:
+        factor = None
+        if cfg.disturbed:
+            _, k_act = _keys(state)
+            factor = thrust_factor(gm)
+            gm = gm_step(k_act, gm, params.disturbances, dt)
+        fired = fire(
+            cfg.actuation,
+            params.thrusters,
+            lay,
+            state.x,
+            u_cmd,
+            dt,
+            params.mass,
+            state.t,
+            state.mod,
+            factor,
+        )
+        u = jnp.where(active, fired.u_applied, 0.0)
+        # the modulation is on-board logic (known to the filter), the thrust errors are not
+        u_believed = fired.u_nominal
+    elif cfg.disturbed:
         _, k_act = _keys(state)
         d = params.disturbances
         per_u = impulse_per_unit(lay, params.mass, dt)
@@ -441,9 +503,24 @@ def advance(
         R = measurement_covariance(lay, d, dtype)
         Qp = process_noise(B, u_believed, thrust_error_fraction(d, dt), R)
         nav_next = nav_predict(prep.nav, A, B, u_believed, Qp)
-    x_next, orbit_next = truth_step(
-        lay, cfg.truth, cfg.truth_substeps, A, B, params, state.orbit, state.x, u, dt
-    )
+    if fired is None:
+        x_next, orbit_next = truth_step(
+            lay, cfg.truth, cfg.truth_substeps, A, B, params, state.orbit, state.x, u, dt
+        )
+    else:
+        g_fired = jnp.where(active, fired.g, 0.0)
+        x_next, orbit_next = truth_step_pulses(
+            cfg.truth,
+            cfg.truth_substeps,
+            A,
+            params,
+            state.orbit,
+            state.x,
+            fired.pulses,
+            g_fired,
+            dt,
+            grid=cfg.actuation.modulator == "delta-sigma",
+        )
     if fam.subsamples is not None:
         taus, subs = fam.subsamples(params, fc, state.x, u)
     else:
@@ -477,8 +554,17 @@ def advance(
         active=active,
         margins=m,
         guidance=g,
+        pulses=None
+        if fired is None
+        else jax.tree.map(lambda a: jnp.where(active, a, 0.0), fired.pulses),
     )
     acc = _accumulate(loop, params, state.acc, info)
+    if fired is not None:
+        acc = acc._replace(
+            thrust_impulse=acc.thrust_impulse + jnp.where(active, fired.thrust_impulse, 0.0),
+            openings=acc.openings + jnp.where(active, fired.openings, 0).astype(jnp.int32),
+            dropped=acc.dropped + jnp.where(active, fired.dropped, 0).astype(jnp.int32),
+        )
     k_next = state.k + 1
     ended = docked | ~finite | (k_next >= cfg.n_steps)
     if cfg.time_limit_s is not None:
@@ -498,6 +584,7 @@ def advance(
         key=state.key,
         acc=acc,
         nav=nav_next,
+        mod=None if fired is None else fired.mod,
     )
     nxt = nxt._replace(fresh=jnp.asarray(nxt.fresh))
     # A finished run idles: its state stops changing.
@@ -534,6 +621,9 @@ def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo) -> Accumul
         status_counts=acc.status_counts + Status.counts(info.status, act).astype(jnp.int32),
         iterations=acc.iterations + jnp.where(act, info.iterations, 0).astype(jnp.int32),
         histogram=acc.histogram.at[hist_bin].add(act.astype(jnp.int32)),
+        thrust_impulse=acc.thrust_impulse,
+        openings=acc.openings,
+        dropped=acc.dropped,
     )
 
 
@@ -574,8 +664,17 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
         status_counts=acc.status_counts,
         mean_iterations=acc.iterations / jnp.maximum(acc.steps, 1),
         iteration_histogram=acc.histogram,
+        thruster_impulse_N_s=acc.thrust_impulse,
+        propellant_kg=acc.thrust_impulse / (_isp(params) * G0),
+        valve_openings=acc.openings,
+        pulses_dropped=acc.dropped,
     )
     return jax.tree.map(lambda a: clean(a) if jnp.issubdtype(a.dtype, jnp.floating) else a, out)
+
+
+def _isp(params):
+    thr = getattr(params, "thrusters", None)
+    return jnp.asarray(1.0) if thr is None else thr.isp_s
 
 
 def step(loop: Loop, params, sp: SolverParams, state: LoopState):

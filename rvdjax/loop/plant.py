@@ -14,10 +14,12 @@ axes, then the Gauss-Markov thrust-amplitude error on every axis.
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax import lax
 
+from rvdjax.actuators.response import pulse_response, pulse_segments
 from rvdjax.propagate import propagate_step
 
-__all__ = ["TRUTHS", "truth_step", "impulse_per_unit"]
+__all__ = ["TRUTHS", "truth_step", "truth_step_pulses", "impulse_per_unit"]
 
 TRUTHS = ("linear", "two-body", "two-body-j2", "two-body-j2-drag")
 
@@ -49,4 +51,35 @@ def truth_step(layout, truth: str, substeps: int, A, B, params, orbit, x, u, dt)
         orbit_next, x_next = propagate_step(
             orbit, x.at[vel].add(u), jnp.zeros_like(u), params.mass, dt, substeps, j2, drag
         )
+    return x_next, orbit_next
+
+
+def truth_step_pulses(
+    truth: str, substeps: int, A, params, orbit, x, pulses, g, dt, grid: bool = False
+):
+    """(x_next, orbit_next) of the truth under valve pulses (:mod:`rvdjax.actuators`).
+
+    Linear truth: A x plus the exact forced response of the pulses
+    (:func:`rvdjax.actuators.response.pulse_response`, continuous model ``params.Ac``,
+    ``params.Bc``). Nonlinear truths: RK4 over the constant-thrust segments between valve
+    closings (``substeps`` RK4 steps each), the force held in the LVLH frame.
+
+    Args:
+        pulses: (T, P) starts and widths [s]; g: (T, nu) generalised force of each thruster
+            while open, model frame [N, N m].
+        grid: static; whole ticks of one shared grid (delta-sigma, linear truth only).
+    """
+    if truth == "linear":
+        return A @ x + pulse_response(params.Ac, params.Bc, dt, pulses, g, grid), orbit
+    j2 = truth != "two-body"
+    drag = params.drag if truth == "two-body-j2-drag" else None
+    durations, forces = pulse_segments(pulses, g, dt)
+
+    def seg(carry, piece):
+        o, xc = carry
+        h, f = piece
+        o2, x2 = propagate_step(o, xc, f, params.mass, h, substeps, j2, drag)
+        return (o2, x2), None
+
+    (orbit_next, x_next), _ = lax.scan(seg, (orbit, x), (durations, forces))
     return x_next, orbit_next

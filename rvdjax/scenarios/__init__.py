@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from rvdjax.actuators.thrusters import ThrusterSet
 from rvdjax.families import get_family
 from rvdjax.loop.family import Family
 from rvdjax.loop.kernel import Loop, LoopConfig
@@ -69,6 +70,11 @@ class Scenario:
         assumptions: what rvdjax chose where the paper is silent (printed with every result).
         paper_kappa: the fixed barrier weight of paper mode for this scenario (:func:`paper_kappa`).
         solver: SolverSettings overrides (e.g. a larger iteration cap).
+        thrusters: the vehicle's :class:`~rvdjax.actuators.ThrusterSet` (flown with
+            ``build(thrusters=True)`` and ``loop(thrusters=True)``), or None.
+        thruster_metrics: published figure -> the metric that computes it as the paper
+            defines it when the thrusters fly (e.g. paper 002's effort, Eq. 11, sums every
+            thruster's impulse: ``thruster_impulse_N_s``); figures not listed keep their name.
     """
 
     name: str
@@ -83,18 +89,64 @@ class Scenario:
     assumptions: tuple[str, ...]
     paper_kappa: float = PAPER_KAPPA
     solver: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    thrusters: ThrusterSet | None = None
+    thruster_metrics: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def family_(self) -> Family:
         return get_family(self.family)
 
-    def build(self, **overrides):
+    def build(self, thrusters: bool | ThrusterSet = False, **overrides):
         """(params, x0): the family's checked traced parameters and the initial state.
-        ``overrides`` change physical values (and ``x0``) before the checks."""
+        ``overrides`` change physical values (and ``x0``) before the checks. ``thrusters``:
+        attach the scenario's thruster set (True) or the given one (``params.thrusters``);
+        overrides named in :data:`THRUSTER_KEYS` change the set's values and dispersions."""
         physical = {**self.physical, **overrides}
         x0 = np.asarray(physical.pop("x0", self.x0), dtype=float)
+        thr_keys = {k: physical.pop(k) for k in list(physical) if k in THRUSTER_KEYS}
         params = self.family_.make_params(**physical, x0=x0)
+        tset = self.thruster_set(thrusters)
+        if thr_keys and tset is None:
+            raise ValueError(f"{', '.join(thr_keys)}: only with the thrusters on (--thrusters)")
+        if tset is not None:
+            values = {THRUSTER_KEYS[k]: v for k, v in thr_keys.items()}
+            fields = {k: v for k, v in values.items() if k in _SET_FIELDS}
+            if fields:
+                tset = tset.replace(**fields)
+            disp = {k: np.asarray(v, float) for k, v in values.items() if k not in _SET_FIELDS}
+            if "misalignment" in disp:
+                disp["misalignment"] = disp["misalignment"].reshape(tset.n, 3)
+            if "fault" in disp:
+                disp["fault"] = disp["fault"].astype(int)
+            params = params._replace(thrusters=tset.build(**disp))
+            if params.Ac is not None:
+                from rvdjax.actuators.response import check_series
+
+                check_series(params.Ac, params.ts)
         return params, x0
+
+    def thruster_nominal(self, key: str):
+        """The nominal value of a :data:`THRUSTER_KEYS` entry (studies draw around it)."""
+        tset = self.thruster_set(True)
+        name = THRUSTER_KEYS[key]
+        if name in _SET_FIELDS:
+            v = getattr(tset, name)
+            return (
+                tuple(np.broadcast_to(np.asarray(v, float), (tset.n,))) if name == "thrust_N" else v
+            )
+        shape = (tset.n * 3,) if name == "misalignment" else (tset.n,)
+        return tuple(np.zeros(shape))
+
+    def thruster_set(self, thrusters: bool | ThrusterSet = True) -> ThrusterSet | None:
+        """The thruster set ``thrusters`` asks for: this scenario's (True), none (False) or
+        the one given. ValueError if the scenario has none."""
+        if isinstance(thrusters, ThrusterSet):
+            return thrusters
+        if not thrusters:
+            return None
+        if self.thrusters is None:
+            raise ValueError(f"scenario {self.name!r} has no thruster set")
+        return self.thrusters
 
     def settings(self, mode: str = "accurate", **overrides) -> SolverSettings:
         """Solver settings of a named mode ("paper", "accurate" or "barrier")."""
@@ -118,11 +170,16 @@ class Scenario:
         settings: SolverSettings | None = None,
         time_limit_s: float | None = None,
         nav_filter: bool = False,
+        thrusters: bool | ThrusterSet = False,
+        faults: bool = False,
         **config,
     ) -> Loop:
         """The static closed loop of this scenario (family config overrides in ``config``;
-        ``time_limit_s`` and ``nav_filter``: :class:`~rvdjax.loop.kernel.LoopConfig`)."""
+        ``time_limit_s`` and ``nav_filter``: :class:`~rvdjax.loop.kernel.LoopConfig`;
+        ``thrusters``: fly the scenario's thruster set (True) or the one given; ``faults``:
+        apply the thrusters' faults, :attr:`~rvdjax.actuators.Actuation.faults`)."""
         fam = self.family_
+        tset = self.thruster_set(thrusters)
         fconfig = fam.config_type(**{**self.config, **config})
         return Loop(
             fam,
@@ -134,6 +191,7 @@ class Scenario:
                 disturbed=disturbed,
                 time_limit_s=time_limit_s,
                 nav_filter=nav_filter,
+                actuation=None if tset is None else tset.actuation(faults=faults),
             ),
         )
 
@@ -146,11 +204,33 @@ class Scenario:
         if self.family_.check is not None:
             self.family_.check(params, x0, loop.config)
 
-    def notes(self, mode: str) -> tuple[str, ...]:
-        """The assumptions printed with a run in ``mode``."""
+    def notes(self, mode: str, thrusters: bool | ThrusterSet = False) -> tuple[str, ...]:
+        """The assumptions printed with a run in ``mode`` (and its thruster set's)."""
+        out = self.assumptions
         if mode == "paper" and self.paper_kappa != PAPER_KAPPA:
-            return (*self.assumptions, _KAPPA_NOTE.format(kappa=self.paper_kappa))
-        return self.assumptions
+            out = (*out, _KAPPA_NOTE.format(kappa=self.paper_kappa))
+        tset = self.thruster_set(thrusters)
+        if tset is not None:
+            from rvdjax.actuators.fire import FIRE_NOTES
+
+            out = (*out, *tset.assumptions, *FIRE_NOTES)
+        return out
+
+
+#: Physical names of the thruster set (studies' --vary / --grid, Scenario.build overrides):
+#: the set's values (a sweep) and its dispersions (per thruster; misalignment: 3 per thruster,
+#: a rotation vector [rad]; fault: 0 healthy, 1 stuck off, 2 stuck on).
+THRUSTER_KEYS = {
+    "thruster_thrust_N": "thrust_N",
+    "thruster_valve_s": "valve_s",
+    "thruster_min_on_s": "min_on_s",
+    "thruster_isp_s": "isp_s",
+    "thruster_magnitude_error": "magnitude_error",
+    "thruster_misalignment": "misalignment",
+    "thruster_fault": "fault",
+    "thruster_fault_time_s": "fault_time_s",
+}
+_SET_FIELDS = ("thrust_N", "valve_s", "min_on_s", "isp_s")
 
 
 def _registry() -> dict[str, Scenario]:

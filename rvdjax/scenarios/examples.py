@@ -9,6 +9,7 @@ mass and 0.5 m^2 cross-section only matter with the drag truth.
 
 from __future__ import annotations
 
+from rvdjax.actuators import sets
 from rvdjax.scenarios import Scenario
 from rvdjax.scenarios.paper003 import ASSUMPTIONS, THESIS_N, physical
 
@@ -35,5 +36,6 @@ SCENARIOS = (
             "rest 2 km behind the target on V-bar",
             *ASSUMPTIONS[2:],
         ),
+        thrusters=sets.CUBESAT_6U,
     ),
 )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rvdjax.actuators import sets
 from rvdjax.scenarios import Scenario, paper_kappa
 
 # Table 1 (three-dimensional simulations).
@@ -118,6 +119,7 @@ def _spot(case: str, obstacles: bool) -> Scenario:
         n_steps=150,
         published={},
         assumptions=_SPOT_ASSUMPTIONS,
+        thrusters=sets.SPOT,
         paper_kappa=paper_kappa(q_position=10.0, dock_tol_m=0.05),
     )
 
@@ -134,6 +136,7 @@ SCENARIOS = (
         n_steps=240,
         published=_FASTMPC_PUBLISHED,
         assumptions=_FASTMPC_ASSUMPTIONS,
+        thrusters=sets.FASTMPC_3D,
     ),
     Scenario(
         name="fastmpc-3d-free",
@@ -146,6 +149,7 @@ SCENARIOS = (
         n_steps=240,
         published={},  # paper 000 plots this case (Fig. 3, left) but gives no impulse
         assumptions=_FASTMPC_ASSUMPTIONS[3:],
+        thrusters=sets.FASTMPC_3D,
     ),
     _spot("a", True),
     _spot("a", False),

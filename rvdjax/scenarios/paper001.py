@@ -3,6 +3,7 @@ proximity and docking): LQ-MPC docking on the POSEIDYN table, Tables 1-3 and 6-7
 
 from __future__ import annotations
 
+from rvdjax.actuators import sets
 from rvdjax.scenarios import Scenario
 
 #: Paper 001 Table 6 (simulation) and Table 7 (experiment), LQ-MPC columns.
@@ -87,6 +88,7 @@ def _poseidyn(tuning: str, name: str, table: str) -> Scenario:
         },
         assumptions=ASSUMPTIONS,
         solver=dict(max_iter=100),
+        thrusters=sets.POSEIDYN_DELTA_SIGMA,
     )
 
 

@@ -4,6 +4,7 @@ rendezvous cost variants of Table 3.6."""
 
 from __future__ import annotations
 
+from rvdjax.actuators import sets
 from rvdjax.families.phases import LP_EPS, LP_REG
 from rvdjax.scenarios import Scenario
 
@@ -142,6 +143,7 @@ SCENARIOS = tuple(
         n_steps=300,
         published={"delta_v_m_s": {"thesis": dv}, "time_to_dock_s": {"thesis": tf}},
         assumptions=ASSUMPTIONS,
+        thrusters=sets.CUBESAT_6U,
     )
     for case, (_, _, dv, tf, _, _) in CASES.items()
 ) + tuple(
@@ -159,6 +161,7 @@ SCENARIOS = tuple(
         published={"delta_v_m_s": {"thesis": dv}, "time_to_dock_s": {"thesis": tf}},
         assumptions=ASSUMPTIONS + VARIANT_ASSUMPTIONS[variant],
         solver=dict(max_iter=300) if cost == "lp" else {},
+        thrusters=sets.CUBESAT_6U,
     )
     for variant, (setpoint, cost, dv, tf) in COST_VARIANTS.items()
 )

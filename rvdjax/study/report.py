@@ -137,6 +137,14 @@ def study_notes(spec: StudySpec) -> list[str]:
         )
     if spec.time_limit_s is not None:
         notes.append(f"a run not docked within {spec.time_limit_s:g} s fails (TIMEOUT)")
+    if getattr(spec, "thrusters", False):
+        from rvdjax.scenarios import get_scenario
+
+        sc = get_scenario(spec.scenario)
+        notes.append(f"thrusters: {sc.thrusters.describe()}")
+        notes.extend(sc.thrusters.assumptions)
+        for i, kind, t in spec.faults:
+            notes.append(f"thruster {i} {kind} from t = {t:g} s in every run")
     return notes
 
 

@@ -108,9 +108,20 @@ def _point_overrides(spec: StudySpec, scenario, point):
     return static, physical, x0
 
 
+def _build(spec: StudySpec, scenario, **physical):
+    """scenario.build with the study's thrusters and faults."""
+    if spec.thrusters:
+        physical = {**spec.fault_overrides(scenario.thrusters.n), **physical}
+    return scenario.build(thrusters=spec.thrusters, **physical)
+
+
 def _physical_nominal(scenario, base):
     if base in scenario.physical:
         return scenario.physical[base]
+    from rvdjax.scenarios import THRUSTER_KEYS
+
+    if base in THRUSTER_KEYS:
+        return scenario.thruster_nominal(base)
     import inspect
 
     default = inspect.signature(scenario.family_.make_params).parameters[base].default
@@ -253,8 +264,12 @@ def _rows(spec, scenario, params_of_point, rs: RunSet, sel, metrics, effort) -> 
             "torque_l1_N_m_s",
             "max_violation_m",
             "mean_iterations",
+            "thruster_impulse_N_s",
+            "propellant_kg",
         ):
             row[f] = float(getattr(m, f)[k])
+        row["valve_openings"] = int(m.valve_openings[k])
+        row["pulses_dropped"] = int(m.pulses_dropped[k])
         row["effort"] = row[effort]
         params = params_of_point(p)
         ts = getattr(params, "ts", None)
@@ -296,6 +311,8 @@ def _loop_for(spec: StudySpec, scenario, static: dict):
         n_steps=spec.n_steps,
         time_limit_s=spec.time_limit_s,
         nav_filter=spec.nav_filter,
+        thrusters=spec.thrusters,
+        faults=spec.has_faults,
         **static,
     )
     return loop
@@ -393,7 +410,7 @@ def run_study(
         )
     t0 = time.perf_counter()
     flown = 0
-    nominal_params, _ = scenario.build()
+    nominal_params, _ = _build(spec, scenario)
     scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
     for _, point_ids in groups.items():
         static = point_cfg[point_ids[0]][0]
@@ -404,7 +421,7 @@ def run_study(
         def params_of_point(p, params_cache=params_cache):
             if p not in params_cache:
                 phys = point_cfg[p][1]
-                params_cache[p] = scenario.build(**phys)[0] if phys else nominal_params
+                params_cache[p] = _build(spec, scenario, **phys)[0] if phys else nominal_params
             return params_cache[p]
 
         group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
@@ -417,7 +434,7 @@ def run_study(
             rs = run_inputs(spec, scenario, block)
             if rs.physical is not None:
                 per_run = _stack(
-                    [scenario.build(**phys, x0=scenario.x0)[0] for phys in rs.physical]
+                    [_build(spec, scenario, **phys, x0=scenario.x0)[0] for phys in rs.physical]
                 )
                 shared = None
             elif distinct_phys:
@@ -485,6 +502,6 @@ def replay_inputs(out, run: int):
     static, phys, _ = _point_overrides(spec, scenario, spec.points[p])
     if rs.physical is not None:
         phys = rs.physical[0]
-    params = scenario.build(**phys)[0] if phys else scenario.build()[0]
+    params = _build(spec, scenario, **phys)[0]
     loop = _loop_for(spec, scenario, static)
     return spec, scenario, loop, params, rs.x0[0], rs.keys[0], scenario.solver_params(spec.mode)

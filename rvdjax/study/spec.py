@@ -85,6 +85,10 @@ def resolve(scenario, name: str) -> ParamRef:
     base, index = m.group(1), None if m.group(2) is None else int(m.group(2))
     static = {f.name for f in dataclasses.fields(fam.config_type)}
     physical = set(inspect.signature(fam.make_params).parameters) - {"x0", "disturbances"}
+    if getattr(scenario, "thrusters", None) is not None:
+        from rvdjax.scenarios import THRUSTER_KEYS
+
+        physical |= set(THRUSTER_KEYS)
     if base == "x0":
         nx = fam.layout.nx
         if index is not None and index >= nx:
@@ -138,6 +142,8 @@ class StudySpec:
         vary: ((name, distribution), ...) drawn per run.
         grid: ((name, (v1, v2, ...)), ...): the sweep points are their Cartesian product.
         mode, truth, disturbed, nav_filter: the closed loop.
+        thrusters: fly the scenario's thruster set.
+        faults: ((thruster index, "stuck-off" or "stuck-on", time [s]), ...) for every run.
         time_limit_s: a run not docked by then ends (TIMEOUT); None: the scenario's step cap.
         n_steps: MPC steps at most (None: the scenario's).
         slots, chunk, iterations: the batch engine.
@@ -156,6 +162,8 @@ class StudySpec:
     truth: str = "linear"
     disturbed: bool = False
     nav_filter: bool = False
+    thrusters: bool = False
+    faults: tuple = ()
     time_limit_s: float | None = None
     n_steps: int | None = None
     slots: int = 256
@@ -183,6 +191,16 @@ class StudySpec:
         if self.nav_filter and not self.disturbed:
             raise ValueError("nav_filter needs disturbed=True (a filter of noisy measurements)")
         object.__setattr__(self, "vary", tuple((str(n), str(d)) for n, d in self.vary))
+        object.__setattr__(
+            self, "faults", tuple((int(i), str(k), float(t)) for i, k, t in self.faults)
+        )
+        for i, kind, t in self.faults:
+            if kind not in ("stuck-off", "stuck-on"):
+                raise ValueError(f"--fault {i}:{kind}: the kind must be stuck-off or stuck-on")
+            if not (t >= 0 and np.isfinite(t)):
+                raise ValueError(f"--fault {i}:{kind}:{t}: the time must be >= 0 s")
+        if self.faults and not self.thrusters:
+            raise ValueError("--fault needs --thrusters (a fault is a thruster's)")
         object.__setattr__(
             self, "grid", tuple((str(n), tuple(float(v) for v in vs)) for n, vs in self.grid)
         )
@@ -213,6 +231,23 @@ class StudySpec:
         ic, rep = np.divmod(rest, self.replicates)
         return point, ic, rep
 
+    @property
+    def has_faults(self) -> bool:
+        """The runs have a thruster fault (--fault, or a drawn fault time)."""
+        return bool(self.faults) or any(
+            n.startswith("thruster_fault") for n, _ in (*self.vary, *self.grid)
+        )
+
+    def fault_overrides(self, n_thrusters: int) -> dict:
+        """Scenario.build overrides of the faults (none: {})."""
+        if not self.faults:
+            return {}
+        fault, when = np.zeros(n_thrusters, int), np.zeros(n_thrusters)
+        for i, kind, t in self.faults:
+            fault[i] = 1 if kind == "stuck-off" else 2
+            when[i] = t
+        return {"thruster_fault": tuple(fault), "thruster_fault_time_s": tuple(when)}
+
     def dists(self) -> list[tuple[str, Dist]]:
         return [(n, parse_dist(d)) for n, d in self.vary]
 
@@ -236,6 +271,13 @@ class StudySpec:
                         raise ValueError(f"--grid {name}: horizons must be integers >= 1, got {v}")
             if ref.kind == "x0" and ref.index is None:
                 raise ValueError("--grid x0 needs a component: x0[k]")
+        if self.thrusters and scenario.thrusters is None:
+            raise ValueError(f"--thrusters: scenario {scenario.name!r} has no thruster set")
+        for i, _, _ in self.faults:
+            if self.thrusters and not 0 <= i < scenario.thrusters.n:
+                raise ValueError(
+                    f"--fault {i}: thruster index must be in [0, {scenario.thrusters.n - 1}]"
+                )
         if self.initial == "paper003" and scenario.family_.layout.nx != 6:
             raise ValueError("initial 'paper003' draws 3-D CW states (6 components)")
 
@@ -247,4 +289,5 @@ class StudySpec:
         d = dict(d)
         d["vary"] = tuple(tuple(v) for v in d.get("vary", ()))
         d["grid"] = tuple((n, tuple(vs)) for n, vs in d.get("grid", ()))
+        d["faults"] = tuple(tuple(f) for f in d.get("faults", ()))
         return cls(**d)
