@@ -254,6 +254,8 @@ def cmd_tune(args) -> int:
     from rvdjax.tune import TuneSpec, parse_loss, parse_names, tunables_of
 
     sc = get_scenario(args.scenario)
+    if args.judge_thrusters and sc.thrusters is None:
+        raise ValueError(f"--judge-thrusters: scenario {sc.name!r} has no thruster set")
     if args.list_params:
         for name, t in tunables_of(sc, args.mode).items():
             print(f"{name:<16}{t.description}")
@@ -285,6 +287,7 @@ def cmd_tune(args) -> int:
         random_search=not args.no_random_search,
         search_sigma=args.search_sigma,
         remat=not args.no_remat,
+        judge_thrusters=args.judge_thrusters,
     )
     from rvdjax.tune import tune
 
@@ -509,7 +512,11 @@ def cmd_compare(args) -> int:
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    rows = compare_solvers(args.scenario, progress=progress, nmpc=not args.no_nmpc)
+    if args.thrusters and sc.thrusters is None:
+        raise ValueError(f"--thrusters: scenario {sc.name!r} has no thruster set")
+    rows = compare_solvers(
+        args.scenario, progress=progress, nmpc=not args.no_nmpc, thrusters=args.thrusters
+    )
     if args.json:
         print(json.dumps({"scenario": sc.name, "published": sc.published, "rows": rows}, indent=2))
     else:
@@ -646,6 +653,7 @@ def _study_spec(args):
         nav_filter=bool(args.nav_filter),
         thrusters=bool(args.thrusters),
         faults=tuple(_fault(f) for f in (args.fault or ())),
+        fdir=not args.no_fdir,
         time_limit_s=args.time_limit_s,
         n_steps=args.n_steps,
         slots=args.slots,
@@ -851,6 +859,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--search-sigma", type=float, default=0.3, help="random search spread (0.3)")
     p.add_argument(
+        "--judge-thrusters",
+        action="store_true",
+        help="also judge every tuning on the held-out maneuvers flown with the thrusters "
+        "(gradients stay on the ideal-force plant)",
+    )
+    p.add_argument(
         "--no-remat",
         action="store_true",
         help="keep every step's solver residuals instead of recomputing the step (faster "
@@ -865,6 +879,12 @@ def main(argv=None) -> int:
     p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--no-nmpc", action="store_true", help="skip the CasADi/IPOPT baselines")
+    p.add_argument(
+        "--thrusters",
+        action="store_true",
+        help="the rvdjax and Clarabel loops fly the vehicle's thrusters (the NMPC and IDVD "
+        "baselines keep ideal forces)",
+    )
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("demo", help="solve one QP: the fastmpc-3d first MPC step")
@@ -991,7 +1011,12 @@ def main(argv=None) -> int:
             action="append",
             metavar="I:KIND[:T]",
             help="with --thrusters: thruster I stuck-off or stuck-on from T seconds (default 0) "
-            "in every run; the allocation knows it (FDIR) unless the set says otherwise",
+            "in every run; the allocation knows it from its onset (FDIR) unless --no-fdir",
+        )
+        q.add_argument(
+            "--no-fdir",
+            action="store_true",
+            help="with --fault: the allocation does not know the fault (it goes unnoticed)",
         )
         q.add_argument("--seed", type=int, default=0, help="study seed (default 0)")
         q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")

@@ -57,13 +57,18 @@ def _row(label, m, ms_per_step, published, paper_name, note=""):
     }
 
 
-def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True) -> list[dict]:
-    """Fly scenario ``name`` with every solver; return one row per solver."""
+def compare_solvers(
+    name: str = "fastmpc-3d", progress=print, nmpc: bool = True, thrusters: bool = False
+) -> list[dict]:
+    """Fly scenario ``name`` with every solver; return one row per solver. ``thrusters``:
+    the rvdjax and Clarabel loops fly the scenario's thruster set (the NMPC and IDVD
+    baselines keep their own ideal-force plants)."""
     sc = get_scenario(name)
-    params, x0 = sc.build()
+    params, x0 = sc.build(thrusters=thrusters)
+    ideal_params = sc.build()[0] if thrusters else params
     rows = []
     for label, (settings_of, mode, paper_name) in VARIANTS.items():
-        loop = sc.loop(mode, settings=settings_of(sc))
+        loop = sc.loop(mode, settings=settings_of(sc), thrusters=thrusters)
         sp = sc.solver_params(mode)
         run = jax.jit(lambda p, x, s, lp=loop: fly(lp, p, x, None, s))
         run = run.lower(params, x0, sp).compile()
@@ -83,7 +88,7 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
         except ImportError as err:
             progress(f"note: NMPC skipped ({err}); pip install 'rvdjax[nmpc]'")
         else:
-            infos, m, solve_s = run_nmpc_loop(params, x0, sc.loop("accurate"))
+            infos, m, solve_s = run_nmpc_loop(ideal_params, x0, sc.loop("accurate"))
             steps = max(int(np.sum(infos["active"])), 1)
             rows.append(
                 _row(
@@ -92,7 +97,8 @@ def compare_solvers(name: str = "fastmpc-3d", progress=print, nmpc: bool = True)
                     1e3 * solve_s / steps,
                     sc.published,
                     "IPOPT NMPC",
-                    note="nonlinear keep-out constraints, solver calls only",
+                    note="nonlinear keep-out constraints, solver calls only"
+                    + (", ideal forces" if thrusters else ""),
                 )
             )
             progress(f"NMPC: effort {float(m.effort_l1_N_s):.6g} N s")

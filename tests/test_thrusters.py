@@ -5,6 +5,8 @@ step records)."""
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -339,3 +341,104 @@ def test_a_thruster_stuck_off_never_fires(rotating_flights):
     # the healthy vehicle fired that thruster
     assert infos.pulses.width[0][:, 0].max() > 0.0
     assert np.all(np.isfinite(m.effort_l1_N_s))
+
+
+# ------------------------------------------------------------------------ command line
+
+
+def test_run_with_thrusters_prints_both_plants(capsys, tmp_path):
+    from rvdjax.cli import main
+
+    plot = tmp_path / "run.png"
+    assert main(["run", "poseidyn-lqmpc", "--thrusters", "--json", "--plot", str(plot)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["docked"] and out["ideal_forces"]["docked"]
+    assert out["thrusters"].startswith("POSEIDYN")
+    # delta-sigma pulses: whole 0.1 s ticks of 0.15 N thrusters
+    assert out["thruster_impulse_N_s"] == pytest.approx(
+        0.015 * round(out["thruster_impulse_N_s"] / 0.015), abs=1e-9
+    )
+    assert out["valve_openings"] > 0 and out["ideal_forces"]["valve_openings"] == 0
+    assert out["effort_l1_N_s"] != out["ideal_forces"]["effort_l1_N_s"]
+    assert any("delta-sigma" in a for a in out["assumptions"])
+    firings = tmp_path / "run-firings.png"
+    assert firings.stat().st_size > 10_000 and plot.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    "args, word",
+    [
+        (["run", "poseidyn-lqmpc", "--thrusters", "--study", "x", "--run", "0"], "--thrusters"),
+        (["study", "montecarlo", "spot-2d-a", "--fault", "0:stuck-off", "--out", "o"], "--fault"),
+        (
+            [
+                "study",
+                "montecarlo",
+                "spot-2d-a",
+                "--thrusters",
+                "--fault",
+                "9:stuck-off",
+                "--out",
+                "o",
+            ],
+            "thruster index",
+        ),
+        (
+            [
+                "study",
+                "montecarlo",
+                "spot-2d-a",
+                "--thrusters",
+                "--fault",
+                "0:broken",
+                "--out",
+                "o",
+            ],
+            "stuck-off or stuck-on",
+        ),
+        (
+            [
+                "study",
+                "montecarlo",
+                "spot-2d-a",
+                "--vary",
+                "thruster_valve_s=uniform(0,1)",
+                "--out",
+                "o",
+            ],
+            "thruster_valve_s",
+        ),
+    ],
+)
+def test_thruster_options_fail_before_any_work(args, word, capsys, tmp_path, monkeypatch):
+    import time
+
+    from rvdjax.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    t0 = time.perf_counter()
+    assert main(args) == 2
+    assert word in capsys.readouterr().err
+    assert time.perf_counter() - t0 < 5.0
+
+
+def test_study_with_a_failed_thruster_replays(tmp_path, capsys):
+    """A Monte Carlo study with thrusters and a stuck-off thruster: its table carries the
+    thruster figures, and a run replayed alone gives the same figures."""
+    import pandas as pd
+
+    from rvdjax.cli import main
+
+    out = tmp_path / "st"
+    args = ["study", "montecarlo", "spot-2d-a-free", "--runs", "3", "--thrusters", "--fault"]
+    args += ["2:stuck-off", "--vary", "x0[0]=+normal(0,0.05)", "--slots", "4", "--chunk", "4"]
+    assert main([*args, "--out", str(out), "--quiet"]) == 0
+    table = pd.read_parquet(out / "runs")
+    assert len(table) == 3 and (table["valve_openings"] > 0).all()
+    capsys.readouterr()
+    assert main(["run", "spot-2d-a-free", "--study", str(out), "--run", "1", "--json"]) == 0
+    replay = json.loads(capsys.readouterr().out)
+    row = table.set_index("run").loc[1]
+    assert replay["thruster_impulse_N_s"] == pytest.approx(row["thruster_impulse_N_s"], rel=1e-9)
+    assert replay["valve_openings"] == row["valve_openings"]
+    assert replay["thrusters"].startswith("SPOT RED")

@@ -144,7 +144,8 @@ def study_notes(spec: StudySpec) -> list[str]:
         notes.append(f"thrusters: {sc.thrusters.describe()}")
         notes.extend(sc.thrusters.assumptions)
         for i, kind, t in spec.faults:
-            notes.append(f"thruster {i} {kind} from t = {t:g} s in every run")
+            known = "known to the allocation (FDIR)" if spec.fdir else "unnoticed"
+            notes.append(f"thruster {i} {kind} from t = {t:g} s in every run, {known}")
     return notes
 
 

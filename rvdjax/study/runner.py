@@ -311,7 +311,7 @@ def _loop_for(spec: StudySpec, scenario, static: dict):
         n_steps=spec.n_steps,
         time_limit_s=spec.time_limit_s,
         nav_filter=spec.nav_filter,
-        thrusters=spec.thrusters,
+        thrusters=(scenario.thrusters.replace(fdir=spec.fdir) if spec.thrusters else False),
         faults=spec.has_faults,
         **static,
     )

@@ -144,6 +144,7 @@ class StudySpec:
         mode, truth, disturbed, nav_filter: the closed loop.
         thrusters: fly the scenario's thruster set.
         faults: ((thruster index, "stuck-off" or "stuck-on", time [s]), ...) for every run.
+        fdir: the allocation knows a fault from its onset (False: it goes unnoticed).
         time_limit_s: a run not docked by then ends (TIMEOUT); None: the scenario's step cap.
         n_steps: MPC steps at most (None: the scenario's).
         slots, chunk, iterations: the batch engine.
@@ -164,6 +165,7 @@ class StudySpec:
     nav_filter: bool = False
     thrusters: bool = False
     faults: tuple = ()
+    fdir: bool = True
     time_limit_s: float | None = None
     n_steps: int | None = None
     slots: int = 256

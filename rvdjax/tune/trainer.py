@@ -66,6 +66,10 @@ class TuneSpec:
         search_sigma: the random search's spread on theta.
         remat: ``jax.checkpoint`` the closed-loop step (bounded memory, ~1 more forward pass).
         clip: global-norm clip of the gradient on theta.
+        judge_thrusters: also judge every tuning on the held-out maneuvers flown with the
+            scenario's thrusters. The gradients always come from the ideal-force plant: the
+            pulse train is piecewise constant in the parameters (its derivative is zero almost
+            everywhere), so a thruster plant gives no gradient to follow.
     """
 
     scenario: str
@@ -86,6 +90,7 @@ class TuneSpec:
     search_sigma: float = 0.3
     remat: bool = True
     clip: float = 1.0
+    judge_thrusters: bool = False
 
     def __post_init__(self):
         for name in ("train", "heldout"):
@@ -237,6 +242,21 @@ class Tuner:
 
         self._terms = jax.jit(lambda th, x, k: batch_terms(th, x, k, False))
         self._vg = jax.jit(jax.value_and_grad(batch_loss, has_aux=True))
+        self._terms_thr = None
+        if spec.judge_thrusters:
+            params_thr, _ = sc.build(thrusters=True)
+            loop_thr = loop.replace(actuation=sc.thrusters.actuation())
+
+            def terms_thr(theta, x0s, keys):
+                p, sp = space.apply(params_thr, self.sp, space.values(theta))
+
+                def one(x, k):
+                    infos, m = fly(loop_thr, p, x, k, sp)
+                    return run_terms(loop_thr, p, infos, effort_key), m
+
+                return jax.vmap(one)(x0s, keys)
+
+            self._terms_thr = jax.jit(terms_thr)
 
     # ------------------------------------------------------------------ evaluations
 
@@ -244,15 +264,17 @@ class Tuner:
         """((E, T, M) per run, Metrics per run) at theta (forward only)."""
         return self._terms(theta, x0s, keys)
 
-    def losses(self, theta, x0s, keys, refs, weights, chunk: int):
-        """(L per run, Metrics per run) in batches of ``chunk`` (one compiled shape)."""
+    def losses(self, theta, x0s, keys, refs, weights, chunk: int, thrusters: bool = False):
+        """(L per run, Metrics per run) in batches of ``chunk`` (one compiled shape);
+        ``thrusters``: flown with the scenario's thrusters (``judge_thrusters``)."""
+        terms = self._terms_thr if thrusters else self.terms
         n = x0s.shape[0]
         pad = (-n) % chunk
         idx = np.concatenate([np.arange(n), np.zeros(pad, int)])
         Ls, ms = [], []
         for s in range(0, n + pad, chunk):
             sel = idx[s : s + chunk]
-            (E, T, M), m = self.terms(theta, x0s[sel], keys[sel])
+            (E, T, M), m = terms(theta, x0s[sel], keys[sel])
             Ls.append(np.asarray(combine(weights, E, T, M, refs[0], refs[1])))
             ms.append(jax.tree.map(np.asarray, m))
         L = np.concatenate(Ls)[:n]
@@ -377,13 +399,16 @@ def tune(spec: TuneSpec, out=None, progress: bool = True) -> dict:
     if theta_rand is not None:
         tunings["random_search"] = theta_rand
     heldout, rows = {}, []
-    for label, th in tunings.items():
-        L, m = tuner.losses(th, x_ho, k_ho, refs, weights, chunk)
-        heldout[label] = heldout_summary(m, tuner.effort_key, L)
+    plants = ("ideal", "thrusters") if spec.judge_thrusters else ("ideal",)
+    for (label, th), plant in ((t, pl) for pl in plants for t in tunings.items()):
+        L, m = tuner.losses(th, x_ho, k_ho, refs, weights, chunk, thrusters=plant == "thrusters")
+        key = label if plant == "ideal" else f"{label} (thrusters)"
+        heldout[key] = heldout_summary(m, tuner.effort_key, L)
         for i in range(spec.heldout):
             rows.append(
                 {
                     "tuning": label,
+                    "plant": plant,
                     "run": i,
                     "loss": float(L[i]),
                     "status": int(m.status[i]),
@@ -427,8 +452,14 @@ def tune(spec: TuneSpec, out=None, progress: bool = True) -> dict:
         "peak_memory_mb": peak_rss_mb(),
         "wall_s": time.perf_counter() - t_start,
         "values": {lab: {k: v.tolist() for k, v in d.items()} for lab, d in values.items()},
-        "assumptions": [*NOTES, *sc.notes(spec.mode)],
+        "assumptions": [*NOTES, *sc.notes(spec.mode, thrusters=spec.judge_thrusters)],
     }
+    if spec.judge_thrusters:
+        result["assumptions"].append(
+            "gradients and the random search on the ideal-force plant; the held-out rows "
+            "'(thrusters)' fly the same tunings with the thrusters (the pulse train is "
+            "piecewise constant in the parameters: no gradient through it)"
+        )
     if out is not None:
         tuner.heldout_keys = k_ho  # the figures fly a held-out run with its own key
         _write(out, spec, tuner, result, history, rows, values)
