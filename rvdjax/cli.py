@@ -301,10 +301,11 @@ def cmd_tune(args) -> int:
     )
     print(f"  held-out maneuvers: {spec.heldout}")
     keys = ("effort", "time_to_dock_s", "docked_fraction", "max_violation_m", "loss")
-    print(f"  {'tuning':<16}" + "".join(f"{k:>18}" for k in keys))
+    width = max(16, *(len(label) + 2 for label in result["heldout"]))
+    print(f"  {'tuning':<{width}}" + "".join(f"{k:>18}" for k in keys))
     for label, m in result["heldout"].items():
         cells = "".join(f"{'-' if m[k] is None else format(m[k], '.4g'):>18}" for k in keys)
-        print(f"  {label:<16}{cells}")
+        print(f"  {label:<{width}}{cells}")
     print(f"  effort = {result['heldout']['hand']['effort_metric']}")
     print(
         f"  gradient step {result['grad_step_s']:.3g} s, forward batch {result['forward_s']:.3g}"

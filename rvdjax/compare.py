@@ -58,11 +58,16 @@ def _row(label, m, ms_per_step, published, paper_name, note=""):
 
 
 def compare_solvers(
-    name: str = "fastmpc-3d", progress=print, nmpc: bool = True, thrusters: bool = False
+    name: str = "fastmpc-3d",
+    progress=print,
+    nmpc: bool = True,
+    thrusters: bool = False,
+    warmup: bool = True,
 ) -> list[dict]:
     """Fly scenario ``name`` with every solver; return one row per solver. ``thrusters``:
     the rvdjax and Clarabel loops fly the scenario's thruster set (the NMPC and IDVD
-    baselines keep their own ideal-force plants)."""
+    baselines keep their own ideal-force plants). ``warmup``: fly each compiled loop once
+    before the timed flight (False: the one flight is timed, first-call costs included)."""
     sc = get_scenario(name)
     params, x0 = sc.build(thrusters=thrusters)
     ideal_params = sc.build()[0] if thrusters else params
@@ -72,7 +77,8 @@ def compare_solvers(
         sp = sc.solver_params(mode)
         run = jax.jit(lambda p, x, s, lp=loop: fly(lp, p, x, None, s))
         run = run.lower(params, x0, sp).compile()
-        jax.block_until_ready(run(params, x0, sp))
+        if warmup:
+            jax.block_until_ready(run(params, x0, sp))
         t0 = time.perf_counter()
         infos, m = jax.block_until_ready(run(params, x0, sp))
         steps = max(int(np.sum(np.asarray(infos.active))), 1)

@@ -132,5 +132,9 @@ def run_nmpc_loop(p: Params, x0, loop: Loop, ipopt_tol=1e-8):
         status_counts=counts,
         mean_iterations=np.float64(np.asarray(infos["iterations"])[act].mean() if n else 0.0),
         iteration_histogram=hist,
+        thruster_impulse_N_s=np.float64(0.0),  # ideal forces: no thrusters flown
+        propellant_kg=np.float64(0.0),
+        valve_openings=np.int32(0),
+        pulses_dropped=np.int32(0),
     )
     return infos, metrics, solve_s

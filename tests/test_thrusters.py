@@ -442,3 +442,30 @@ def test_study_with_a_failed_thruster_replays(tmp_path, capsys):
     assert replay["thruster_impulse_N_s"] == pytest.approx(row["thruster_impulse_N_s"], rel=1e-9)
     assert replay["valve_openings"] == row["valve_openings"]
     assert replay["thrusters"].startswith("SPOT RED")
+
+
+def test_tuner_judges_with_the_thrusters():
+    """``judge_thrusters``: the held-out evaluation flies the thruster plant (valve pulses
+    counted), the same tuning values applied to it."""
+    from rvdjax.tune import LossWeights, Tuner, TuneSpec
+    from rvdjax.tune.trainer import _run_set
+
+    spec = TuneSpec(
+        scenario="poseidyn-lqmpc",
+        params=("R",),
+        train=2,
+        heldout=2,
+        steps=0,
+        n_steps=12,
+        judge_thrusters=True,
+    )
+    tuner = Tuner(spec)
+    x, k = _run_set(spec, tuner.scenario, 2, 1)
+    theta = tuner.space.theta()
+    refs = (jnp.ones(()), jnp.ones(()))
+    L, m = tuner.losses(theta, x, k, refs, LossWeights(), 2, thrusters=True)
+    assert np.all(np.isfinite(L)) and np.all(m.valve_openings > 0)
+    # the tuned values reach the thruster plant: another R fires other pulses
+    other = {**theta, "R": theta["R"] + 1.0}
+    _, m2 = tuner.losses(other, x, k, refs, LossWeights(), 2, thrusters=True)
+    assert not np.array_equal(m2.thruster_impulse_N_s, m.thruster_impulse_N_s)

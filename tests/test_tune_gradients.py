@@ -28,7 +28,6 @@ import pytest
 from rvdjax.scenarios import get_scenario
 from rvdjax.solver import SolverParams, SolverSettings
 from rvdjax.tune import LossWeights, Tuner, TuneSpec
-from rvdjax.tune.loss import combine
 from rvdjax.tune.trainer import _run_set
 
 # family -> (scenario, tuned names); every family's full list of tunables
@@ -41,6 +40,9 @@ CASES = {
 SHORT = 5  # MPC steps of the gradient checks
 RTOL = {"paper": 1e-6, "accurate": 2e-3}  # module docstring
 MODES = ("paper", "accurate")
+# reference scales of 1: float64 0-d arrays like the fixture's jnp.mean refs, not Python floats
+# (weakly typed), so that every call of a tuner's value_and_grad hits one compiled program
+ONES = (jnp.ones(()), jnp.ones(()))
 
 
 @functools.cache
@@ -68,14 +70,23 @@ def short(request):
     family, mode = request.param
     tuner = _tuner(family, mode)
     x, k = _run_set(tuner.spec, tuner.scenario, 2, 0)
-    (E, T, M), _ = tuner.terms(tuner.space.theta(), x, k)
+    (_, (_, E, T, _, _)), _ = _value_and_grad(tuner, tuner.space.theta(), x, k, ONES)
     refs = (jnp.mean(E), jnp.mean(T))
     return family, mode, tuner, x, k, refs
 
 
+def _value_and_grad(tuner, theta, x, k, refs):
+    return tuner.value_and_grad(theta, x, k, refs, LossWeights())
+
+
 def _loss(tuner, theta, x, k, refs) -> float:
-    (E, T, M), _ = tuner.terms(theta, x, k)
-    return float(jnp.mean(combine(LossWeights(), E, T, M, *refs)))
+    """The mean loss at theta, evaluated by the forward pass of the compiled value_and_grad
+    (the tuner's own loss, ``combine`` of the same (E, T, M) that ``tuner.terms`` returns,
+    without jax.checkpoint: ``_tuner`` builds remat=False tuners). One compiled program per
+    tuner instead of two: compiling ``tuner.terms`` as well cost ~10 s of the ~30 s of each
+    (family, mode)."""
+    (L, _), _ = _value_and_grad(tuner, theta, x, k, refs)
+    return float(L)
 
 
 def test_gradient_matches_central_differences(short):
@@ -118,7 +129,7 @@ def test_gradient_finite_at_active_thrust_limits():
     infos, _ = jax.jit(lambda p: fly(tuner.loop, p, x[0]))(tuner.params)
     saturation = np.max(np.abs(np.asarray(infos.u)) / np.asarray(tuner.params.u_max))
     assert saturation > 0.999, f"no active thrust limit ({saturation:.4f} of u_max)"
-    refs = (1.0, 1.0)
+    refs = ONES
     theta = tuner.space.theta()
     _, g = tuner.value_and_grad(theta, x, k, refs, LossWeights())
     for n in ("Q", "R"):
@@ -149,7 +160,7 @@ def test_remat_gives_the_same_gradient():
     b = _tuner("poseidyn", "accurate")
     x, k = _run_set(a.spec, a.scenario, 2, 0)
     theta = a.space.theta()
-    _, ga = a.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
-    _, gb = b.value_and_grad(theta, x, k, (1.0, 1.0), LossWeights())
+    _, ga = a.value_and_grad(theta, x, k, ONES, LossWeights())
+    _, gb = b.value_and_grad(theta, x, k, ONES, LossWeights())
     for n in theta:
         np.testing.assert_allclose(ga[n], gb[n], rtol=1e-3, atol=0)

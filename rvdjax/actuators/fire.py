@@ -40,8 +40,9 @@ __all__ = ["Fired", "fire", "wrench_rows", "FIRE_NOTES"]
 FIRE_NOTES = (
     "thrusters: the body-to-model rotation is the attitude at the start of each control "
     "period, held over it; the allocation uses the true attitude",
-    "thrusters: pulses start at the beginning of the control period (PWM); a fault acts from "
-    "the first period starting at or after its time",
+    "thrusters: PWM and Schmitt pulses start at the beginning of the control period, "
+    "delta-sigma pulses are whole ticks; a fault acts from the first period starting at or "
+    "after its time",
 )
 
 

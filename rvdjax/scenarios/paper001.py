@@ -58,8 +58,9 @@ ASSUMPTIONS = (
     "and before that on the stages whose previous-plan position lies within the range "
     "(the cone is predicted over the horizon, as in paper 002)",
     "state rows are soft with exact L1 penalty rho = 1e8 per metre",
-    "truth = the model (no delta-sigma thruster modulation, no navigation noise, no "
-    "air-bearing disturbances); effort = int (|Fx| + |Fy|) dt up to the docking instant",
+    "truth = the model with ideal forces (with --thrusters: the delta-sigma modulated "
+    "thrusters); no navigation noise, no air-bearing disturbances; effort (Eq. 14) = int "
+    "(|Fx| + |Fy|) dt of the applied force up to the docking instant",
     "QP solved to optimality by rvdjax's interior-point solver (<= 100 iterations), warm "
     "started from the shifted previous plan",
 )
