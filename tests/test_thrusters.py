@@ -469,3 +469,32 @@ def test_tuner_judges_with_the_thrusters():
     other = {**theta, "R": theta["R"] + 1.0}
     _, m2 = tuner.losses(other, x, k, refs, LossWeights(), 2, thrusters=True)
     assert not np.array_equal(m2.thruster_impulse_N_s, m.thruster_impulse_N_s)
+
+
+def test_pair_groups_equal_the_lp_without_torque():
+    """Paper 001's set flies a torque-free family: the pair-group closed form (alike thrusters
+    sharing a direction's thrust equally) gives the LP's least total thrust and scale, and no
+    torque, for random demands, saturated ones included."""
+    from rvdjax.actuators.allocation import allocate
+    from rvdjax.actuators.thrusters import effectiveness
+
+    sc = get_scenario("poseidyn-lqmpc")
+    tset = sc.thrusters.replace(valve_s=1e-9, min_on_s=0.0, modulator="pwm")
+    thr, act = tset.build(), tset.actuation()
+    lay = sc.family_.layout
+    M = effectiveness(thr.position, thr.direction)[jnp.asarray(act.rows)]
+    demands = jnp.asarray(RNG.uniform(-0.45, 0.45, (200, 2)))  # up to 1.5x the 0.3 N per axis
+
+    def both(u):
+        out = fire(act, thr, lay, jnp.zeros(4), u, 5.0, 10.0, 0.0, jnp.zeros(8))
+        f = out.pulses.on_time() * thr.thrust / 5.0
+        lp = allocate(M, jnp.concatenate([u, jnp.zeros(1)]), thr.thrust)
+        return f, out.scale, lp.f, lp.scale
+
+    f, s, f_lp, s_lp = jax.jit(jax.vmap(both))(demands)
+    np.testing.assert_allclose(s, s_lp, atol=1e-9)
+    assert 0.2 < float(np.mean(np.asarray(s) < 1)) < 0.8  # saturated and unsaturated demands
+    np.testing.assert_allclose(f.sum(-1), f_lp.sum(-1), rtol=1e-6, atol=1e-9)
+    wrench = np.asarray(f) @ np.asarray(M).T
+    np.testing.assert_allclose(wrench[:, :2], np.asarray(s)[:, None] * demands, atol=1e-6)
+    np.testing.assert_allclose(wrench[:, 2], 0.0, atol=1e-9)

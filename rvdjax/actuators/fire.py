@@ -92,6 +92,16 @@ def _generalised(layout, R, force_body, torque_body):
     return jnp.stack(cols, axis=-1)
 
 
+def _pairs_exact(act: Actuation, layout) -> bool:
+    """The pair-group closed form is the least-thrust allocation (static): groups of one
+    thruster through the centre of mass, or alike groups, no torque input and no faults."""
+    if not act.pair_groups:
+        return False
+    if all(len(g) == 1 for g in act.pair_groups):
+        return True
+    return not layout.torque and not act.faults
+
+
 def _full_on(act: Actuation, ts, like):
     """The pulses of a valve stuck open for the whole period."""
     P = like.shape[-1]
@@ -151,8 +161,18 @@ def fire(
     if act.fdir and act.faults:
         F_alloc = jnp.where(stuck_off | stuck_on, 0.0, F_alloc)
         d = d - M @ jnp.where(stuck_on, thr.thrust, 0.0)
-    if act.pairs:
-        alloc = allocate_pairs(d, F_alloc[0::2], F_alloc[1::2])
+    if _pairs_exact(act, layout):
+        groups = act.pair_groups
+        F_group = jnp.stack([sum(F_alloc[i] for i in g) for g in groups])
+        force = wrench[: len(groups) // 2]
+        if act.fdir and act.faults:
+            force = force - (M @ jnp.where(stuck_on, thr.thrust, 0.0))[: len(groups) // 2]
+        pair = allocate_pairs(force, F_group[0::2], F_group[1::2])
+        share = jnp.zeros(T, dtype)
+        for j, g in enumerate(groups):  # equal shares of alike thrusters: no torque
+            for i in g:
+                share = share.at[i].set(pair.f[j] / len(g))
+        alloc = pair._replace(f=share)
     else:
         alloc = allocate(M, d, F_alloc)
     t_dem = on_time_demand(alloc.f, thr.thrust, ts)

@@ -95,8 +95,13 @@ class Actuation:
             its torque input to row 5, every other listed row to zero.
         frame: "attitude" (body frame rotated about z by the state's attitude angle) or
             "fixed" (body axes on the model frame).
-        pairs: the set is opposing pairs along the body axes through the centre of mass,
-            ordered +x, -x, +y, -y(, +z, -z): the closed-form allocation is exact.
+        pair_groups: the thrusters along each body axis direction, ordered +x, -x, +y,
+            -y(, +z, -z), each group's thrusters alike and placed so that thrust shared
+            equally among them gives no torque. The allocation of a force demand is then the
+            closed form of opposing pairs (each group one thruster of the group's total
+            thrust, shared equally), exact whenever no torque is demanded: single-thruster
+            groups (thrusters through the centre of mass) always, larger groups when the
+            family has no torque input and no fault can split a group. Empty: the LP.
         fdir: the allocation knows a failed thruster from its onset (it allocates around a
             stuck-off thruster and subtracts a stuck-on one from the demand); False: the
             fault goes unnoticed.
@@ -110,7 +115,7 @@ class Actuation:
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
-    pairs: bool = False
+    pair_groups: tuple[tuple[int, ...], ...] = ()
     fdir: bool = True
     faults: bool = False
 
@@ -135,7 +140,7 @@ class ThrusterSet:
         valve_s: valve resolution [s] (> 0).
         min_on_s: minimum on-time [s] (>= 0).
         isp_s: specific impulse [s] (> 0).
-        modulator, carry, ticks, rows, frame, pairs, fdir: :class:`Actuation`.
+        modulator, carry, ticks, rows, frame, pair_groups, fdir: :class:`Actuation`.
         schmitt_levels: (on, off) levels of the Schmitt trigger, fractions of min_on_s.
         assumptions: what rvdjax chose where the papers are silent (printed with a run).
     """
@@ -152,7 +157,7 @@ class ThrusterSet:
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
-    pairs: bool = False
+    pair_groups: tuple[tuple[int, ...], ...] = ()
     fdir: bool = True
     schmitt_levels: tuple[float, float] = (0.75, 0.25)
     assumptions: tuple[str, ...] = ()
@@ -289,7 +294,7 @@ def axis_set(name: str, thrust_N: float, arm_m: float = 0.0, **options) -> Thrus
         position_m=pos,
         direction=tuple(dirs),
         thrust_N=thrust_N,
-        pairs=True,
+        pair_groups=tuple((i,) for i in range(6)),
         rows=(0, 1, 2),
         frame="fixed",
         **options,
@@ -300,7 +305,8 @@ def planar_eight(name: str, thrust_N: float, half_width_m: float, offset_m: floa
     """Eight thrusters of a square air-bearing vehicle, two on each face, firing inward along
     the face normal (the force on the vehicle points away from the face), ``offset_m`` either
     side of the face centre: each pair gives a pure force, one thruster of a pair a force and
-    a torque of thrust * offset."""
+    a torque of thrust * offset. Thrusters 0-1 are on the +x face (force -x), 2-3 on -x, 4-5
+    on +y, 6-7 on -y."""
     w, o = half_width_m, offset_m
     pos, dirs = [], []
     for nx_, ny_ in ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)):
@@ -315,5 +321,6 @@ def planar_eight(name: str, thrust_N: float, half_width_m: float, offset_m: floa
         thrust_N=thrust_N,
         rows=(0, 1, 5),
         frame="attitude",
+        pair_groups=((2, 3), (0, 1), (6, 7), (4, 5)),  # +x, -x, +y, -y
         **options,
     )
