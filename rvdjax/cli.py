@@ -38,25 +38,11 @@ def _ints(text: str) -> list[int]:
 
 
 def check_output(path: str | None, option: str, formats: tuple[str, ...] | None = None) -> None:
-    """ValueError unless ``path`` can be written (checked before any work is done): its
-    directory exists and is writable, the file (if it exists) is writable, and the extension
-    is one of ``formats``."""
-    if path is None:
-        return
-    if formats is not None and os.path.splitext(path)[1].lower() not in formats:
-        raise ValueError(
-            f"{option} {path!r}: the file name must end in one of {', '.join(formats)}"
-        )
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f"{option} {path!r}: directory {directory!r} does not exist")
-    if os.path.isdir(path):
-        raise ValueError(f"{option} {path!r} is a directory, not a file")
-    if os.path.exists(path):
-        if not os.access(path, os.W_OK):
-            raise ValueError(f"{option} {path!r}: the file is not writable")
-    elif not os.access(directory, os.W_OK):
-        raise ValueError(f"{option} {path!r}: directory {directory!r} is not writable")
+    """ValueError unless the file ``path`` can be written (:func:`rvdjax.outputs.check_file`:
+    a file is created and removed in its directory before any work is done)."""
+    from rvdjax.outputs import check_file
+
+    check_file(path, option, formats)
 
 
 def cmd_demo(args) -> int:
@@ -260,12 +246,9 @@ def cmd_tune(args) -> int:
         for name, t in tunables_of(sc, args.mode).items():
             print(f"{name:<16}{t.description}")
         return 0
-    if args.out is not None:
-        if os.path.exists(args.out) and not os.path.isdir(args.out):
-            raise ValueError(f"--out {args.out!r} is a file, not a directory")
-        parent = os.path.dirname(os.path.abspath(args.out))
-        if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
-            raise ValueError(f"--out {args.out!r}: directory {parent!r} is not writable")
+    from rvdjax.outputs import check_dir
+
+    check_dir(args.out, "--out")
     vary = None
     if args.vary:
         vary = tuple(parse_assignment(v, "--vary") for v in args.vary)
@@ -700,15 +683,10 @@ def cmd_study(args) -> int:
     from rvdjax.scenarios import get_scenario
 
     spec.validate(get_scenario(spec.scenario))
-    if args.plots:  # checked before flying, created after (it may lie inside --out)
-        parent = os.path.dirname(os.path.abspath(args.plots))
-        if os.path.exists(args.plots) and not os.path.isdir(args.plots):
-            raise ValueError(f"--plots {args.plots!r} is a file, not a directory")
-        if not os.path.exists(args.plots) and not (
-            os.access(parent, os.W_OK)
-            or os.path.abspath(parent).startswith(os.path.abspath(args.out))
-        ):
-            raise ValueError(f"--plots {args.plots!r}: directory {parent!r} is not writable")
+    from rvdjax.outputs import check_dir
+
+    check_dir(args.out, "--out")  # proven writable before flying; created after
+    check_dir(args.plots, "--plots")
     index, count = _distributed(args)
     if count > 1:  # process 0 checks --out and writes the configuration before anyone flies
         from rvdjax.study.runner import prepare_out

@@ -150,6 +150,11 @@ def test_closed_loop_bench_json(tmp_path, capsys):
         (["demo", "--plot", "/no/such/dir/p.png"], "does not exist"),
         (["bench", "--closed-loop", "--out", "/no/such/dir/b.json"], "does not exist"),
         (["run", "no-such-scenario"], "unknown scenario"),
+        # /proc takes no new file, whoever asks (os.access says yes to root)
+        (["run", "spot-2d-a", "--plot", "/proc/x.png"], "cannot write in"),
+        (["study", "montecarlo", "spot-2d-a", "--runs", "10", "--out", "/proc/x"], "cannot write"),
+        (["study", "montecarlo", "spot-2d-a", "--out", "o", "--plots", "/proc/p"], "cannot write"),
+        (["tune", "poseidyn-lqmpc", "--out", "/proc/y"], "cannot write in"),
         (["bench", "--closed-loop", "--scenarios", "nope"], "unknown scenario"),
     ],
 )
