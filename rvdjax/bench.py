@@ -407,7 +407,8 @@ def closed_loop_batch_benchmark(
     ``thrusters``: fly every scenario twice in the same run, with ideal forces and with its
     thruster set (allocation, modulation, the truth under valve pulses); the rows say which
     (``plant``) and the thruster rows give their slowdown against the ideal-force row of the
-    same scenario, method and batch (``slowdown``).
+    same scenario, method and batch (``slowdown``), also per MPC step (``slowdown_per_step``:
+    a thruster maneuver may take more steps to dock).
 
     For each scenario, ``runs`` distinct initial states (:func:`perturbed_states`; with
     ``disturbed`` also distinct PRNG keys) are flown by the engine with B slots for every B in
@@ -443,6 +444,7 @@ def closed_loop_batch_benchmark(
         single_rate = n1 / sec
         docked = np.mean([bool(m.docked) for m in singles])
         its = np.mean([float(m.mean_iterations) for m in singles])
+        steps = np.mean([int(m.steps) for m in singles])
         rows.append(
             dict(
                 scenario=name,
@@ -460,6 +462,7 @@ def closed_loop_batch_benchmark(
                 compile_s=compile_s,
                 docked_fraction=float(docked),
                 mean_iterations=float(its),
+                mean_steps=float(steps),
             )
         )
         progress(f"{name} ({plant}): one at a time {single_rate:.2f} maneuvers/s ({n1} runs)")
@@ -489,6 +492,7 @@ def closed_loop_batch_benchmark(
                     peak_memory_mb=mem_mb,
                     compile_s=compile_s,
                     docked_fraction=float(np.mean(m.docked)),
+                    mean_steps=float(np.mean(m.steps)),
                     mean_iterations=float(np.sum(hist * np.arange(len(hist))) / max(hist.sum(), 1)),
                     iterations_p50=_hist_quantile(hist, 0.5),
                     iterations_p90=_hist_quantile(hist, 0.9),
@@ -500,14 +504,13 @@ def closed_loop_batch_benchmark(
                 f"{name} ({plant}): B={B} {rate:.2f} maneuvers/s ({rate / single_rate:.1f}x), "
                 f"{mem_mb:.0f} MB, docked {np.mean(m.docked):.2f}"
             )
-    ideal = {
-        (r["scenario"], r["method"], r["batch"]): r["maneuvers_per_s"]
-        for r in rows
-        if r["plant"] == "ideal"
-    }
+    ideal = {(r["scenario"], r["method"], r["batch"]): r for r in rows if r["plant"] == "ideal"}
     for r in rows:
         ref = ideal.get((r["scenario"], r["method"], r["batch"]))
-        r["slowdown"] = ref / r["maneuvers_per_s"] if ref else float("nan")
+        r["slowdown"] = ref["maneuvers_per_s"] / r["maneuvers_per_s"] if ref else float("nan")
+        r["slowdown_per_step"] = (
+            r["slowdown"] * ref["mean_steps"] / r["mean_steps"] if ref else float("nan")
+        )
     return rows
 
 
@@ -519,7 +522,7 @@ def _hist_quantile(hist, q: float) -> int:
 def format_closed_loop(rows: list[dict]) -> str:
     head = (
         f"{'scenario':<20}{'plant':<10}{'method':<40}{'B':>5}{'runs':>6}{'man/s':>9}"
-        f"{'x single':>9}{'slower':>8}{'mem MB':>8}{'docked':>8}{'its/step':>9}"
+        f"{'x single':>9}{'slower':>8}{'/step':>7}{'mem MB':>8}{'docked':>8}{'its/step':>9}"
         f"{'p50/p90/max':>13}"
     )
     out = [head]
@@ -531,10 +534,15 @@ def format_closed_loop(rows: list[dict]) -> str:
         )
         mem = "-" if np.isnan(r["peak_memory_mb"]) else f"{r['peak_memory_mb']:.0f}"
         slower = r.get("slowdown", float("nan"))
-        slower = "-" if r.get("plant", "ideal") == "ideal" or np.isnan(slower) else f"{slower:.2f}"
+        per_step = r.get("slowdown_per_step", float("nan"))
+        if r.get("plant", "ideal") == "ideal" or np.isnan(slower):
+            slower = per_step = "-"
+        else:
+            slower, per_step = f"{slower:.2f}", f"{per_step:.2f}"
         out.append(
             f"{r['scenario']:<20}{r.get('plant', 'ideal'):<10}{r['method']:<40}{r['batch']:>5}"
-            f"{r['runs']:>6}{r['maneuvers_per_s']:>9.2f}{r['speedup']:>9.1f}{slower:>8}{mem:>8}"
+            f"{r['runs']:>6}{r['maneuvers_per_s']:>9.2f}{r['speedup']:>9.1f}{slower:>8}"
+            f"{per_step:>7}{mem:>8}"
             f"{r['docked_fraction']:>8.2f}{r['mean_iterations']:>9.2f}{dist:>13}"
         )
     return "\n".join(out)
