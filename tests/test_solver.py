@@ -348,6 +348,25 @@ def test_solve_batch_equals_vmap(class_runs):
         )
 
 
+_FLOAT32_CHILD = """
+import sys
+import jax, jax.numpy as jnp, numpy as np
+import rvdjax
+sys.path.insert(0, {tests!r})
+from ocp_factory import SHAPE_CLASSES, random_ocp
+from rvdjax.problems import stack_ocps
+from rvdjax.solver import SolverSettings, solve
+ocps = [random_ocp(seed, SHAPE_CLASSES["small"]) for seed in range({n})]
+b32 = jax.tree.map(lambda a: a.astype(jnp.float32), stack_ocps(ocps))
+s = jax.jit(jax.vmap(lambda o: solve(o, SolverSettings(mode="accurate"))))(b32)
+dtypes = {{str(s.u.dtype), str(s.x.dtype), str(s.objective.dtype)}}
+finite = all(bool(np.all(np.isfinite(np.asarray(a)))) for a in (s.u, s.x, s.nu, s.objective))
+print(",".join(sorted(dtypes)), finite)
+print(" ".join(str(int(v)) for v in np.asarray(s.status)))
+print(" ".join(repr(float(v)) for v in np.asarray(s.objective)))
+"""
+
+
 def test_float32_inputs(class_runs):
     """float32 OCPs are solved in float32: the outputs stay float32 (no silent upcast).
 
@@ -355,19 +374,32 @@ def test_float32_inputs(class_runs):
     rarely converge: they end as max_iter or nonfinite with the last finite iterate, which can
     be far from the optimum. Required: finite outputs, honest status codes, and a converged
     float32 solve is as good as float32 allows (objective within 1e-4 of float64).
+
+    The float32 solve runs in a fresh interpreter at XLA's default optimisation level, the
+    level a user's program compiles at: float32 rounding depends on the generated code (the
+    suite compiles at level 0, tests/conftest.py, where the same solves land at 1.0e-4 instead
+    of 5e-5).
     """
+    import os
+    import subprocess
+    import sys
+
+    assert ACCURATE == SolverSettings(mode="accurate")
     small, ref = class_runs("small")
     n = 40
-    b32 = jax.tree.map(lambda a: a.astype(jnp.float32), stack_ocps(small[:n]))
-    s = jax.jit(jax.vmap(lambda o: solve(o, ACCURATE)))(b32)
-    assert s.u.dtype == jnp.float32 and s.x.dtype == jnp.float32
-    assert s.objective.dtype == jnp.float32
-    for a in (s.u, s.x, s.nu, s.objective):
-        assert np.all(np.isfinite(np.asarray(a)))
-    status = np.asarray(s.status)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    code = _FLOAT32_CHILD.format(tests=os.path.dirname(os.path.abspath(__file__)), n=n)
+    child = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert child.returncode == 0, child.stderr[-2000:]
+    head, statuses, objectives = child.stdout.strip().split("\n")[-3:]
+    assert head == "float32 True"  # every output float32 and finite
+    status = np.array([int(v) for v in statuses.split()])
     assert set(status.tolist()) <= {0, 1, 2, 3}
     J64 = np.asarray(ref.objective)[:n]
-    rel = np.abs(np.asarray(s.objective, float) - J64) / (1 + np.abs(J64))
+    J32 = np.array([float(v) for v in objectives.split()])
+    rel = np.abs(J32 - J64) / (1 + np.abs(J64))
     print(
         f"\n[float32] statuses {np.bincount(status, minlength=4).tolist()} "
         f"(converged, max_iter, infeasible, nonfinite); max rel objective error "

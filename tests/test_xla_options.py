@@ -110,3 +110,35 @@ def test_warns_when_jax_started_first():
         **{xla_options.OPT_OUT: "0"},
     )
     assert "not in effect" not in quiet.stderr
+
+
+FLY = textwrap.dedent(
+    """
+    import jax
+    import rvdjax
+    from rvdjax.loop import fly
+    from rvdjax.scenarios import get_scenario
+    sc = get_scenario("fastmpc-3d")
+    params, x0 = sc.build()
+    loop = sc.loop()
+    _, m = jax.jit(lambda p, x: fly(loop, p, x))(params, x0)
+    print(repr(float(m.effort_l1_N_s)), repr(float(m.time_to_dock_s)), int(m.steps))
+    """
+)
+
+
+def test_the_suites_optimisation_level_flies_what_users_fly():
+    """The suite compiles at XLA's backend optimisation level 0 (tests/conftest.py); a user's
+    program compiles at the default level. The default scenario flown at the default level in
+    a fresh interpreter equals the same flight in this process."""
+    child = _run(FLY)  # XLA_FLAGS cleared: rvdjax's options at XLA's default optimisation
+    assert child.returncode == 0, child.stderr[-2000:]
+    effort, time_s, steps = child.stdout.split()
+    here = {}
+    exec(FLY.replace("print(", "here['out'] = ("), {"here": here})
+    mine_effort, mine_time, mine_steps = (float(v) for v in here["out"])
+    assert "--xla_backend_optimization_level=0" in os.environ.get("XLA_FLAGS", "") or (
+        os.environ.get("RVDJAX_TEST_XLA_OPT") == "default"
+    )
+    assert int(steps) == mine_steps and float(time_s) == mine_time
+    assert abs(float(effort) - mine_effort) <= 1e-9 * mine_effort
