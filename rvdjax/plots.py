@@ -7,6 +7,15 @@ from __future__ import annotations
 import numpy as np
 
 
+def save_figure(fig, path, dpi: int = 120) -> None:
+    """Lay out, write and close a figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def plot_plan(path, ocp, solutions: dict, obstacles: dict | None = None, clarabel_x=None):
     """Draw one MPC plan: radial/along-track path with keep-out zones, and the thrust.
 
@@ -78,9 +87,7 @@ def plot_plan(path, ocp, solutions: dict, obstacles: dict | None = None, clarabe
     ax_u.grid(alpha=0.3)
     ax_u.legend(fontsize=7, ncol=2)
     ax_u.set_title("planned thrust")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def finish_lvlh_axes(ax, title):

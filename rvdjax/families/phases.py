@@ -597,7 +597,7 @@ def plot(path, scenario, params, infos, title: str | None = None):
     target); distance to the port (log) and delta-v per step."""
     import matplotlib
 
-    from rvdjax.plots import cone_edges, finish_lvlh_axes
+    from rvdjax.plots import cone_edges, finish_lvlh_axes, save_figure
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -668,9 +668,7 @@ def plot(path, scenario, params, infos, title: str | None = None):
     ax_u.set_xlabel("time [s]")
     ax_u.set_ylabel("|delta-v| per step [m/s]")
     ax_u.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):

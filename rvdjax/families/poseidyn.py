@@ -343,6 +343,8 @@ def plot(path, scenario, params, infos, title: str | None = None):
     snapshots, entry cone, thrust and distance to the docking point."""
     import matplotlib
 
+    from rvdjax.plots import save_figure
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -388,9 +390,7 @@ def plot(path, scenario, params, infos, title: str | None = None):
     ax_r.set_xlabel("time [s]")
     ax_r.grid(alpha=0.3)
     ax_r.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):

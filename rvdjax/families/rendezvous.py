@@ -253,7 +253,7 @@ def plot(path, scenario, params, infos, title: str | None = None):
     """
     import matplotlib
 
-    from rvdjax.plots import finish_lvlh_axes
+    from rvdjax.plots import finish_lvlh_axes, save_figure
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -312,9 +312,7 @@ def plot(path, scenario, params, infos, title: str | None = None):
     ax_r.set_ylabel("[m]")
     ax_r.grid(alpha=0.3, which="both")
     ax_r.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def dock_error(p: Params, fc, g, x, t):
