@@ -1,4 +1,4 @@
-"""The smooth closed-loop surrogate the tuner minimises (DESIGN §7; issue 9 "discrete events").
+"""The smooth closed-loop surrogate the tuner minimises (DESIGN §7: discrete events).
 
 Docking time, the docked flag, phase switches and holding-radius shrinks are piecewise
 constant in the parameters: their derivative is zero almost everywhere. The tuner therefore
