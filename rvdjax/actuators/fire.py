@@ -94,15 +94,17 @@ def _generalised(layout, R, force_body, torque_body):
 
 def _pairs_exact(act: Actuation, layout) -> bool:
     """The pair-group closed form is the least-thrust allocation (static): groups of one
-    thruster through the centre of mass, or alike groups, no torque input and no faults."""
-    if not act.pair_groups:
+    thruster through the centre of mass, or alike groups, no torque input and no faults. The
+    allocated rows must start with the force rows of the groups' axes."""
+    n_axes = len(act.pair_groups) // 2
+    if not act.pair_groups or act.rows[:n_axes] != tuple(range(n_axes)):
         return False
     if all(len(g) == 1 for g in act.pair_groups):
         return True
     return not layout.torque and not act.faults
 
 
-def _full_on(act: Actuation, ts, like):
+def _full_on(ts, like):
     """The pulses of a valve stuck open for the whole period."""
     P = like.shape[-1]
     start = jnp.broadcast_to(jnp.arange(P, dtype=like.dtype) * ts / P, like.shape)
@@ -158,16 +160,13 @@ def fire(
     M = effectiveness(thr.position, thr.direction)[rows]  # (k, T) nominal
     d = wrench[rows]
     F_alloc = thr.thrust
-    if act.fdir and act.faults:
+    if act.fdir and act.faults:  # allocate around the failed, net of the stuck-on thrust
         F_alloc = jnp.where(stuck_off | stuck_on, 0.0, F_alloc)
         d = d - M @ jnp.where(stuck_on, thr.thrust, 0.0)
     if _pairs_exact(act, layout):
         groups = act.pair_groups
         F_group = jnp.stack([sum(F_alloc[i] for i in g) for g in groups])
-        force = wrench[: len(groups) // 2]
-        if act.fdir and act.faults:
-            force = force - (M @ jnp.where(stuck_on, thr.thrust, 0.0))[: len(groups) // 2]
-        pair = allocate_pairs(force, F_group[0::2], F_group[1::2])
+        pair = allocate_pairs(d[: len(groups) // 2], F_group[0::2], F_group[1::2])
         share = jnp.zeros(T, dtype)
         for j, g in enumerate(groups):  # equal shares of alike thrusters: no torque
             for i in g:
@@ -189,7 +188,7 @@ def fire(
 
     pulses = cmd
     if act.faults:
-        full = _full_on(act, ts, cmd.width)
+        full = _full_on(ts, cmd.width)
         on = stuck_on[:, None]
         off = stuck_off[:, None]
         pulses = Pulses(

@@ -558,13 +558,7 @@ def advance(
         if fired is None
         else jax.tree.map(lambda a: jnp.where(active, a, 0.0), fired.pulses),
     )
-    acc = _accumulate(loop, params, state.acc, info)
-    if fired is not None:
-        acc = acc._replace(
-            thrust_impulse=acc.thrust_impulse + jnp.where(active, fired.thrust_impulse, 0.0),
-            openings=acc.openings + jnp.where(active, fired.openings, 0).astype(jnp.int32),
-            dropped=acc.dropped + jnp.where(active, fired.dropped, 0).astype(jnp.int32),
-        )
+    acc = _accumulate(loop, params, state.acc, info, fired)
     k_next = state.k + 1
     ended = docked | ~finite | (k_next >= cfg.n_steps)
     if cfg.time_limit_s is not None:
@@ -592,7 +586,7 @@ def advance(
     return nxt, info
 
 
-def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo) -> Accumulator:
+def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo, fired=None) -> Accumulator:
     lay = loop.family.layout
     act = info.active
     idx = jnp.asarray(lay.force, int)
@@ -621,9 +615,12 @@ def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo) -> Accumul
         status_counts=acc.status_counts + Status.counts(info.status, act).astype(jnp.int32),
         iterations=acc.iterations + jnp.where(act, info.iterations, 0).astype(jnp.int32),
         histogram=acc.histogram.at[hist_bin].add(act.astype(jnp.int32)),
-        thrust_impulse=acc.thrust_impulse,
-        openings=acc.openings,
-        dropped=acc.dropped,
+        thrust_impulse=acc.thrust_impulse
+        + (0.0 if fired is None else jnp.where(act, fired.thrust_impulse, 0.0)),
+        openings=acc.openings
+        + (0 if fired is None else jnp.where(act, fired.openings, 0).astype(jnp.int32)),
+        dropped=acc.dropped
+        + (0 if fired is None else jnp.where(act, fired.dropped, 0).astype(jnp.int32)),
     )
 
 

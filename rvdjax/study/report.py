@@ -137,7 +137,7 @@ def study_notes(spec: StudySpec) -> list[str]:
         )
     if spec.time_limit_s is not None:
         notes.append(f"a run not docked within {spec.time_limit_s:g} s fails (TIMEOUT)")
-    if getattr(spec, "thrusters", False):
+    if spec.thrusters:
         from rvdjax.scenarios import get_scenario
 
         sc = get_scenario(spec.scenario)
