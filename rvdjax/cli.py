@@ -9,6 +9,7 @@ import os
 import sys
 
 PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+SCENARIO_HELP = "scenario name (rvdjax list) or scenario file (.toml, rvdjax scenario show)"
 
 
 def _one_thread():
@@ -142,6 +143,40 @@ def cmd_list(args) -> int:
     return 0
 
 
+def cmd_scenario(args) -> int:
+    """``rvdjax scenario show NAME``: a scenario's summary, or its scenario file (``--toml``
+    prints it, ``--out FILE`` writes it)."""
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios.files import scenario_summary, scenario_to_toml
+
+    check_output(args.out, "--out", (".toml",))
+    sc = get_scenario(args.name)
+    text = scenario_to_toml(sc)
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as f:
+            f.write(text)
+        note = f"{sc.name} written to {args.out}: edit it, then rvdjax run {args.out}"
+        print(note, file=sys.stderr if args.toml else sys.stdout)
+    if args.toml:
+        print(text, end="")
+    elif not args.out:
+        print(scenario_summary(sc))
+    return 0
+
+
+def _same_file_scenario(a: str, b: str) -> bool:
+    """Two scenario files hold the same scenario (their names and comments aside)."""
+    if not (a.endswith(".toml") and b.endswith(".toml")):
+        return False
+    import dataclasses
+
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios.files import scenario_to_toml
+
+    texts = {scenario_to_toml(dataclasses.replace(get_scenario(n), name="")) for n in (a, b)}
+    return len(texts) == 1
+
+
 def run_scenario(
     name: str,
     mode: str = "accurate",
@@ -174,7 +209,7 @@ def run_scenario(
         from rvdjax.study import replay_inputs
 
         spec, sc, loop, params, x0, key, sp = replay_inputs(study, run)
-        if spec.scenario != name:
+        if spec.scenario != name and not _same_file_scenario(name, spec.scenario):
             raise ValueError(f"run {run} of {study} flies {spec.scenario!r}, not {name!r}")
     else:
         sc = get_scenario(name)
@@ -604,6 +639,18 @@ def _fault(text: str) -> tuple:
     return index, parts[1], when
 
 
+STUDY_SCENARIO_FILE = "scenario.toml"
+
+
+def _study_scenario(args) -> str:
+    """The scenario a study records: a built-in's name, or for a scenario file the absolute
+    path of the copy the study keeps in its directory (DIR/scenario.toml). The study flies,
+    resumes, summarises and replays that copy, whatever happens later to the original file."""
+    if not args.scenario.endswith(".toml"):
+        return args.scenario
+    return os.path.join(os.path.abspath(args.out), STUDY_SCENARIO_FILE)
+
+
 def _study_spec(args):
     from rvdjax.scenarios import get_scenario
     from rvdjax.study import StudySpec
@@ -625,7 +672,7 @@ def _study_spec(args):
             raise ValueError(f"{name} must be >= 1, got {value}")
     return StudySpec(
         kind=kind,
-        scenario=args.scenario,
+        scenario=_study_scenario(args),
         n_initial=n_initial,
         replicates=replicates,
         seed=args.seed,
@@ -680,19 +727,36 @@ def cmd_study(args) -> int:
         print(json.dumps(s, indent=2) if args.json else format_summary(s))
         return 0
     spec = _study_spec(args)
+    import dataclasses
+
     from rvdjax.scenarios import get_scenario
 
-    spec.validate(get_scenario(spec.scenario))
+    sc = get_scenario(args.scenario)
+    copy = spec.scenario if args.scenario.endswith(".toml") else None  # its copy in --out
+    if copy is not None:
+        sc = dataclasses.replace(sc, name=copy)
+        if args.resume and os.path.exists(copy) and not _same_file_scenario(args.scenario, copy):
+            raise ValueError(
+                f"{args.scenario} is not the scenario the study in {args.out} flies ({copy}); "
+                f"resume it with {copy} as the scenario"
+            )
+    spec.validate(sc)
     from rvdjax.outputs import check_dir
 
     check_dir(args.out, "--out")  # proven writable before flying; created after
     check_dir(args.plots, "--plots")
     index, count = _distributed(args)
-    if count > 1:  # process 0 checks --out and writes the configuration before anyone flies
-        from rvdjax.study.runner import prepare_out
+    if count > 1 or copy is not None:  # process 0 checks --out, writes the configuration
+        from rvdjax.study.runner import prepare_out  # (and the scenario file's copy) first
 
         if index == 0:
             prepare_out(spec, args.out, args.resume)
+            if copy is not None and not os.path.exists(copy):
+                with open(args.scenario, encoding="utf-8") as f:
+                    text = f.read()
+                with open(copy + ".tmp", "w", encoding="utf-8") as f:
+                    f.write(text)
+                os.replace(copy + ".tmp", copy)
         _barrier("rvdjax-study-out", count)
     timing = run_study(
         spec,
@@ -703,7 +767,7 @@ def cmd_study(args) -> int:
         process_count=count,
         devices=args.devices,
         flush_rows=args.flush_rows,
-        prepare=count == 1,
+        prepare=count == 1 and copy is None,
     )
     _barrier("rvdjax-study-done", count)
     if count > 1:
@@ -748,8 +812,17 @@ def main(argv=None) -> int:
     p = sub.add_parser("list", help="list the named scenarios")
     p.set_defaults(func=cmd_list)
 
+    p = sub.add_parser("scenario", help="show a scenario; write it as a file to edit and fly")
+    q = p.add_subparsers(dest="scenario_command", required=True).add_parser(
+        "show", help="a scenario's values, or its scenario file (--toml, --out)"
+    )
+    q.add_argument("name", help=SCENARIO_HELP)
+    q.add_argument("--toml", action="store_true", help="print the scenario file (TOML)")
+    q.add_argument("--out", metavar="FILE", help="write the scenario file to FILE (.toml)")
+    q.set_defaults(func=cmd_scenario)
+
     p = sub.add_parser("run", help="fly a named scenario in closed loop (default fastmpc-3d)")
-    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
+    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help=SCENARIO_HELP)
     p.add_argument(
         "--mode",
         choices=("accurate", "paper", "barrier"),
@@ -798,7 +871,7 @@ def main(argv=None) -> int:
         "tune",
         help="tune weights by gradient through the closed loop (optax), judged on held-out runs",
     )
-    p.add_argument("scenario", help="scenario name (rvdjax list)")
+    p.add_argument("scenario", help=SCENARIO_HELP)
     p.add_argument(
         "--params",
         default="Q,R",
@@ -855,7 +928,7 @@ def main(argv=None) -> int:
     p.set_defaults(func=cmd_tune)
 
     p = sub.add_parser("compare", help="fly a scenario with every solver (paper 000 Sec. IV)")
-    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help="scenario name (rvdjax list)")
+    p.add_argument("scenario", nargs="?", default="fastmpc-3d", help=SCENARIO_HELP)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--no-nmpc", action="store_true", help="skip the CasADi/IPOPT baselines")
     p.add_argument(
@@ -940,7 +1013,7 @@ def main(argv=None) -> int:
         ("robustness", "initial conditions x noise realisations (paper 003 Ch. 5)"),
     ):
         q = ssub.add_parser(kind, help=text)
-        q.add_argument("scenario", help="scenario name (rvdjax list)")
+        q.add_argument("scenario", help=SCENARIO_HELP)
         if kind == "montecarlo":
             q.add_argument("--runs", type=int, default=100, help="number of runs (default 100)")
         if kind == "sweep":

@@ -90,6 +90,7 @@ FILE_COST_S = {
     "test_phases.py": 60,
     "test_idvd.py": 45,
     "test_disturbances.py": 35,
+    "test_scenario_files.py": 30,
     "test_scenarios.py": 30,
     "test_gradients.py": 30,
     "test_allocation.py": 20,

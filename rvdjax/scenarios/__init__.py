@@ -1,14 +1,19 @@
 """Named closed-loop scenarios: plain records (family, physical values, initial state,
 configuration, published figures, assumptions), one module per paper.
 
-Adding a scenario is one :class:`Scenario` record in a module listed in ``_MODULES``; its family
-(:data:`rvdjax.families.FAMILIES`) turns the physical values into checked traced parameters
-(:meth:`Scenario.build`) and supplies the closed loop (:meth:`Scenario.loop`).
+A record in the package is for the papers' cases only (and ``examples.py``'s one showcase).
+Users fly their own mission from a scenario file: ``rvdjax scenario show thesis-vbar --toml
+--out my.toml``, edit it, ``rvdjax run my.toml`` (:mod:`rvdjax.scenarios.files`,
+docs/scenario-files.md); every command that takes a scenario name takes a ``.toml`` path
+(:func:`get_scenario`). The family (:data:`rvdjax.families.FAMILIES`) turns the physical values
+into checked traced parameters (:meth:`Scenario.build`) and supplies the closed loop
+(:meth:`Scenario.loop`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -250,7 +255,15 @@ DEFAULT_SCENARIO = "fastmpc-3d"
 
 
 def get_scenario(name: str) -> Scenario:
-    """Look a scenario up by name; ValueError listing the known names otherwise."""
+    """Look a scenario up by name; ValueError listing the known names otherwise. A name ending
+    in ``.toml`` is a scenario file (:func:`rvdjax.scenarios.files.load_scenario_file`, checked
+    before anything is compiled); the scenario is then named by its normalised path, so that
+    whatever records the name (a study, a tuned-parameters file) resolves it again."""
+    if str(name).endswith(".toml"):
+        from rvdjax.scenarios.files import load_scenario_file
+
+        path = os.path.normpath(os.fspath(name))
+        return dataclasses.replace(load_scenario_file(path), name=path)
     try:
         return SCENARIOS[name]
     except KeyError:
