@@ -207,8 +207,11 @@ def run_scenario(
 
     if study is not None:  # one run of a study, with exactly the study's inputs
         from rvdjax.study import replay_inputs
+        from rvdjax.verify.cli import is_verification
+        from rvdjax.verify.cli import replay_inputs as verify_replay
 
-        spec, sc, loop, params, x0, key, sp = replay_inputs(study, run)
+        replay = verify_replay if is_verification(study) else replay_inputs
+        spec, sc, loop, params, x0, key, sp = replay(study, run)
         if spec.scenario != name and not _same_file_scenario(name, spec.scenario):
             raise ValueError(f"run {run} of {study} flies {spec.scenario!r}, not {name!r}")
     else:
@@ -1105,6 +1108,10 @@ def main(argv=None) -> int:
     q.add_argument("out", metavar="DIR")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_study)
+
+    from rvdjax.verify.cli import add_parser as add_verify_parser
+
+    add_verify_parser(sub, SCENARIO_HELP)
 
     args = parser.parse_args(argv)
     if getattr(args, "threads", 1) == 1:

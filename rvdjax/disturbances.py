@@ -9,8 +9,8 @@ DESIGN §4 and paper 003 Ch. 5 (the robustness study of the thesis):
   between the measurement and the guidance).
 * **Thrust-amplitude error** (paper 003 Eqs. 5.2-5.3, Table 5.1, after Carpenter and Lee): the
   applied thrust is (1 + w(t)) times the commanded one, with w from the second-order
-  Gauss-Markov model d[w, v]/dt = [[-1/tau, 1], [-omega_n^2, -2 xi omega_n]] [w, v] + [eta_w,
-  eta_v]. One independent process per input axis. Discretised exactly: transition
+  Gauss-Markov model ``d[w, v]/dt = [[-1/tau, 1], [-omega_n^2, -2 xi omega_n]] [w, v] +
+  [eta_w, eta_v]``. One independent process per input axis. Discretised exactly: transition
   Phi = expm(F dt) and process covariance Q_d = int_0^dt expm(F s) G G^T expm(F s)^T ds by Van
   Loan's matrix exponential — not by Euler.
 * **Minimum impulse bit** (paper 003 Eqs. 2.4-2.6): a thruster cannot fire shorter than t_MIB;
@@ -41,6 +41,7 @@ import numpy as np
 
 __all__ = [
     "Disturbances",
+    "Draws",
     "disturbances",
     "THESIS_DISTURBANCES",
     "LAB_DISTURBANCES",
@@ -53,6 +54,25 @@ __all__ = [
     "minimum_impulse_bit",
     "DISTURBANCE_NOTES",
 ]
+
+
+class Draws(NamedTuple):
+    """Given standard-normal draws that replace the PRNG's in a run (a verification's
+    dispersion vector: a gradient can then shape a noise realisation). Each field is
+    optional; ``None`` keeps the PRNG draw.
+
+    Attributes:
+        nav: (S, nx) navigation noise of MPC step k in row k (scaled by the sigmas).
+        gm0: (n_axes,) w(0) of the Gauss-Markov thrust error (scaled by ``w0_sigma``).
+        gm: (S, n_axes, 2) the Gauss-Markov driving noise of step k in row k.
+        input_scale: (nu,) the truth's applied input is the command times this (a truth-only
+            mass or inertia error: the guidance keeps its nominal model). Ideal forces only.
+    """
+
+    nav: jnp.ndarray | None = None
+    gm0: jnp.ndarray | None = None
+    gm: jnp.ndarray | None = None
+    input_scale: jnp.ndarray | None = None
 
 
 class Disturbances(NamedTuple):
@@ -83,6 +103,7 @@ class Disturbances(NamedTuple):
     w0_sigma: jnp.ndarray
     thrust_max: jnp.ndarray
     mib_s: jnp.ndarray
+    draws: Draws | None = None
 
 
 def disturbances(
@@ -165,18 +186,28 @@ def gm_discretize(d: Disturbances, dt):
     return Phi, 0.5 * (Qd + Qd.T)
 
 
+def _given(d: Disturbances, name: str):
+    return None if d.draws is None else getattr(d.draws, name)
+
+
 def gm_init(key, d: Disturbances, n_axes: int):
-    """(n_axes, 2) initial Gauss-Markov states: w(0) ~ N(0, w0_sigma^2) %, v(0) = 0."""
-    w = d.w0_sigma * jax.random.normal(key, (n_axes,))
+    """(n_axes, 2) initial Gauss-Markov states: w(0) ~ N(0, w0_sigma^2) %, v(0) = 0 (the
+    standard-normal draw from ``key``, or ``d.draws.gm0`` when given)."""
+    z = _given(d, "gm0")
+    z = jax.random.normal(key, (n_axes,)) if z is None else z
+    w = d.w0_sigma * z
     return jnp.stack([w, jnp.zeros_like(w)], axis=-1)
 
 
-def gm_step(key, state, d: Disturbances, dt):
-    """Advance (n_axes, 2) Gauss-Markov states by ``dt`` with the exact discretisation."""
+def gm_step(key, state, d: Disturbances, dt, k=None):
+    """Advance (n_axes, 2) Gauss-Markov states by ``dt`` with the exact discretisation (the
+    driving noise from ``key``, or row ``k`` of ``d.draws.gm`` when given)."""
     Phi, Qd = gm_discretize(d, dt)
     # Q_d can be numerically semidefinite (eta_v is tiny): a jittered Cholesky is exact enough
     L = jnp.linalg.cholesky(Qd + 1e-30 * jnp.eye(2))
-    e = jax.random.normal(key, state.shape) @ L.T
+    z = _given(d, "gm")
+    z = jax.random.normal(key, state.shape) if z is None else z[k]
+    e = z @ L.T
     return state @ Phi.T + e
 
 
@@ -201,15 +232,18 @@ def thrust_factor(state):
     return 1.0 + state[..., 0] / 100.0
 
 
-def measure(key, x, d: Disturbances, pos, vel, att=()):
+def measure(key, x, d: Disturbances, pos, vel, att=(), k=None):
     """The state the guidance sees: x plus Gaussian noise on the position, velocity and
-    attitude components (index tuples ``pos``, ``vel``, ``att``; other entries exact)."""
+    attitude components (index tuples ``pos``, ``vel``, ``att``; other entries exact); the
+    standard-normal draw from ``key``, or row ``k`` of ``d.draws.nav`` when given."""
     sigma = jnp.zeros(x.shape[-1], x.dtype)
     sigma = sigma.at[jnp.asarray(pos, int)].set(d.sigma_pos)
     sigma = sigma.at[jnp.asarray(vel, int)].set(d.sigma_vel)
     if len(att):
         sigma = sigma.at[jnp.asarray(att, int)].set(d.sigma_att)
-    return x + sigma * jax.random.normal(key, x.shape, x.dtype)
+    z = _given(d, "nav")
+    z = jax.random.normal(key, x.shape, x.dtype) if z is None else z[k]
+    return x + sigma * z
 
 
 def minimum_impulse_bit(impulse, d: Disturbances):

@@ -136,5 +136,6 @@ def run_nmpc_loop(p: Params, x0, loop: Loop, ipopt_tol=1e-8):
         propellant_kg=np.float64(0.0),
         valve_openings=np.int32(0),
         pulses_dropped=np.int32(0),
+        contact_speed_m_s=np.float64(np.linalg.norm(x[nx // 2 :]) if docked else np.inf),
     )
     return infos, metrics, solve_s

@@ -86,6 +86,7 @@ FILE_COST_S = {
     "test_engine.py": 100,
     "test_docking.py": 85,
     "test_solver.py": 80,
+    "test_verify.py": 95,
     "test_navigation.py": 60,
     "test_phases.py": 60,
     "test_idvd.py": 45,

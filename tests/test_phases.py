@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from flights import flight
 
+from rvdjax.constraints import margins
 from rvdjax.families import phases as ph
 from rvdjax.scenarios import SCENARIOS
 from rvdjax.scenarios import paper003 as thesis
@@ -65,16 +66,29 @@ def test_every_case_docks_at_the_port(any_run):
 
 def test_constraints_of_the_truth(any_run):
     params, infos, m = any_run
-    # keep-out sphere (rendezvous) and overshoot plane (approach): never entered
-    assert np.all(m.max_violation_m == 0.0)
+    # keep-out sphere (rendezvous) and overshoot plane (approach), judged at the samples and
+    # between them: never entered by the three QP cases; the V-bar runs without set point
+    # and with the LP rendezvous graze the 100 m sphere between two samples (2.8 and 8.5 cm)
+    n = len(m.docked)
+    grazing = np.full(n, True) if n == 1 else np.arange(n) >= len(CASES)
+    assert np.all(m.max_violation_m[~grazing] == 0.0), m.max_violation_m
+    assert np.all(m.max_violation_m[grazing] < 0.1)
     for i in range(len(m.docked)):
         act = infos.active[i]
         dock_steps = np.flatnonzero(act & (infos.phase[i] == 2))
         settled = dock_steps[ENTRY_STEPS:]
         assert len(settled) > 10
-        # after the entry transient: inside the 8 deg docking cone, below v_max
-        assert np.min(infos.margins["docking_cone"][i, settled]) >= -1e-6
-        assert np.min(infos.margins["speed"][i, settled]) >= -1e-6
+        # after the entry transient: inside the 8 deg docking cone, below v_max at the samples
+        # (the margins also hold the states between samples: the cone is checked on the
+        # sampled states themselves, and between them within 2 mm)
+        p_i = jax.tree.map(lambda a, i=i: a[i], params)
+        g2 = ph.Guidance(phase=jnp.asarray(2))
+        for k in settled:
+            blocks = ph.truth_blocks(p_i, ph.Config(), g2, infos.x[i, k], infos.t[i, k])
+            assert np.min(margins(blocks, infos.x[i, k])["docking_cone"]) >= -1e-6
+        assert np.min(infos.margins["docking_cone"][i, settled]) >= -2e-3
+        speed = np.max(np.abs(infos.x[i, settled, 3:]), axis=-1)  # Eq. 3.13: inf-norm
+        assert np.all(speed <= params.v_max[i] + 1e-6)
         # every hard-row violation of a plan is either a planned (not flown) keep-out plane
         # violation far from the sphere, or the docking entry transient. Without set point
         # the chaser is pulled at the sphere and its plans cannot brake in time against the
@@ -83,7 +97,7 @@ def test_constraints_of_the_truth(any_run):
         bad = np.flatnonzero(act & (infos.hard_violation[i] > 1e-6))
         far = bad[infos.phase[i, bad] == 0]
         setpoint = float(params.setpoint[i]) == 1.0
-        keep_out = infos.margins["keep_out"][i, far, 0]
+        keep_out = np.linalg.norm(infos.x[i, far, :3], axis=-1) - params.r1[i]  # at the samples
         assert np.all(keep_out > (100.0 if setpoint else 30.0))
         assert np.all(infos.hard_violation[i, far] < 0.1 * keep_out)
         assert set(bad[infos.phase[i, bad] == 2]) <= set(dock_steps[:ENTRY_STEPS])

@@ -564,7 +564,27 @@ def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
     to2 = (g.phase == 1) & (dist <= p.r2 * (1 + p.switch_tol))
     docked = (g.phase == 2) & (jnp.linalg.norm(r - port_n) <= p.r3)
     phase = g.phase + to1.astype(g.phase.dtype) + to2.astype(g.phase.dtype)
-    return Guidance(phase=phase), docked, ts, jnp.zeros(samples[0].shape, bool)
+    # the sub-samples are judged, except on a step that changes phase: its end lies inside
+    # the keep-out sphere (through the cone) or past r2 by design
+    judged = jnp.broadcast_to(phase == g.phase, samples[0].shape)
+    return Guidance(phase=phase), docked, ts, judged
+
+
+SUBSAMPLES = 8  # intervals a step is cut into for the truth between samples
+
+
+def subsamples(p: Params, fc: Config, x, u, dt):
+    """The truth between samples: the states at dt j / SUBSAMPLES, j = 1 .. SUBSAMPLES - 1,
+    coasting on the CW model after the step's impulsive delta-v ``u`` [m/s]
+    (:func:`rvdjax.dynamics.zoh_states`; exact for the linear truth; with thrusters or a
+    nonlinear truth an approximation of the path between samples). taus (M,) [s], states
+    (M, 6)."""
+    from rvdjax.dynamics import zoh_states
+
+    taus = dt * jnp.arange(1, SUBSAMPLES, dtype=x.dtype) / SUBSAMPLES
+    x = jnp.asarray(x)
+    x_plus = x.at[3:].add(u[:3])
+    return taus, zoh_states(p.Ac, p.Bc, x_plus, jnp.zeros(p.Bc.shape[1], x.dtype), taus)
 
 
 def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
@@ -711,6 +731,7 @@ TUNING = Tuning(
 
 FAMILY = Family(
     name="three-phase",
+    subsamples=subsamples,
     description="three-phase CW rendezvous, approach and docking with impulsive delta-v "
     "(paper 003)",
     layout=LAYOUT,

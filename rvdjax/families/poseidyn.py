@@ -300,9 +300,9 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     return problem, blocks
 
 
-def subsamples(p: Params, fc: Config, x, u):
-    """The truth at ``fc.substeps`` instants inside the step (double integrator, constant
-    force): taus (M,) [s] and states (M, 4)."""
+def subsamples(p: Params, fc: Config, x, u, dt=None):
+    """The truth at ``fc.substeps`` instants inside the step of ``p.ts`` seconds (double
+    integrator, constant force): taus (M,) [s] and states (M, 4). ``dt`` is ``p.ts`` here."""
     M = fc.substeps
     tau = p.ts * jnp.arange(1, M + 1, dtype=x.dtype) / M
     a = u / p.mass

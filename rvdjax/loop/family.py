@@ -125,8 +125,9 @@ class Family:
         horizon: fconfig -> N of the OCP (padded to the largest phase horizon).
         truths: the truth propagations the family supports ("linear" first).
         check: (params, x0, loop config) -> None: configuration-dependent checks (ValueError).
-        subsamples: optional (params, fconfig, x, u) -> (taus (M,), states (M, nx)): the truth
-            inside a step at M instants, for docking detection and margins between samples.
+        subsamples: optional (params, fconfig, x, u, dt) -> (taus (M,), states (M, nx)): the
+            truth inside a step of ``dt`` seconds at M instants, for docking detection and
+            margins between samples.
         model: optional (params, fconfig) -> (A, B, c, Q, R) of the OCP (module docstring).
         plot: (path, scenario, params, infos) -> None, the run's figure.
         dock_error: optional (params, fconfig, G, x, t) -> distance to docking [m].

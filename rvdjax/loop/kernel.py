@@ -294,6 +294,7 @@ class Metrics(NamedTuple):
     propellant_kg: jnp.ndarray  # thruster impulse / (Isp g0)
     valve_openings: jnp.ndarray  # number of pulses fired
     pulses_dropped: jnp.ndarray  # pulses under the minimum on-time not fired
+    contact_speed_m_s: jnp.ndarray  # translational speed of the truth at docking (inf if not)
 
 
 # --------------------------------------------------------------------------------------------
@@ -401,7 +402,7 @@ def prepare(loop: Loop, params, state: LoopState) -> Prepared:
     nav = None
     if loop.config.disturbed:
         k_nav, _ = _keys(state)
-        x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att)
+        x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att, k=state.k)
         if loop.config.nav_filter:
             R = measurement_covariance(lay, params.disturbances, x_meas.dtype)
             first = state.k == 0
@@ -459,7 +460,7 @@ def advance(
         if cfg.disturbed:
             _, k_act = _keys(state)
             factor = thrust_factor(gm)
-            gm = gm_step(k_act, gm, params.disturbances, dt)
+            gm = gm_step(k_act, gm, params.disturbances, dt, k=state.k)
         fired = fire(
             cfg.actuation,
             params.thrusters,
@@ -485,7 +486,10 @@ def advance(
         # (1 + w / 100) is not: the filter predicts with the command after the former only
         u_believed = u
         u = u * thrust_factor(gm)
-        gm = gm_step(k_act, gm, d, dt)
+        gm = gm_step(k_act, gm, d, dt, k=state.k)
+    scale = _input_scale(params)
+    if scale is not None and cfg.actuation is None:  # a truth-only mass / inertia error
+        u = u * scale
 
     # INFEASIBLE from the solver means "a soft row is violated at the optimum"; penalty rows
     # (external costs of the paper) are not constraints, so only hard rows count.
@@ -522,7 +526,7 @@ def advance(
             grid=cfg.actuation.modulator == "delta-sigma",
         )
     if fam.subsamples is not None:
-        taus, subs = fam.subsamples(params, fc, state.x, u)
+        taus, subs = fam.subsamples(params, fc, state.x, u, dt)
     else:
         taus, subs = jnp.zeros((0,), dtype), jnp.zeros((0, lay.nx), dtype)
     t_next = state.t + dt
@@ -665,8 +669,23 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
         propellant_kg=acc.thrust_impulse / (_isp(params) * G0),
         valve_openings=acc.openings,
         pulses_dropped=acc.dropped,
+        contact_speed_m_s=jnp.where(docked & ~failed, _speed(loop, state.x), jnp.inf),
     )
     return jax.tree.map(lambda a: clean(a) if jnp.issubdtype(a.dtype, jnp.floating) else a, out)
+
+
+def _input_scale(params):
+    """The truth's input multiplier of a verification's dispersion (Draws.input_scale)."""
+    d = getattr(params, "disturbances", None)
+    draws = None if d is None else d.draws
+    return None if draws is None else draws.input_scale
+
+
+def _speed(loop: Loop, x):
+    """Translational speed of state ``x`` [m/s] (the velocities of the position axes)."""
+    lay = loop.family.layout
+    v = x[jnp.asarray(lay.vel[: len(lay.pos)], int)]
+    return jnp.sqrt(jnp.sum(v * v))
 
 
 def _isp(params):

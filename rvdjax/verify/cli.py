@@ -1,0 +1,311 @@
+"""``rvdjax verify worst|probability``: the command line of the verification."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_parser", "cmd_verify", "replay_inputs"]
+
+KIND = "verify"
+
+
+def add_parser(sub, scenario_help: str) -> None:
+    p = sub.add_parser(
+        "verify",
+        help="verify a guidance law: worst-case search and failure probabilities",
+    )
+    vsub = p.add_subparsers(dest="verify_command", required=True)
+
+    def common(q):
+        q.add_argument("scenario", help=scenario_help)
+        q.add_argument(
+            "--requirement",
+            required=True,
+            help="keep-out[>=X], entry-cone[>=X], overshoot[>=X], contact-speed<=V, "
+            "time-to-dock<=T, effort<=B, docks; comma: min of several of one unit",
+        )
+        q.add_argument(
+            "--dispersion",
+            required=True,
+            help="'+'-separated: paper003, x0:SP,SV[,SA], mass:S, inertia:S, thrust:S, "
+            "misalignment:DEG, nav, thrust-error",
+        )
+        q.add_argument("--out", required=True, metavar="DIR", help="verification directory")
+        q.add_argument("--resume", action="store_true", help="continue the verification in DIR")
+        q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
+        q.add_argument("--disturbed", action="store_true", help="noisy loop (paper 003 Ch. 5)")
+        q.add_argument("--nav-filter", action="store_true", help="with --disturbed: a filter")
+        q.add_argument("--thrusters", action="store_true", help="fly the thruster set")
+        q.add_argument("--n-steps", type=int, help="MPC steps at most (default the scenario's)")
+        q.add_argument("--time-limit-s", type=float, help="a run not docked by then ends")
+        q.add_argument(
+            "--temperature",
+            type=float,
+            help="tau of the smooth margin (default 10 %% of the initial distance) [m]",
+        )
+        q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--plots", action="store_true", help="write the figures to DIR")
+        q.add_argument("--json", action="store_true", help="print the summary as JSON")
+        q.add_argument("--quiet", action="store_true", help="no progress bar")
+        q.set_defaults(func=cmd_verify)
+
+    q = vsub.add_parser("worst", help="search the dispersions for the worst case")
+    common(q)
+    q.add_argument("--budget", type=int, required=True, help="forward evaluations per repeat")
+    q.add_argument("--repeats", type=int, default=20, help="seeded repeats per method")
+    q.add_argument(
+        "--methods",
+        default="gradient,random,lhs,cma-es",
+        help="comma list of gradient, design-point, random, lhs, cma-es",
+    )
+    q.add_argument("--region", choices=("ball", "box"), default="ball")
+    q.add_argument("--radius", type=float, default=5.0, help="k of the region [sigma]")
+    q.add_argument("--starts", type=int, default=1, help="gradient starts per repeat")
+    q.add_argument("--lr", type=float, default=2.0, help="Adam's step on xi [sigma]")
+    q.add_argument("--popsize", type=int, default=8, help="CMA-ES population")
+
+    q = vsub.add_parser("probability", help="estimate the failure probability")
+    common(q)
+    q.add_argument("--method", required=True, help="subset, is or mc")
+    q.add_argument("--budget", type=int, required=True, help="closed-loop runs at most")
+    q.add_argument("--level-size", type=int, help="subset simulation: runs per level")
+
+
+def _problem_spec(args):
+    from rvdjax.verify.evaluate import ProblemSpec
+
+    return ProblemSpec(
+        scenario=args.scenario,
+        requirement=args.requirement,
+        dispersion=args.dispersion,
+        mode=args.mode,
+        disturbed=args.disturbed,
+        nav_filter=args.nav_filter,
+        thrusters=args.thrusters,
+        n_steps=args.n_steps,
+        time_limit_s=args.time_limit_s,
+        temperature=args.temperature,
+        seed=args.seed,
+    )
+
+
+def _prepare(out: Path, config: dict, resume: bool) -> None:
+    from rvdjax.outputs import check_dir
+    from rvdjax.verify.store import CONFIG, write_json
+
+    check_dir(str(out), "--out")
+    config = json.loads(json.dumps(config))  # as read back (tuples become lists)
+    path = out / CONFIG
+    if path.exists():
+        if not resume:
+            raise ValueError(
+                f"--out {out} already holds a verification; pass --resume to continue it or "
+                "choose another directory"
+            )
+        if json.loads(path.read_text()) != config:
+            raise ValueError(f"--out {out} holds a different verification (config.json differs)")
+    elif out.exists() and any(out.iterdir()):
+        raise ValueError(f"--out {out} exists and is not a verification directory")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(path, config)
+
+
+def cmd_verify(args) -> int:
+    from rvdjax.outputs import check_dir
+    from rvdjax.verify.evaluate import problem_for
+
+    check_dir(args.out, "--out")
+    out = Path(args.out)
+    pspec = _problem_spec(args)
+    if args.verify_command == "worst":
+        from rvdjax.verify.worst import SearchSpec
+
+        if not (isinstance(args.budget, int) and args.budget >= 1):
+            raise ValueError(f"--budget must be an integer >= 1, got {args.budget}")
+        kspec = SearchSpec(
+            methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+            budget=args.budget,
+            repeats=args.repeats,
+            region=args.region,
+            radius=args.radius,
+            starts=args.starts,
+            lr=args.lr,
+            popsize=args.popsize,
+            seed=args.seed,
+        )
+        kspec.check_budget()
+    else:
+        from rvdjax.verify.probability import ProbabilitySpec
+
+        kspec = ProbabilitySpec(
+            method=args.method, budget=args.budget, level_size=args.level_size, seed=args.seed
+        )
+    # everything above and the problem's set-up are host-side checks: nothing compiled yet
+    pb = problem_for(pspec)
+    config = {
+        KIND: args.verify_command,
+        "spec": {**dataclasses.asdict(pspec), "truth": "linear"},
+        "method": dataclasses.asdict(kspec),
+    }
+    _prepare(out, config, args.resume)
+    if args.verify_command == "worst":
+        summary = _worst(pb, kspec, out, args)
+    else:
+        summary = _probability(pb, kspec, out, args)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _replay(out: Path, scenario: str, run) -> str:
+    return f"rvdjax run {scenario} --study {out} --run {int(run)}"
+
+
+def _worst(pb, kspec, out: Path, args) -> dict:
+    from rvdjax.verify.store import EvalStore, read_evals, write_json
+    from rvdjax.verify.worst import search
+
+    store = EvalStore(out, pb.effort_key)
+    traces = search(pb, kspec, store, progress=not args.quiet)
+    methods = {m: tr.summary() for m, tr in traces.items()}
+    worst_m = min(traces, key=lambda m: float(np.min(traces[m].worst_margin)))
+    tr = traces[worst_m]
+    r = int(np.argmin(tr.worst_margin))
+    summary = {
+        "scenario": pb.scenario.name,
+        "requirement": pb.requirement.label(),
+        "unit": pb.requirement.unit,
+        "dispersion": pb.dispersion.label(),
+        "dim": pb.dim,
+        "budget": kspec.budget,
+        "repeats": kspec.repeats,
+        "methods": methods,
+        "worst": {
+            "margin": float(tr.worst_margin[r]),
+            "method": worst_m,
+            "xi": [float(v) for v in tr.worst_xi[r]],
+            "run": int(tr.worst_run[r]),
+            "replay": _replay(out, args.scenario, tr.worst_run[r]),
+        },
+        "assumptions": pb.notes()
+        + [
+            "falsification rate: the fraction of repeats that found an exact margin < 0; "
+            "evaluations: forward evaluations up to the first such point (a batch counts whole)",
+            f"search region: {kspec.region} of radius {kspec.radius:g} in xi; random draws xi "
+            "from the dispersion itself (N(0, I) in the region)",
+        ],
+    }
+    write_json(out / "summary.json", summary)
+    if args.plots:
+        from rvdjax.verify import figures
+
+        title = f"{pb.scenario.name}: {pb.requirement.label()} under {pb.dispersion.label()}"
+        curves, region = out / "margin-vs-evaluations.png", out / "failure-region.png"
+        figures.margin_curves(curves, traces, pb.requirement.unit, title)
+        figures.failure_region(region, read_evals(out), pb.dispersion.names(), title)
+        order = np.argsort([float(np.min(t.worst_margin)) for t in traces.values()])
+        picks = [list(traces.values())[i] for i in order[:2]]
+        xis = [t.worst_xi[int(np.argmin(t.worst_margin))] for t in picks]
+        runs = [t.worst_run[int(np.argmin(t.worst_margin))] for t in picks]
+        summary["figures"] = [str(curves), str(region)]
+        summary["figures"] += figures.worst_runs(out, pb, xis, runs)
+        write_json(out / "summary.json", summary)
+    if not args.json:
+        _print_worst(summary)
+    return summary
+
+
+def _print_worst(s: dict) -> None:
+    print(
+        f"verify worst {s['scenario']}: {s['requirement']} [{s['unit']}] under "
+        f"{s['dispersion']} ({s['dim']} coordinates); budget {s['budget']} forward evaluations "
+        f"x {s['repeats']} repeats"
+    )
+    print(
+        f"  {'method':<14}{'falsified':>10}{'median evals':>14}{'mean evals':>12}"
+        f"{'worst margin':>14}{'wall [s]':>10}"
+    )
+    for m, v in s["methods"].items():
+        med = "-" if v["median_evaluations"] is None else f"{v['median_evaluations']:.3g}"
+        mean = "-" if v["mean_evaluations"] is None else f"{v['mean_evaluations']:.3g}"
+        print(
+            f"  {m:<14}{v['falsification_rate']:>10.0%}{med:>14}{mean:>12}"
+            f"{v['worst_margin']:>14.4g}{v['wall_s']:>10.1f}"
+        )
+        if "gradient_cost" in v:
+            print(f"  {'':<14}a gradient evaluation costs {v['gradient_cost']:.2f} forward ones")
+    w = s["worst"]
+    print(f"  worst: margin {w['margin']:.4g} {s['unit']} ({w['method']}) -> {w['replay']}")
+    print("  assumptions:")
+    for a in s["assumptions"]:
+        print(f"    - {a}")
+
+
+def _probability(pb, kspec, out: Path, args) -> dict:
+    from rvdjax.verify.probability import estimate
+    from rvdjax.verify.store import EvalStore, read_evals, write_json
+
+    store = EvalStore(out, pb.effort_key)
+    res = estimate(pb, kspec, store, progress=not args.quiet)
+    summary = {
+        "scenario": pb.scenario.name,
+        "requirement": pb.requirement.label(),
+        "dispersion": pb.dispersion.label(),
+        "dim": pb.dim,
+        **{k: v for k, v in res.items() if k not in ("history",)},
+        "assumptions": pb.notes(),
+    }
+    write_json(out / "summary.json", {**summary, "history": res.get("history")})
+    if args.plots:
+        from rvdjax.verify import figures
+
+        req, disp = pb.requirement.label(), pb.dispersion.label()
+        title = f"{pb.scenario.name}: P({req} fails) under {disp}"
+        figures.probability_curves(out / "estimate-vs-runs.png", [res], title)
+        names = pb.dispersion.names()
+        figures.failure_region(out / "failure-region.png", read_evals(out), names, title)
+    if not args.json:
+        ci = summary["ci95"]
+        cov = "-" if summary["cov"] is None else f"{summary['cov']:.3g}"
+        print(
+            f"verify probability {summary['scenario']}: P({summary['requirement']} fails) under "
+            f"{summary['dispersion']} by {summary['method']}: p = {summary['p']:.4g}, CoV {cov}, "
+            f"95 % interval [{ci[0]:.3g}, {ci[1]:.3g}], {summary['runs']} runs in "
+            f"{summary['wall_s']:.1f} s"
+        )
+        if "runs_for_cov_0.3" in summary:
+            print(f"  runs for a CoV of 0.3: {summary['runs_for_cov_0.3']}")
+        print("  assumptions:")
+        for a in summary["assumptions"]:
+            print(f"    - {a}")
+    return summary
+
+
+def replay_inputs(out, run: int):
+    """(spec, scenario, loop, params, x0, key, solver params) of run ``run`` of the
+    verification in ``out`` (``rvdjax run SCENARIO --study DIR --run R``)."""
+    from rvdjax.verify.evaluate import Problem, ProblemSpec
+    from rvdjax.verify.store import CONFIG, read_evals
+
+    config = json.loads((Path(out) / CONFIG).read_text())
+    spec = {k: v for k, v in config["spec"].items() if k != "truth"}
+    pspec = ProblemSpec(**spec)
+    df = read_evals(out)
+    row = df[df["run"] == run]
+    if row.empty:
+        raise ValueError(f"--run must be one of the runs in {out} (0 .. {int(df['run'].max())})")
+    xi = np.asarray(row["xi"].iloc[0], float)
+    pb = Problem(pspec)
+    x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
+    return pspec, pb.scenario, pb.loop, params, x0, pb.key, pb.sp
+
+
+def is_verification(out) -> bool:
+    from rvdjax.verify.store import CONFIG
+
+    p = Path(out) / CONFIG
+    return p.exists() and KIND in json.loads(p.read_text())

@@ -1,0 +1,275 @@
+"""Closed-loop evaluations of a requirement at dispersion vectors xi, in batches.
+
+Two evaluators share one set-up (:class:`Problem`):
+
+* :meth:`Problem.forward`: exact margins of a batch of xi through the batch engine
+  (:func:`rvdjax.loop.engine.run_batch`: slots refilled as runs finish), with the runs'
+  Metrics. This is one *forward evaluation* per xi, the unit every method's budget counts.
+* :meth:`Problem.gradient`: the smooth margin and its gradient with respect to xi of a batch
+  (``vmap`` of :func:`rvdjax.loop.fly` under ``jax.value_and_grad``, the step under
+  ``jax.checkpoint``), plus the exact margins of the same runs. Its cost in forward
+  evaluations is measured (:meth:`Problem.gradient_cost`), not assumed.
+
+Every evaluation also goes through an :class:`~rvdjax.verify.store.EvalStore` when one is given,
+so a killed search or estimate resumes where it stopped: a method is deterministic given its
+seed, and a batch already on disk is read back instead of flown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rvdjax.loop import fly
+from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
+from rvdjax.verify.dispersions import Dispersion, parse_dispersion
+from rvdjax.verify.requirements import TEMPERATURE_FRACTION, Composite, parse_requirement
+
+__all__ = ["ProblemSpec", "Problem", "problem_for"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ProblemSpec:
+    """What is verified (plain data, written to the output directory's config.json).
+
+    Attributes:
+        scenario: scenario name (or scenario file).
+        requirement: ``--requirement`` text (:mod:`rvdjax.verify.requirements`).
+        dispersion: ``--dispersion`` text (:mod:`rvdjax.verify.dispersions`).
+        mode, disturbed, nav_filter, thrusters: the closed loop.
+        n_steps, time_limit_s: the run's length (None: the scenario's).
+        temperature: the smooth margin's tau (None: 10 % of the initial distance) [m].
+        seed: seed of the PRNG noise not given by xi (disturbed loops).
+        slots, chunk: the batch engine.
+        remat: ``jax.checkpoint`` the step in the gradient's forward pass (memory bounded by
+            the loop state, about one more forward pass of compute).
+    """
+
+    scenario: str
+    requirement: str
+    dispersion: str
+    mode: str = "accurate"
+    disturbed: bool = False
+    nav_filter: bool = False
+    thrusters: bool = False
+    n_steps: int | None = None
+    time_limit_s: float | None = None
+    temperature: float | None = None
+    seed: int = 0
+    slots: int = 64
+    chunk: int = 32
+    remat: bool = False
+
+    def __post_init__(self):
+        if self.mode not in ("accurate", "paper", "barrier"):
+            raise ValueError(f"--mode must be accurate, paper or barrier, got {self.mode!r}")
+        if self.nav_filter and not self.disturbed:
+            raise ValueError("--nav-filter needs --disturbed")
+        if self.n_steps is not None and not self.n_steps >= 1:
+            raise ValueError(f"--n-steps must be >= 1, got {self.n_steps}")
+        if self.time_limit_s is not None and not self.time_limit_s > 0:
+            raise ValueError(f"--time-limit-s must be > 0 s, got {self.time_limit_s}")
+        if self.temperature is not None and not (0 < self.temperature < float("inf")):
+            raise ValueError(f"--temperature must be > 0, got {self.temperature}")
+
+
+class Problem:
+    """The set-up of one verification: loop, nominal parameters, requirement, dispersion and
+    the compiled evaluators. Everything here is checked on the host before anything is
+    compiled (the constructor compiles nothing)."""
+
+    def __init__(self, spec: ProblemSpec):
+        from rvdjax.scenarios import get_scenario
+        from rvdjax.study.runner import effort_metric
+
+        self.spec = spec
+        sc = get_scenario(spec.scenario)
+        self.scenario = sc
+        if spec.thrusters and sc.thrusters is None:
+            raise ValueError(f"--thrusters: scenario {sc.name!r} has no thruster set")
+        params, x0 = sc.build(thrusters=spec.thrusters)
+        loop = sc.loop(
+            spec.mode,
+            disturbed=spec.disturbed,
+            nav_filter=spec.nav_filter,
+            n_steps=spec.n_steps,
+            time_limit_s=spec.time_limit_s,
+            thrusters=spec.thrusters,
+        )
+        sc.check(params, x0, loop)
+        self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
+        fam = sc.family_
+        fc = loop.config.family
+        g0 = fam.init(params, fc, jnp.asarray(self.x0))
+        blocks = fam.truth_blocks(params, fc, g0, jnp.asarray(self.x0), jnp.asarray(0.0))
+        self.requirement: Composite = parse_requirement(
+            spec.requirement, {b.name for b in blocks}, fam.dock_error is not None
+        )
+        self.dispersion: Dispersion = parse_dispersion(spec.dispersion, sc, loop, spec.thrusters)
+        self.effort_key = effort_metric(sc)
+        pos = np.asarray(self.x0)[list(fam.layout.pos)]
+        self.tau = (
+            float(spec.temperature)
+            if spec.temperature is not None
+            else float(TEMPERATURE_FRACTION * max(np.linalg.norm(pos), 1e-3))
+        )
+        self.sp = sc.solver_params(spec.mode)
+        self.key = jax.random.key(spec.seed)
+        self._costs: dict = {}
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def dim(self) -> int:
+        return self.dispersion.dim
+
+    def notes(self) -> list[str]:
+        """What the output states next to the figures (assumptions and settings)."""
+        req = self.requirement
+        between = (
+            "at the samples and between them"
+            if self.scenario.family_.subsamples is not None
+            else f"at the samples (family {self.scenario.family!r} has no sub-samples)"
+        )
+        out = [
+            f"requirement {req.label()} [{req.unit}], satisfied when the margin >= 0; exact "
+            f"margins judged on the truth (zones: {between})",
+            f"dispersion {self.dispersion.label()}: xi ~ N(0, I) of dimension {self.dim}",
+        ]
+        if req.is_zone:
+            out.append(
+                f"smooth margin: soft-min over the run with temperature tau = {self.tau:.4g} m"
+            )
+        return out
+
+    # ------------------------------------------------------------------ inputs
+
+    @functools.cached_property
+    def _inputs(self):
+        disp, lay = self.dispersion, self.scenario.family_.layout
+        x0, params = jnp.asarray(self.x0), self.params
+
+        def f(xis):
+            return disp.batch_apply(xis, x0, params, lay)
+
+        return jax.jit(f)
+
+    def inputs(self, xis):
+        """(x0s, per-run params) of a batch of xi."""
+        return self._inputs(jnp.asarray(xis, float))
+
+    def keys(self, n: int):
+        """The runs' PRNG keys: one key for all (the noise xi does not give is the same
+        realisation in every run, so a run is a function of xi alone)."""
+        return jax.vmap(lambda i: self.key)(jnp.arange(n))
+
+    # ------------------------------------------------------------------ forward (engine)
+
+    def forward(self, xis, progress=None) -> dict:
+        """Exact margins of a batch of xi (B, dim) through the batch engine.
+
+        Returns {"margin": (B,), "metrics": Metrics of NumPy arrays}."""
+        xis = np.asarray(xis, float).reshape(-1, self.dim)
+        n = xis.shape[0]
+        # input arrays of 256, 512, ... runs (the padding is never flown): few compiles
+        bucket = max(256, 1 << max(0, int(n - 1).bit_length()))
+        pad = np.concatenate([xis, np.repeat(xis[:1], bucket - n, axis=0)])
+        x0s, per_run = self.inputs(pad)
+        per_run = per_run if self.dispersion.touches_params() else None
+        source = arrays_source(x0s, self.keys(bucket), per_run)
+        unit = self.spec.chunk
+        slots = max(unit, min(self.spec.slots, int(np.ceil(n / unit)) * unit))
+        cfg = EngineConfig(slots=slots, chunk=self.spec.chunk, iterations=3)
+        res = run_batch(
+            self.loop,
+            source,
+            n,
+            params=None if per_run is not None else self.params,
+            solver_params=self.sp,
+            config=cfg,
+            progress=progress,
+        )
+        m = res["metrics"]
+        margin = np.asarray(self.requirement.exact(m, self.effort_key), float)
+        return {"margin": margin, "metrics": m}
+
+    # ------------------------------------------------------------------ gradient (fly)
+
+    @functools.cached_property
+    def _vg(self):
+        loop, sp, req, ek, tau = self.loop, self.sp, self.requirement, self.effort_key, self.tau
+        remat = self.spec.remat
+        disp, lay = self.dispersion, self.scenario.family_.layout
+        x0n, params = jnp.asarray(self.x0), self.params
+
+        def one(xi, key):
+            x0, p = disp.apply(xi, x0n, params, lay)
+            infos, m = fly(loop, p, x0, key, sp, remat=remat)
+            smooth = req.smooth(loop, p, infos, m, ek, tau)
+            return smooth, (req.exact(m, ek), m)
+
+        vg = jax.value_and_grad(one, has_aux=True)
+
+        def batch(xis, keys):
+            (s, (e, m)), g = jax.vmap(vg)(xis, keys)
+            ok = jnp.isfinite(s) & jnp.all(jnp.isfinite(g), axis=-1)
+            # no NaN leaves a batch: a non-finite run keeps its exact margin, zero gradient
+            return jnp.where(ok, s, e), jnp.where(ok[:, None], g, 0.0), e, m
+
+        return jax.jit(batch)
+
+    def gradient(self, xis) -> dict:
+        """Smooth margins, their gradients and the exact margins of a batch of xi.
+
+        Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics}."""
+        xis = np.asarray(xis, float).reshape(-1, self.dim)
+        n = xis.shape[0]
+        # batch shapes of 8, 16, 32, ...: each compiles once
+        bucket = max(8, 1 << max(0, int(n - 1).bit_length()))
+        pad = np.concatenate([xis, np.repeat(xis[:1], bucket - n, axis=0)])
+        s, g, e, m = self._vg(jnp.asarray(pad), self.keys(bucket))
+        m = jax.tree.map(lambda a: np.asarray(a)[:n], m)
+        return {
+            "smooth": np.asarray(s)[:n],
+            "grad": np.asarray(g)[:n],
+            "margin": np.asarray(e)[:n],
+            "metrics": m,
+        }
+
+    def gradient_cost(self, n_grad: int = 8, n_fwd: int = 64, seed: int = 12345) -> float:
+        """The measured cost of one gradient evaluation in forward evaluations: the wall time
+        per run of :meth:`gradient` at ``n_grad`` runs a batch (what the gradient search
+        flies) over that of :meth:`forward` at ``n_fwd`` runs a batch (what the sampling
+        baselines fly), each timed after it is compiled. At least 1. Cached per sizes."""
+        key = (int(n_grad), int(n_fwd))
+        if key not in self._costs:
+            rng = np.random.default_rng(seed)
+            xf = rng.standard_normal((n_fwd, self.dim))
+            xg = rng.standard_normal((n_grad, self.dim))
+            self.forward(xf)
+            self.gradient(xg)
+            t0 = time.perf_counter()
+            self.forward(xf)
+            t_f = (time.perf_counter() - t0) / n_fwd
+            t0 = time.perf_counter()
+            self.gradient(xg)
+            t_g = (time.perf_counter() - t0) / n_grad
+            self._costs[key] = max(1.0, t_g / max(t_f, 1e-12))
+        return self._costs[key]
+
+
+_PROBLEMS: dict = {}
+
+
+def problem_for(spec: ProblemSpec) -> Problem:
+    """The :class:`Problem` of ``spec``, shared by later calls with the same spec (its
+    compiled evaluators are reused)."""
+    if spec not in _PROBLEMS:
+        _PROBLEMS.clear()
+        _PROBLEMS[spec] = Problem(spec)
+    return _PROBLEMS[spec]

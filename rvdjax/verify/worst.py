@@ -1,0 +1,324 @@
+"""Worst-case search over the dispersions: gradient descent on the smooth margin against
+derivative-free baselines, at the same budget of closed-loop evaluations.
+
+Methods (every repeat is seeded; the repeats of a method fly as one batch):
+
+* ``gradient``: multi-start Adam (optax) on the smooth margin over xi, projected onto the
+  search region (a ball of radius k or the box [-k, k]^d in xi). Every iterate is judged by
+  its exact margin. A gradient evaluation costs :meth:`Problem.gradient_cost` forward
+  evaluations (measured in the same run), and is counted so.
+* ``design-point``: the most probable failure point, FORM's design point: the smallest ||xi||
+  with an exact margin <= 0. Adam descends the smooth margin until a start fails, then
+  minimises ||xi||^2 / 2 + w max(0, smooth + delta) from there (w and delta stated).
+* ``random``: xi drawn from the dispersion (N(0, I), kept in the region): crude Monte Carlo.
+* ``lhs``: a Latin hypercube of the budget's size per repeat (scipy.stats.qmc), mapped
+  through the normal quantile.
+* ``cma-es``: CMA-ES (the ``cma`` package) on the exact margin, population lambda.
+
+ARCH-COMP's figures: the *falsification rate* is the fraction of repeats that found a
+violation (exact margin < 0); *evaluations* are the forward evaluations spent up to and
+including the one that found it (a batch counts whole: a CMA-ES generation, a gradient
+iteration of every start of a repeat).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from rvdjax.verify.evaluate import Problem
+from rvdjax.verify.store import EvalStore
+
+__all__ = ["SearchSpec", "search", "METHODS", "project"]
+
+METHODS = ("gradient", "random", "lhs", "cma-es", "design-point")
+DESIGN_WEIGHT = 10.0  # w of the design-point objective (per unit of the smooth margin)
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchSpec:
+    """A worst-case search (plain data).
+
+    Attributes:
+        methods: the methods flown (:data:`METHODS`).
+        budget: forward evaluations per repeat and method.
+        repeats: seeded repeats of every method.
+        region: "ball" or "box"; radius: its k (in standard deviations).
+        starts: gradient starts per repeat.
+        lr: Adam's step size on xi (standard deviations).
+        popsize: CMA-ES population.
+        seed: the first repeat's seed (repeat r uses seed + r).
+        gradient_cost: forward evaluations a gradient evaluation counts for (None: measured
+            in the run, :meth:`Problem.gradient_cost`).
+    """
+
+    methods: tuple = ("gradient", "random", "lhs", "cma-es")
+    budget: int = 100
+    repeats: int = 20
+    region: str = "ball"
+    radius: float = 5.0
+    starts: int = 1
+    lr: float = 2.0
+    popsize: int = 8
+    seed: int = 0
+    gradient_cost: float | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "methods", tuple(self.methods))
+        for m in self.methods:
+            if m not in METHODS:
+                raise ValueError(f"--methods: unknown method {m!r}; allowed: {', '.join(METHODS)}")
+        if self.region not in ("ball", "box"):
+            raise ValueError(f"--region must be ball or box, got {self.region!r}")
+        if not (0 < self.radius < float("inf")):
+            raise ValueError(f"--radius must be > 0 (standard deviations), got {self.radius}")
+        for name in ("repeats", "starts", "popsize"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v >= 1):
+                raise ValueError(f"--{name} must be an integer >= 1, got {v!r}")
+        if not (0 < self.lr < float("inf")):
+            raise ValueError(f"--lr must be > 0, got {self.lr}")
+
+    def check_budget(self, gradient_cost: float = 1.0) -> None:
+        """ValueError when the budget cannot hold one round of every method."""
+        need = {
+            "random": 1,
+            "lhs": 2,
+            "cma-es": self.popsize,
+            "gradient": int(np.ceil(self.starts * gradient_cost)),
+            "design-point": int(np.ceil(self.starts * gradient_cost)),
+        }
+        for m in self.methods:
+            if self.budget < need[m]:
+                raise ValueError(
+                    f"--budget {self.budget}: {m} needs at least {need[m]} forward evaluations "
+                    "per repeat"
+                )
+
+
+def project(xi, region: str, radius: float):
+    """xi (..., d) moved into the search region."""
+    xi = np.asarray(xi, float)
+    if region == "box":
+        return np.clip(xi, -radius, radius)
+    n = np.linalg.norm(xi, axis=-1, keepdims=True)
+    return xi * np.minimum(1.0, radius / np.maximum(n, 1e-300))
+
+
+@dataclasses.dataclass
+class Trace:
+    """One method's record per repeat: evaluations spent and best margin after each batch,
+    the evaluations to the first violation (None: none found), the worst point."""
+
+    evals: list  # per repeat: (n,) cumulative evaluations after each batch
+    best: list  # per repeat: (n,) best exact margin so far
+    first: list  # per repeat: evaluations to the first violation or None
+    worst_margin: np.ndarray  # (R,)
+    worst_xi: np.ndarray  # (R, d)
+    worst_run: np.ndarray  # (R,) run number of the worst point
+    wall_s: float
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    def summary(self) -> dict:
+        found = [f for f in self.first if f is not None]
+        return {
+            "falsification_rate": len(found) / len(self.first),
+            "median_evaluations": float(np.median(found)) if found else None,
+            "mean_evaluations": float(np.mean(found)) if found else None,
+            "worst_margin": float(np.min(self.worst_margin)),
+            "wall_s": self.wall_s,
+            **self.extra,
+        }
+
+
+class _Tracker:
+    def __init__(self, R: int, d: int):
+        self.evals = [[] for _ in range(R)]
+        self.best = [[] for _ in range(R)]
+        self.first = [None] * R
+        self.spent = np.zeros(R)
+        self.worst = np.full(R, np.inf)
+        self.worst_xi = np.zeros((R, d))
+        self.worst_run = np.full(R, -1)
+
+    def add(self, r: int, cost: float, margins, xis, runs, sequential: bool = False):
+        """A batch of repeat r: ``cost`` evaluations; ``sequential``: its points count one
+        by one (independent draws), else the batch counts whole."""
+        margins = np.asarray(margins, float)
+        if self.first[r] is None and np.any(margins < 0):
+            k = int(np.argmax(margins < 0))
+            self.first[r] = self.spent[r] + (k + 1 if sequential else cost)
+        self.spent[r] += cost
+        i = int(np.argmin(margins))
+        if margins[i] < self.worst[r]:
+            self.worst[r], self.worst_xi[r], self.worst_run[r] = margins[i], xis[i], runs[i]
+        self.evals[r].append(self.spent[r])
+        self.best[r].append(self.worst[r])
+
+    def trace(self, wall: float, **extra) -> Trace:
+        return Trace(
+            [np.asarray(e) for e in self.evals],
+            [np.asarray(b) for b in self.best],
+            self.first,
+            self.worst,
+            self.worst_xi,
+            self.worst_run,
+            wall,
+            extra,
+        )
+
+
+def _split(res: dict, sizes) -> list[dict]:
+    out, lo = [], 0
+    for n in sizes:
+        out.append({k: v[lo : lo + n] for k, v in res.items() if isinstance(v, np.ndarray)})
+        lo += n
+    return out
+
+
+def _sampling(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar) -> Trace:
+    """random / lhs: per repeat ``budget`` points, flown in blocks across the repeats."""
+    from scipy.stats import norm, qmc
+
+    R, d, B = spec.repeats, pb.dim, spec.budget
+    pts = []
+    for r in range(R):
+        rng = np.random.default_rng([spec.seed + r, 1 if method == "random" else 2])
+        if method == "random":
+            x = rng.standard_normal((B, d))
+            if spec.region == "ball":  # keep the draws inside (rejection)
+                bad = np.linalg.norm(x, axis=1) > spec.radius
+                while bad.any():
+                    x[bad] = rng.standard_normal((int(bad.sum()), d))
+                    bad = np.linalg.norm(x, axis=1) > spec.radius
+            else:
+                x = np.clip(x, -spec.radius, spec.radius)
+        else:
+            u = qmc.LatinHypercube(d=d, seed=rng).random(B)
+            x = project(norm.ppf(np.clip(u, 1e-12, 1 - 1e-12)), spec.region, spec.radius)
+        pts.append(x)
+    tr = _Tracker(R, d)
+    t0 = time.perf_counter()
+    block = max(1, 256 // R)
+    for lo in range(0, B, block):
+        xs = np.concatenate([p[lo : lo + block] for p in pts])
+        res = store.evaluate(f"{method}-{lo}", method, xs, pb.forward)
+        n = min(block, B - lo)
+        for r, part in enumerate(_split(res, [n] * R)):
+            tr.add(r, n, part["margin"], part["xi"], part["run"], sequential=True)
+        if bar is not None:
+            bar.update(len(xs))
+    return tr.trace(time.perf_counter() - t0)
+
+
+def _cma(pb: Problem, spec: SearchSpec, store: EvalStore, bar) -> Trace:
+    import cma
+
+    R, d, lam = spec.repeats, pb.dim, spec.popsize
+    opts = {"popsize": lam, "verbose": -9, "tolfun": 0, "tolx": 0, "tolstagnation": 10**9}
+    if spec.region == "box":
+        opts["bounds"] = [-spec.radius, spec.radius]
+    es = []
+    for r in range(R):
+        o = dict(opts, seed=int(spec.seed + r + 1))
+        es.append(cma.CMAEvolutionStrategy(np.zeros(d), 1.0, o))
+    tr = _Tracker(R, d)
+    t0 = time.perf_counter()
+    gens = spec.budget // lam
+    for gen in range(gens):
+        asked = [np.asarray(e.ask()) for e in es]
+        xs = np.concatenate([project(a, spec.region, spec.radius) for a in asked])
+        res = store.evaluate(f"cma-es-{gen}", "cma-es", xs, pb.forward)
+        for r, part in enumerate(_split(res, [lam] * R)):
+            # CMA-ES sees the exact margin of the projected point, plus the distance it was
+            # moved (a penalty that keeps it inside the ball)
+            moved = np.linalg.norm(part["xi"] - asked[r], axis=1)
+            es[r].tell(list(asked[r]), list(part["margin"] + moved))
+            tr.add(r, lam, part["margin"], part["xi"], part["run"])
+        if bar is not None:
+            bar.update(len(xs))
+    return tr.trace(time.perf_counter() - t0)
+
+
+def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar) -> Trace:
+    import optax
+
+    R, d, K = spec.repeats, pb.dim, spec.starts
+    # the forward side at the batch size the sampling baselines fly
+    n_fwd = min(max(1, 256 // R) * R, R * spec.budget)
+    cost = spec.gradient_cost or pb.gradient_cost(R * K, n_fwd)
+    iters = max(1, int(spec.budget // (K * cost)))
+    rng = np.random.default_rng([spec.seed, 3])
+    xi = np.stack(
+        [
+            project(
+                np.random.default_rng([spec.seed + r, 3]).standard_normal((K, d)),
+                spec.region,
+                spec.radius,
+            )
+            for r in range(R)
+        ]
+    ).reshape(R * K, d)
+    del rng
+    opt = optax.adam(spec.lr)
+    state = opt.init(xi)
+    tr = _Tracker(R, d)
+    found = np.zeros(R * K, bool)
+    best_norm = np.full(R, np.inf)
+    best_dp = np.full((R, d), np.nan)
+    t0 = time.perf_counter()
+    for it in range(iters):
+        res = store.evaluate(f"{method}-{it}", method, xi, pb.gradient)
+        m, s, g = res["margin"], res["smooth"], res["grad"]
+        for r, part in enumerate(_split(res, [K] * R)):
+            tr.add(r, K * cost, part["margin"], part["xi"], part["run"])
+        if method == "design-point":
+            fail = m <= 0
+            found |= fail
+            norms = np.linalg.norm(xi, axis=1)
+            for j in np.flatnonzero(fail):
+                r = j // K
+                if norms[j] < best_norm[r]:
+                    best_norm[r], best_dp[r] = norms[j], xi[j]
+            # before a failure: descend the margin; after: shrink ||xi|| along the boundary
+            delta = 0.01 * np.maximum(np.abs(s), 1e-9)
+            pen = np.where(s + delta > 0, DESIGN_WEIGHT, 0.0)[:, None] * g
+            grad = np.where(found[:, None], xi + pen, g)
+        else:
+            grad = g
+        upd, state = opt.update(grad, state, xi)
+        xi = project(np.asarray(optax.apply_updates(xi, upd)), spec.region, spec.radius)
+        if bar is not None:
+            bar.update(int(np.ceil(R * K * cost)))
+    extra = {"gradient_cost": cost, "iterations": iters}
+    if method == "design-point":
+        ok = np.isfinite(best_norm)
+        extra["design_point_norm"] = float(np.min(best_norm)) if ok.any() else None
+        extra["design_point"] = (
+            [float(v) for v in best_dp[int(np.argmin(best_norm))]] if ok.any() else None
+        )
+    return tr.trace(time.perf_counter() - t0, **extra)
+
+
+def search(pb: Problem, spec: SearchSpec, store: EvalStore | None = None, progress=True) -> dict:
+    """Fly the search's methods; return {method: Trace}."""
+    store = EvalStore(None, pb.effort_key) if store is None else store
+    out = {}
+    for method in spec.methods:
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            total = spec.repeats * spec.budget
+            bar = tqdm(total=total, unit="eval", desc=f"verify worst: {method}", leave=False)
+        if method in ("random", "lhs"):
+            out[method] = _sampling(pb, spec, store, method, bar)
+        elif method == "cma-es":
+            out[method] = _cma(pb, spec, store, bar)
+        else:
+            out[method] = _gradient(pb, spec, store, method, bar)
+        if bar is not None:
+            bar.close()
+    return out

@@ -1,0 +1,275 @@
+"""Verification: requirements as margins (against an independent STL monitor), dispersions,
+the estimators against the normal tail, the searches, gradients against central differences,
+resume, replay and bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from rvdjax.cli import main
+from rvdjax.disturbances import Draws
+from rvdjax.loop import fly
+from rvdjax.scenarios import get_scenario
+from rvdjax.verify.evaluate import Problem, ProblemSpec, problem_for
+from rvdjax.verify.probability import ProbabilitySpec, estimate
+from rvdjax.verify.store import read_evals
+from rvdjax.verify.worst import SearchSpec, search
+
+# ------------------------------------------------------------------ analytic limit states
+
+
+class Linear:
+    """g(xi) = beta - a.xi, |a| = 1: P(g < 0) = Phi(-beta) exactly; the design point is
+    beta a."""
+
+    effort_key = "x"
+
+    def __init__(self, beta, dim=5):
+        self.beta, self.dim = beta, dim
+        self.a = np.ones(dim) / np.sqrt(dim)
+        self.calls = 0
+
+    def forward(self, xi):
+        self.calls += len(xi)
+        return {"margin": self.beta - xi @ self.a}
+
+    def gradient(self, xi):
+        self.calls += len(xi)
+        g = self.beta - xi @ self.a
+        return {"margin": g, "smooth": g, "grad": -np.tile(self.a, (len(xi), 1))}
+
+    def gradient_cost(self, *_):
+        return 1.0
+
+
+@pytest.mark.parametrize(
+    ("beta", "method", "budget"),
+    [(2.326, "mc", 20000), (2.326, "subset", 2000), (2.326, "is", 1500), (4.265, "subset", 5000)]
+    + [(4.265, "is", 1500)],
+)
+def test_estimators_bracket_the_normal_tail(beta, method, budget):
+    exact = norm.cdf(-beta)  # 1e-2 and 1e-5
+    res = estimate(Linear(beta), ProbabilitySpec(method=method, budget=budget, seed=3), None, False)
+    assert res["runs"] <= budget
+    lo, hi = res["ci95"]
+    assert lo <= exact <= hi, res
+    assert res["cov"] < (0.5 if beta > 4 else 0.3)
+    if method == "is":  # the design point is beta a, |xi*| = beta
+        assert res["design_point_norm"] == pytest.approx(beta, rel=0.05)
+
+
+def test_subset_cov_matches_its_spread():
+    """The CoV subset simulation reports (Au & Beck Eq. 29) against the spread of 40 seeded
+    estimates of p = 1e-3."""
+    beta = -norm.ppf(1e-3)
+    runs = [
+        estimate(Linear(beta), ProbabilitySpec("subset", 1000, level_size=300, seed=s), None, False)
+        for s in range(40)
+    ]
+    p = np.array([r["p"] for r in runs])
+    reported = np.mean([r["cov"] for r in runs])
+    empirical = p.std(ddof=1) / p.mean()
+    assert 0.5 < empirical / reported < 2.0, (empirical, reported)
+    assert abs(p.mean() / 1e-3 - 1) < 3 * empirical / np.sqrt(len(p))
+
+
+def test_searches_on_a_linear_limit_state():
+    pb = Linear(3.0)
+    spec = SearchSpec(
+        methods=("gradient", "design-point", "random", "lhs", "cma-es"), budget=64, repeats=6
+    )
+    tr = search(pb, spec, progress=False)
+    s = {m: t.summary() for m, t in tr.items()}
+    # one step of Adam (2 sigma) along the gradient: found at the second evaluation
+    assert s["gradient"]["falsification_rate"] == 1.0
+    assert s["gradient"]["median_evaluations"] <= 3
+    # the design point of g = beta - a.xi is beta a
+    assert s["design-point"]["design_point_norm"] == pytest.approx(3.0, rel=0.1)
+    # p = 1.3e-3: 64 draws rarely fail; CMA-ES climbs the linear slope
+    assert s["random"]["falsification_rate"] <= 0.5
+    assert s["cma-es"]["falsification_rate"] == 1.0
+    assert s["gradient"]["worst_margin"] < s["random"]["worst_margin"]
+
+
+# ------------------------------------------------------------------ the closed loop
+
+
+@pytest.fixture(scope="module")
+def poseidyn():
+    """poseidyn-lqmpc, contact speed under initial-state offsets: the module's small case."""
+    spec = ProblemSpec("poseidyn-lqmpc", "keep-out", "x0:0.05,0.005", n_steps=60)
+    return problem_for(spec)
+
+
+def test_keep_out_margin_against_an_stl_monitor(poseidyn):
+    """The exact keep-out margin against rtamt's robustness of always(d >= 0), d the
+    clearance of the obstacle circle on the truth at the samples and between them, the
+    between-sample states integrated here by SciPy from the applied force."""
+    rtamt = pytest.importorskip("rtamt")
+    from scipy.integrate import solve_ivp
+
+    pb = poseidyn
+    xis = np.random.default_rng(0).standard_normal((3, pb.dim))
+    res = pb.gradient(xis)
+    fc = pb.loop.config.family
+    M = fc.substeps
+    for i, xi in enumerate(xis):
+        x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
+        infos, m = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))(params, x0)
+        infos = jax.tree.map(np.asarray, infos)
+        centre, r_obs = np.asarray(params.obstacle), float(params.r_obs)
+        Ac, Bc = np.asarray(params.Ac), np.asarray(params.Bc)
+        d = []
+        for k in np.flatnonzero(infos.active):
+            x, u, dt = infos.x[k], infos.u[k], float(infos.dt[k])
+            d.append(np.linalg.norm(x[:2] - centre) - r_obs)
+            taus = float(params.ts) * np.arange(1, M + 1) / M
+            taus = taus[taus <= dt + 1e-12]
+            if len(taus):
+                sol = solve_ivp(
+                    lambda t, y, u=u, A=Ac, B=Bc: A @ y + B @ u,
+                    (0, taus[-1]),
+                    x,
+                    t_eval=taus,
+                    rtol=1e-11,
+                    atol=1e-12,
+                )
+                d.extend(np.linalg.norm(sol.y[:2].T - centre, axis=1) - r_obs)
+        spec = rtamt.StlDiscreteTimeOfflineSpecification()
+        spec.declare_var("d", "float")
+        spec.spec = "always (d >= 0)"
+        spec.parse()
+        rob = spec.evaluate({"time": list(range(len(d))), "d": [float(v) for v in d]})
+        assert res["margin"][i] == pytest.approx(rob[0][1], abs=1e-7)
+
+
+def test_every_family_computes_a_requirement():
+    """One requirement per family through the batch engine, on two points each."""
+    cases = [
+        ("fastmpc-3d", "keep-out", "x0:20,0.02"),
+        ("spot-2d-a", "keep-out", "x0:0.05,0.002,0.02"),
+        ("thesis-vbar", "contact-speed<=0.1", "paper003"),
+    ]  # poseidyn: keep-out below (the STL monitor), docks in the notebook
+    for name, req, disp in cases:
+        pb = Problem(ProblemSpec(name, req, disp, n_steps=40))
+        xis = np.random.default_rng(1).standard_normal((2, pb.dim))
+        f = pb.forward(xis)
+        assert f["margin"].shape == (2,) and np.all(np.isfinite(f["margin"])), name
+        if name == "thesis-vbar":  # 40 steps: not docked yet, no contact: the bound itself
+            assert not np.any(f["metrics"].docked) and np.all(f["margin"] == 0.1)
+        else:  # the keep-out zones' smallest truth margins
+            m = f["metrics"].margins_m
+            zones = [k for k in ("keep_out", "target_keep_out", "obstacles") if k in m]
+            np.testing.assert_array_equal(f["margin"], np.min([m[k] for k in zones], axis=0))
+
+
+def test_smooth_gradient_against_central_differences(poseidyn):
+    """At the worst point of a short gradient search, the smooth margin's gradient against
+    central differences of the smooth margin."""
+    pb = poseidyn
+    spec = SearchSpec(methods=("gradient",), budget=6, repeats=2, lr=0.5, gradient_cost=1.0)
+    tr = search(pb, spec, progress=False)
+    t = tr["gradient"]
+    xi = t.worst_xi[int(np.argmin(t.worst_margin))]
+    h = 1e-5
+    pts = np.concatenate([[xi], xi + h * np.eye(pb.dim), xi - h * np.eye(pb.dim)])
+    r = [pb.gradient(pts[i : i + 8]) for i in range(0, len(pts), 8)]  # one batch shape
+    smooth = np.concatenate([a["smooth"] for a in r])
+    fd = (smooth[1 : 1 + pb.dim] - smooth[1 + pb.dim :]) / (2 * h)
+    np.testing.assert_allclose(r[0]["grad"][0], fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())
+
+
+def test_draws_replace_the_prng_exactly():
+    """A disturbed run fed the standard normals its PRNG key would draw flies the same bits."""
+    sc = get_scenario("poseidyn-lqmpc")
+    params, x0 = sc.build()
+    loop = sc.loop("accurate", disturbed=True, n_steps=20)
+    key = jax.random.key(7)
+    lay = sc.family_.layout
+    steps = jax.random.fold_in(key, 1)
+    ks = [jax.random.split(jax.random.fold_in(steps, k)) for k in range(20)]
+    nav = jnp.stack([jax.random.normal(k[0], (lay.nx,)) for k in ks])
+    gm = jnp.stack([jax.random.normal(k[1], (lay.nu, 2)) for k in ks])
+    gm0 = jax.random.normal(jax.random.fold_in(key, 0), (lay.nu,))
+    d = params.disturbances._replace(draws=Draws(nav=nav, gm0=gm0, gm=gm))
+    run = jax.jit(lambda p, k: fly(loop, p, x0, k))
+    a, _ = run(params, key)
+    b, _ = run(params._replace(disturbances=d), jax.random.key(99))
+    np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
+    np.testing.assert_array_equal(np.asarray(a.u), np.asarray(b.u))
+
+
+# ------------------------------------------------------------------ command line
+
+
+def test_worst_resumes_and_replays(tmp_path, capsys):
+    out = tmp_path / "v"
+    argv = [
+        "verify", "worst", "poseidyn-lqmpc", "--requirement", "keep-out", "--dispersion",
+        "x0:0.05,0.005", "--n-steps", "60", "--budget", "8", "--repeats", "2", "--methods",
+        "gradient,random", "--lr", "0.5", "--out", str(out), "--json", "--quiet",
+    ]  # fmt: skip
+    assert main(argv) == 0
+    first = json.loads(capsys.readouterr().out)
+    n = len(read_evals(out))
+    assert main(argv) == 2  # the directory holds it: --resume to continue
+    assert "--resume" in capsys.readouterr().err
+    assert main([*argv, "--resume"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert len(read_evals(out)) == n  # nothing flown again
+    assert again["worst"]["margin"] == first["worst"]["margin"]
+    assert set(first["methods"]) == {"gradient", "random"}
+    # the worst run replays as a study run, to the same margin
+    run = first["worst"]["run"]
+    assert main(["run", "poseidyn-lqmpc", "--study", str(out), "--run", str(run), "--json"]) == 0
+    replay = json.loads(capsys.readouterr().out)
+    assert min(replay["margins_m"]["keep_out"], np.inf) == pytest.approx(
+        first["worst"]["margin"], abs=1e-9
+    )
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--requirement", "keepout", "--dispersion", "x0:1,1"], "--requirement"),
+        (["--requirement", "overshoot", "--dispersion", "x0:1,1"], "no such zone"),
+        (["--requirement", "keep-out", "--dispersion", "paper004"], "--dispersion"),
+        (["--requirement", "keep-out", "--dispersion", "paper003"], "3-D CW"),
+        (["--requirement", "keep-out", "--dispersion", "nav"], "--disturbed"),
+        (["--requirement", "keep-out,docks", "--dispersion", "x0:1,1"], "one unit"),
+    ],
+)
+def test_bad_input_names_the_parameter(tmp_path, capsys, extra, needle):
+    argv = ["verify", "worst", "poseidyn-lqmpc", *extra, "--budget", "10", "--out"]
+    assert main([*argv, str(tmp_path / "v")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+
+
+def test_bad_budget_and_method_exit_before_compiling(tmp_path):
+    cmds = [
+        ["probability", "--method", "subset", "--budget", "50"],
+        ["probability", "--method", "form", "--budget", "500"],
+        ["worst", "--budget", "3", "--methods", "cma-es"],
+        ["worst", "--budget", "30", "--methods", "psy"],
+    ]
+    base = ["--requirement", "keep-out", "--dispersion", "paper003"]
+    for cmd in cmds:
+        t0 = time.perf_counter()
+        p = subprocess.run(
+            [sys.executable, "-m", "rvdjax.cli", "verify", cmd[0], "thesis-vbar", *base, *cmd[1:],
+             "--out", str(tmp_path / "v")],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert p.returncode == 2, p.stderr
+        assert len(p.stderr.strip().splitlines()) == 1 and "--" in p.stderr
+        assert time.perf_counter() - t0 < 10
