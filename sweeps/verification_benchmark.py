@@ -170,9 +170,10 @@ def cmd_openturns(args) -> dict:
     }
     n0 = count["n"]
     t0 = time.perf_counter()
-    solver = ot.Cobyla()
+    solver = ot.Cobyla()  # derivative-free: OpenTURNS' FORM on the exact margin
     solver.setMaximumCallsNumber(args.form_calls)
-    form = ot.FORM(solver, event, ot.Point(pb.dim, 0.0))
+    solver.setStartingPoint(ot.Point(pb.dim, 0.0))
+    form = ot.FORM(solver, event)
     form.run()
     fr = form.getResult()
     fm = {

@@ -3,6 +3,7 @@ cases, through the closed-loop kernel."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -127,3 +128,22 @@ def test_state_outside_the_entry_cone_still_gives_a_control():
         assert int(sol.status) in (Status.CONVERGED, Status.MAX_ITER, Status.INFEASIBLE)
         if settings.mode == "accurate":
             assert int(sol.status) == Status.INFEASIBLE
+
+
+def test_keep_out_requirement_is_the_clearance_of_the_target(runs):
+    """rvdjax verify's keep-out margin on the flown runs: the smallest distance to the
+    target's keep-out circle, computed here from the states and the target's path."""
+    from rvdjax.families.docking import target_at
+    from rvdjax.verify.requirements import parse_requirement
+
+    _, params, infos, m = runs
+    req = parse_requirement("keep-out", set(m.margins_m), True)
+    exact = np.asarray(req.exact(m, "effort_l1_N_s"))
+    for i in range(len(CASES)):
+        p_i = jax.tree.map(lambda a, i=i: a[i], params)
+        act = np.asarray(infos.active[i])
+        centre, _ = target_at(p_i, np.asarray(infos.t[i])[act])
+        d = np.linalg.norm(np.asarray(infos.x[i])[act, :2] - np.asarray(centre), axis=-1)
+        clearance = d - float(p_i.r_t)
+        obstacles = np.asarray(m.margins_m["obstacles"][i])
+        assert exact[i] == pytest.approx(min(clearance.min(), obstacles), abs=1e-9)

@@ -58,6 +58,12 @@ def test_every_case_docks_at_the_port(any_run):
         p_i = jax.tree.map(lambda a, i=i: a[i], params)
         port, _, _ = ph.target_state(p_i, m.time_to_dock_s[i])
         assert np.linalg.norm(x_end[:3] - np.asarray(port)) <= float(params.r3[i])
+        # rvdjax verify's contact speed: the speed of that docked state
+        from rvdjax.verify.requirements import parse_requirement
+
+        req = parse_requirement("contact-speed<=0.1", set(m.margins_m), True)
+        margin = float(req.exact(jax.tree.map(lambda a, i=i: a[i], m), "delta_v_m_s"))
+        assert margin == pytest.approx(0.1 - np.linalg.norm(x_end[3:]), abs=1e-9)
         # delta-v bookkeeping
         assert m.delta_v_m_s[i] == pytest.approx(m.phase_delta_v_m_s[i].sum())
         assert m.delta_v_m_s[i] <= m.delta_v_l1_m_s[i] <= np.sqrt(3) * m.delta_v_m_s[i]

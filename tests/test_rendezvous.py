@@ -168,3 +168,25 @@ def test_family_functions_are_pure_of_arrays():
     for a, b in zip(ocp, ref, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
     assert [b.name for b in blocks] == ["keep_out"]
+
+
+def test_keep_out_requirement_is_the_smallest_clearance(accurate_run):
+    """rvdjax verify's keep-out margin (exact and smooth) on the flown run, against the
+    clearances of the moving spheres computed here from the states and times."""
+    from rvdjax.verify.requirements import parse_requirement
+
+    loop, params, infos, m = accurate_run
+    req = parse_requirement("keep-out", {"keep_out"}, True)
+    act = np.asarray(infos.active)
+    x, t = np.asarray(infos.x)[act], np.asarray(infos.t)[act]
+    obs = np.asarray(params.obstacles)[np.asarray(params.obstacle_mask) > 0]
+    radii = np.asarray(params.radii)[np.asarray(params.obstacle_mask) > 0]
+    centres = obs[None, :, :3] + t[:, None, None] * obs[None, :, 3:]
+    clearance = np.linalg.norm(x[:, None, :3] - centres, axis=-1) - radii
+    assert float(req.exact(m, "effort_l1_N_s")) == pytest.approx(clearance.min(), abs=1e-9)
+    tau = 1.0
+    soft = float(req.smooth(loop, params, infos, m, "effort_l1_N_s", tau))
+    assert clearance.min() - tau * np.log(clearance.size) <= soft <= clearance.min() + 1e-12
+    assert float(parse_requirement("keep-out>=-3", {"keep_out"}, True).exact(m, "x")) == (
+        pytest.approx(clearance.min() + 3.0, abs=1e-9)
+    )

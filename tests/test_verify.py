@@ -19,7 +19,7 @@ from rvdjax.cli import main
 from rvdjax.disturbances import Draws
 from rvdjax.loop import fly
 from rvdjax.scenarios import get_scenario
-from rvdjax.verify.evaluate import Problem, ProblemSpec, problem_for
+from rvdjax.verify.evaluate import ProblemSpec, problem_for
 from rvdjax.verify.probability import ProbabilitySpec, estimate
 from rvdjax.verify.store import read_evals
 from rvdjax.verify.worst import SearchSpec, search
@@ -150,26 +150,6 @@ def test_keep_out_margin_against_an_stl_monitor(poseidyn):
         spec.parse()
         rob = spec.evaluate({"time": list(range(len(d))), "d": [float(v) for v in d]})
         assert res["margin"][i] == pytest.approx(rob[0][1], abs=1e-7)
-
-
-def test_every_family_computes_a_requirement():
-    """One requirement per family through the batch engine, on two points each."""
-    cases = [
-        ("fastmpc-3d", "keep-out", "x0:20,0.02"),
-        ("spot-2d-a", "keep-out", "x0:0.05,0.002,0.02"),
-        ("thesis-vbar", "contact-speed<=0.1", "paper003"),
-    ]  # poseidyn: keep-out below (the STL monitor), docks in the notebook
-    for name, req, disp in cases:
-        pb = Problem(ProblemSpec(name, req, disp, n_steps=40))
-        xis = np.random.default_rng(1).standard_normal((2, pb.dim))
-        f = pb.forward(xis)
-        assert f["margin"].shape == (2,) and np.all(np.isfinite(f["margin"])), name
-        if name == "thesis-vbar":  # 40 steps: not docked yet, no contact: the bound itself
-            assert not np.any(f["metrics"].docked) and np.all(f["margin"] == 0.1)
-        else:  # the keep-out zones' smallest truth margins
-            m = f["metrics"].margins_m
-            zones = [k for k in ("keep_out", "target_keep_out", "obstacles") if k in m]
-            np.testing.assert_array_equal(f["margin"], np.min([m[k] for k in zones], axis=0))
 
 
 def test_smooth_gradient_against_central_differences(poseidyn):

@@ -229,8 +229,9 @@ class Problem:
         Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics}."""
         xis = np.asarray(xis, float).reshape(-1, self.dim)
         n = xis.shape[0]
-        # batch shapes of 8, 16, 32, ...: each compiles once
-        bucket = max(8, 1 << max(0, int(n - 1).bit_length()))
+        # batch shapes in multiples of 8 (each compiles once; padding is computed, so keep it
+        # small: the gradient's measured cost includes it)
+        bucket = 8 * int(np.ceil(n / 8))
         pad = np.concatenate([xis, np.repeat(xis[:1], bucket - n, axis=0)])
         s, g, e, m = self._vg(jnp.asarray(pad), self.keys(bucket))
         m = jax.tree.map(lambda a: np.asarray(a)[:n], m)
