@@ -212,7 +212,10 @@ def run_scenario(
 
         replay = verify_replay if is_verification(study) else replay_inputs
         spec, sc, loop, params, x0, key, sp = replay(study, run)
-        if spec.scenario != name and not _same_file_scenario(name, spec.scenario):
+        recorded = spec.scenario
+        if recorded.endswith(".toml") and not os.path.exists(recorded):  # the study moved
+            recorded = os.path.join(study, STUDY_SCENARIO_FILE)
+        if spec.scenario != name and not _same_file_scenario(name, recorded):
             raise ValueError(f"run {run} of {study} flies {spec.scenario!r}, not {name!r}")
     else:
         sc = get_scenario(name)

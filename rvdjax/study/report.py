@@ -72,10 +72,10 @@ def summarize(out, confidence: float = 0.9, reliability: float = 0.9973, worst: 
         raise ValueError(f"{out}: no config.json (not a study directory)")
     spec = StudySpec.from_dict(config["spec"])
     df = read_table(out)
-    from rvdjax.scenarios import get_scenario
     from rvdjax.study.runner import effort_metric
+    from rvdjax.study.spec import study_scenario
 
-    sc = get_scenario(spec.scenario)
+    sc = study_scenario(spec, out)
     summary = {
         "study": spec.kind,
         "scenario": spec.scenario,

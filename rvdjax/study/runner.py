@@ -25,7 +25,7 @@ from rvdjax.loop import RunStatus
 from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
 from rvdjax.solver import Status
 from rvdjax.study import samplers
-from rvdjax.study.spec import ParamRef, StudySpec, resolve
+from rvdjax.study.spec import ParamRef, StudySpec, resolve, study_scenario
 from rvdjax.study.table import PartWriter, done_runs, read_config, write_config
 
 __all__ = ["run_study", "RunSet", "run_inputs", "replay_inputs", "effort_metric", "peak_rss_mb"]
@@ -376,10 +376,8 @@ def run_study(
     ``out`` and writes the configuration first (False: the caller did, e.g. before a barrier
     of several processes).
     """
-    from rvdjax.scenarios import get_scenario
-
-    scenario = get_scenario(spec.scenario)
-    spec.validate(scenario)
+    scenario = study_scenario(spec, out)
+    spec.validate(dataclasses.replace(scenario, name=spec.scenario))
     out = Path(out)
     if prepare and process_index == 0:
         prepare_out(spec, out, resume)
@@ -488,7 +486,6 @@ def run_study(
 def replay_inputs(out, run: int):
     """(scenario, loop, params, x0, key, solver params) of run ``run`` of the study in
     ``out``: fly them with :func:`rvdjax.loop.fly` to see that run again."""
-    from rvdjax.scenarios import get_scenario
 
     config = read_config(Path(out))
     if config is None:
@@ -496,7 +493,7 @@ def replay_inputs(out, run: int):
     spec = StudySpec.from_dict(config["spec"])
     if not 0 <= run < spec.n_runs:
         raise ValueError(f"--run must be in [0, {spec.n_runs - 1}], got {run}")
-    scenario = get_scenario(spec.scenario)
+    scenario = study_scenario(spec, out)
     rs = run_inputs(spec, scenario, [run])
     p = int(rs.point[0])
     static, phys, _ = _point_overrides(spec, scenario, spec.points[p])

@@ -30,7 +30,15 @@ import numpy as np
 
 from rvdjax.study.samplers import INITIAL_SAMPLERS, Dist, parse_dist
 
-__all__ = ["StudySpec", "Point", "ParamRef", "resolve", "parse_assignment", "ALIASES"]
+__all__ = [
+    "StudySpec",
+    "Point",
+    "ParamRef",
+    "resolve",
+    "parse_assignment",
+    "study_scenario",
+    "ALIASES",
+]
 
 ALIASES = {
     "three-phase": {
@@ -293,3 +301,22 @@ class StudySpec:
         d["grid"] = tuple((n, tuple(vs)) for n, vs in d.get("grid", ()))
         d["faults"] = tuple(tuple(f) for f in d.get("faults", ()))
         return cls(**d)
+
+
+STUDY_SCENARIO_FILE = "scenario.toml"
+
+
+def study_scenario(spec: StudySpec, out=None):
+    """The scenario of a study. A study of a scenario file records the path of the copy it
+    keeps in its directory (``DIR/scenario.toml``); when the directory has moved since, the
+    copy in ``out`` is read instead."""
+    import os
+
+    from rvdjax.scenarios import get_scenario
+
+    name = spec.scenario
+    if out is not None and name.endswith(".toml") and not os.path.exists(name):
+        local = os.path.join(str(out), STUDY_SCENARIO_FILE)
+        if os.path.exists(local):
+            name = local
+    return get_scenario(name)
