@@ -177,21 +177,25 @@ def cmd_openturns(args) -> dict:
     solver = ot.Cobyla()  # derivative-free: OpenTURNS' FORM on the exact margin
     solver.setMaximumCallsNumber(args.form_calls)
     solver.setStartingPoint(ot.Point(pb.dim, 0.0))
-    form = ot.FORM(solver, event)
-    form.run()
-    fr = form.getResult()
-    fm = {
-        "p": fr.getEventProbability(),
-        "beta": fr.getHasoferReliabilityIndex(),
-        "design_point": list(fr.getStandardSpaceDesignPoint()),
-        "runs": count["n"] - n0,
-        "wall_s": time.perf_counter() - t0,
-    }
     print(
         f"OpenTURNS SubsetSampling: p = {ss['p']:.3e} (CoV {ss['cov']:.3f}) in {ss['runs']} runs,"
-        f" {ss['wall_s']:.0f} s; FORM (Cobyla): p = {fm['p']:.3e}, beta = {fm['beta']:.3f} in "
-        f"{fm['runs']} runs, {fm['wall_s']:.0f} s"
+        f" {ss['wall_s']:.0f} s"
     )
+    form = ot.FORM(solver, event)
+    try:
+        form.run()
+        fr = form.getResult()
+        fm = {
+            "p": fr.getEventProbability(),
+            "beta": fr.getHasoferReliabilityIndex(),
+            "design_point": list(fr.getStandardSpaceDesignPoint()),
+        }
+        print(f"OpenTURNS FORM (Cobyla): p = {fm['p']:.3e}, beta = {fm['beta']:.3f}")
+    except RuntimeError as err:  # e.g. the design point is not on the limit state
+        fm = {"error": str(err).splitlines()[-1]}
+        print(f"OpenTURNS FORM (Cobyla) failed: {fm['error']}")
+    fm.update(runs=count["n"] - n0, wall_s=time.perf_counter() - t0)
+    print(f"  FORM: {fm['runs']} runs, {fm['wall_s']:.0f} s")
     return {"openturns": {"subset": ss, "form": fm}}
 
 
