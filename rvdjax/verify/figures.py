@@ -116,9 +116,10 @@ def worst_runs(out_dir, pb, xis, runs) -> list[str]:
     if fam.plot is None:
         return paths
     lay = fam.layout
+    run_one = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))  # compiled once
     for xi, run in zip(xis, runs, strict=True):
         x0, params = pb.dispersion.apply(np.asarray(xi), pb.x0, pb.params, lay)
-        infos, _ = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))(params, x0)
+        infos, _ = run_one(params, x0)
         path = str(Path(out_dir) / f"worst-run-{int(run)}.png")
         fam.plot(path, pb.scenario, params, jax.tree.map(np.asarray, infos), title=f"run {run}")
         paths.append(path)

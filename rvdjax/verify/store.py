@@ -80,7 +80,6 @@ class EvalStore:
                         "grad": (
                             np.stack(g["grad"].to_numpy()) if g["grad"].notna().all() else None
                         ),
-                        "frame": g,
                     }
                     self.next_run = max(self.next_run, int(g["run"].max()) + 1)
 

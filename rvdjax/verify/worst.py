@@ -250,7 +250,6 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
     n_fwd = min(max(1, 256 // R) * R, R * spec.budget)
     cost = spec.gradient_cost or pb.gradient_cost(R * K, n_fwd)
     iters = max(1, int(spec.budget // (K * cost)))
-    rng = np.random.default_rng([spec.seed, 3])
     xi = np.stack(
         [
             project(
@@ -261,7 +260,6 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
             for r in range(R)
         ]
     ).reshape(R * K, d)
-    del rng
     opt = optax.adam(spec.lr)
     state = opt.init(xi)
     tr = _Tracker(R, d)
