@@ -371,9 +371,11 @@ def machine_info() -> str:
                     break
     except OSError:
         pass
+    from rvdjax.devices import current
+
     return (
         f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-        f"jax {jax.__version__}, {jax.devices()[0].platform}"
+        f"jax {jax.__version__}, device {current()}"
     )
 
 

@@ -415,6 +415,7 @@ def cmd_run(args) -> int:
         "scenario": sc.name,
         "family": sc.family,
         "source": sc.source,
+        "device": args.device_used,
         "solver_mode": args.mode,
         "truth": args.truth,
         "disturbed": bool(args.disturbed),
@@ -451,7 +452,9 @@ def cmd_run(args) -> int:
     else:
         print(
             f"{sc.name}: {sc.description} [{sc.source}], solver mode {args.mode}, "
-            f"truth {args.truth}" + (f", disturbed (seed {args.seed})" if args.disturbed else "")
+            f"truth {args.truth}"
+            + (f", disturbed (seed {args.seed})" if args.disturbed else "")
+            + f", device {args.device_used}"
         )
         rows = [
             ("docked", result["docked"], ""),
@@ -543,9 +546,11 @@ def cmd_compare(args) -> int:
         args.scenario, progress=progress, nmpc=not args.no_nmpc, thrusters=args.thrusters
     )
     if args.json:
-        print(json.dumps({"scenario": sc.name, "published": sc.published, "rows": rows}, indent=2))
+        out = {"scenario": sc.name, "device": args.device_used, "published": sc.published}
+        print(json.dumps({**out, "rows": rows}, indent=2))
     else:
         print(format_comparison(sc.name, rows, sc.published))
+        print(f"device: {args.device_used}")
         print(
             "ms/step: wall time of the closed loop per MPC step (Clarabel: host callback with "
             "the QP assembly); NMPC row: IPOPT calls only; IDVD row: per IPOPT (re-)plan, "
@@ -605,6 +610,8 @@ def cmd_bench(args) -> int:
             config = dataclasses.replace(config, **overrides)
         rows = run_benchmark(config, progress=progress)
         text = format_table(rows)
+    for r in rows:
+        r["device"] = args.device_used
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"machine": machine_info(), "rows": rows}, f, indent=1)
@@ -806,6 +813,28 @@ def cmd_study(args) -> int:
             f"table: {s['table']}"
         )
     return 0
+
+
+# Where each command's work runs under --device auto (rvdjax.devices): one maneuver at a time
+# on the CPU, batches on JAX's default device (a GPU where there is one).
+COMMAND_WORK = {"study": "batch", "verify": "batch"}
+
+
+def _add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device auto|cpu|gpu`` on every command (the leaves of the sub-command tree)."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        parser.add_argument(
+            "--device",
+            choices=("auto", "cpu", "gpu"),
+            default="auto",
+            help="where to compute: auto (default: one maneuver on the CPU, batches on a GPU "
+            "if there is one), cpu or gpu",
+        )
+        return
+    for action in subs:
+        for child in set(action.choices.values()):
+            _add_device_option(child)
 
 
 def main(argv=None) -> int:
@@ -1116,6 +1145,7 @@ def main(argv=None) -> int:
 
     add_verify_parser(sub, SCENARIO_HELP)
 
+    _add_device_option(parser)
     args = parser.parse_args(argv)
     if getattr(args, "threads", 1) == 1:
         _one_thread()
@@ -1127,7 +1157,11 @@ def main(argv=None) -> int:
             f"--xla_force_host_platform_device_count={devices} " + os.environ.get("XLA_FLAGS", "")
         ).strip()
     try:
-        return args.func(args)
+        from rvdjax import devices as _devices
+
+        with _devices.placed(args.device, COMMAND_WORK.get(args.command, "single")) as dev:
+            args.device_used = _devices.describe(dev)
+            return args.func(args)
     except ValueError as err:  # bad user input: say what and stop, no traceback
         print(f"rvdjax {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -3,6 +3,8 @@ form), in large batches (batch first) and with a shared model; derivatives of th
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,33 +56,50 @@ def _dense_kkt(A, B, Phi_u, Phi_x, g_u, g_x, rp):
     return dz[:, :NU], dz[:, NU:], sol[nz:].reshape(N, NX)
 
 
-def _solve(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-    return K.riccati_apply(K.riccati_factor(A, B, Phi_u, Phi_x), g_u, g_x, rp)
+def _solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel="auto"):
+    """The factorisation and a first step in one call, then a second right-hand side with
+    the stored factorisation: the two ways the solver uses the recursion."""
+    f, s1 = K.riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)
+    s2 = K.riccati_apply(K.riccati_factor(A, B, Phi_u, Phi_x, kernel), g_u, g_x, rp, kernel)
+    return K.NewtonStep(*(0.5 * (a + b) for a, b in zip(s1, s2, strict=True))), s1, s2
 
 
-SOLVE = jax.jit(_solve)
-SOLVE_BATCH = jax.jit(jax.vmap(_solve))
-SOLVE_SHARED = jax.jit(jax.vmap(_solve, in_axes=(None, None, 0, 0, 0, 0, 0)))
+def _compiled(kernel):
+    fn = functools.partial(_solve, kernel=kernel)
+    return (
+        jax.jit(fn),
+        jax.jit(jax.vmap(fn)),
+        jax.jit(jax.vmap(fn, in_axes=(None, None, 0, 0, 0, 0, 0))),
+    )
 
 
-@pytest.mark.parametrize("batch", [3, K.BATCH_LAST_MAX + 5])
-def test_every_form_solves_the_kkt_system(batch):
-    """Unbatched (elementwise), a small batch (batch last) and a large one (batch first, above
-    BATCH_LAST_MAX) against the dense NumPy solve; a model shared by the batch gives the
-    same steps as the model repeated per problem."""
+FORMS = {"xla": _compiled("xla"), "pallas": _compiled("pallas")}
+
+
+@pytest.mark.parametrize(
+    "kernel, batch", [("xla", 3), ("xla", K.BATCH_LAST_MAX + 5), ("pallas", 3), ("pallas", 130)]
+)
+def test_every_form_solves_the_kkt_system(kernel, batch):
+    """Unbatched, a small batch (XLA: batch last) and a large one (XLA: batch first, above
+    BATCH_LAST_MAX; the GPU kernels, interpreted: more than one tile of lanes, the last
+    padded) against the dense NumPy solve, for the fused factorisation + step and for a
+    step with a stored factorisation; a model shared by the batch gives the same steps as
+    the model repeated per problem."""
+    SOLVE, SOLVE_BATCH, SOLVE_SHARED = FORMS[kernel]
     data = _problems(batch)
     out = SOLVE_BATCH(*data)
     for i in (0, batch - 1):
         ref = _dense_kkt(*(a[i] for a in data))
         one = SOLVE(*(a[i] for a in data))
-        for got, single, want in zip(out, one, ref, strict=True):
-            np.testing.assert_allclose(np.asarray(got[i]), want, rtol=1e-9, atol=1e-9)
-            np.testing.assert_allclose(np.asarray(single), want, rtol=1e-9, atol=1e-9)
+        for step, single in zip(out, one, strict=True):
+            for got, s, want in zip(step, single, ref, strict=True):
+                np.testing.assert_allclose(np.asarray(got[i]), want, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(np.asarray(s), want, rtol=1e-9, atol=1e-9)
     A, B = data[0][0], data[1][0]
-    shared = SOLVE_SHARED(A, B, *data[2:])
+    shared = SOLVE_SHARED(A, B, *data[2:])[0]
     repeated = SOLVE_BATCH(
         jnp.broadcast_to(A, data[0].shape), jnp.broadcast_to(B, data[1].shape), *data[2:]
-    )
+    )[0]
     for a, b in zip(shared, repeated, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
 
@@ -92,7 +111,7 @@ def test_derivatives_match_central_differences_batched_or_not():
 
     def loss(scale, args):
         A, B, Phi_u, Phi_x, g_u, g_x, rp = args
-        step = _solve(A, B, Phi_u * scale, Phi_x, g_u, g_x, rp)
+        step = _solve(A, B, Phi_u * scale, Phi_x, g_u, g_x, rp)[0]
         return jnp.sum(step.du**2) + jnp.sum(step.dx * step.nu)
 
     one = tuple(a[0] for a in data)

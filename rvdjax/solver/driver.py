@@ -122,7 +122,7 @@ def start(
         init = jax.tree.map(lambda a: jnp.where(inputs_ok, a, jnp.zeros_like(a)), init)
         u0, nu0, x_start = init.u, init.nu, init.x
     if x_start is not None and settings.mode == "paper" and settings.paper_start == "track":
-        u0 = track_plan(ocp, u0, x_start, settings.method)
+        u0 = track_plan(ocp, u0, x_start, settings.method, settings.kernel)
     u0 = pull_inside(rows, u0)
     # The accurate mode is a feasible-start method; so is paper mode by default (``paper_start
     # = "feasible"``): a run cut at max_iter then still flies a plan that obeys the dynamics.
@@ -189,7 +189,9 @@ def finish(ocp: OCP, state: SolveState, settings: SolverSettings, params: Solver
             # estimate belongs to the pre-step point).
             kkt = kkt_at(ocp, u, x, kappa, settings)
             g_u, g_x = gradient(ocp, rows, u, x, kappa)
-            step = kkt_solve(kkt, g_u, g_x, dyn_residual(ocp, u, x), settings.method)
+            step = kkt_solve(
+                kkt, g_u, g_x, dyn_residual(ocp, u, x), settings.method, settings.kernel
+            )
             nu = jnp.where(jnp.all(jnp.isfinite(step.nu)), step.nu, nu)
         _, rel_d, rel_p = residual_norms(ocp, rows, u, x, nu, kappa)
         residual = jnp.maximum(rel_d, rel_p)

@@ -25,7 +25,7 @@ __all__ = ["kkt_at", "implicit_bwd"]
 def kkt_at(ocp, u, x, kappa, settings: SolverSettings) -> KKT:
     """The (factorised) Newton matrix of the barrier problem at a point."""
     Phi_u, Phi_x = hessian(ocp, rows_of(ocp), u, x, kappa)
-    return kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, settings.method)
+    return kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, settings.method, settings.kernel)
 
 
 def implicit_bwd(settings: SolverSettings, res, sol_bar):
@@ -33,7 +33,7 @@ def implicit_bwd(settings: SolverSettings, res, sol_bar):
     :class:`~rvdjax.solver.types.Solution`."""
     ocp, params, init, sol, kkt, kappa = res
     # J w = (u_bar, x_bar, nu_bar): the Newton system with g = -z_bar, r_p = -nu_bar.
-    w = kkt_solve(kkt, -sol_bar.u, -sol_bar.x, -sol_bar.nu, settings.method)
+    w = kkt_solve(kkt, -sol_bar.u, -sol_bar.x, -sol_bar.nu, settings.method, settings.kernel)
 
     def F(o, kappa):
         return kkt_residual(o, sol.u, sol.x, sol.nu, kappa)

@@ -23,12 +23,15 @@ so at the optimum grad_u f = B_t^T nu_t and grad_x f(x_{t+1}) = A_{t+1}^T nu_{t+
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.solver import lanes
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import dual_residual
 
@@ -40,9 +43,12 @@ __all__ = [
     "riccati_solve",
     "dense_solve",
     "KKT_SOLVERS",
+    "KERNELS",
     "KKT",
     "kkt_factor",
+    "kkt_factor_solve",
     "kkt_solve",
+    "riccati_factor_solve",
 ]
 
 
@@ -83,19 +89,15 @@ class RiccatiFactor(NamedTuple):
 
 
 def _small_chol(H):
-    """Cholesky of a small SPD matrix written out element by element.
+    """Cholesky of a small SPD matrix written out element by element
+    (:func:`rvdjax.solver.lanes.chol`).
 
     Under ``vmap`` each entry becomes one vector operation over the batch; XLA's batched
     LAPACK call costs more than the arithmetic at these sizes. NaN if H is not SPD. Indexes
     the two leading axes only, so H may carry trailing batch axes.
     """
     n = H.shape[0]
-    L = [[None] * n for _ in range(n)]
-    for j in range(n):
-        d = jnp.sqrt(H[j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
-        L[j][j] = d
-        for i in range(j + 1, n):
-            L[i][j] = (H[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
+    L = lanes.chol([[H[i, j] for j in range(n)] for i in range(n)])
     zero = jnp.zeros_like(H[0, 0])
     return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
 
@@ -104,13 +106,7 @@ def _chol_solve(L, b):
     """Solve (L L^T) X = b for small lower-triangular L; b of shape (n,) or (n, k) (and the
     same trailing batch axes as L, if any)."""
     n = L.shape[0]
-    y = []
-    for i in range(n):
-        y.append((b[i] - sum(L[i, k] * y[k] for k in range(i))) / L[i, i])
-    x = [None] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - sum(L[k, i] * x[k] for k in range(i + 1, n))) / L[i, i]
-    return jnp.stack(x)
+    return jnp.stack(lanes.chol_solve([[L[i, j] for j in range(n)] for i in range(n)], list(b)))
 
 
 # --------------------------------------------------------------- products, two formulations
@@ -241,13 +237,7 @@ def _first_vmap(fn, in_batched, args, out_batched):
     return jax.vmap(lambda *a: fn(*a, _ELEMENTWISE), in_axes=axes)(*args), out_batched
 
 
-@jax.custom_batching.custom_vmap
-def _factor_batched(A, B, Phi_u, Phi_x):
-    return _factor(A, B, Phi_u, Phi_x, _ELEMENTWISE)
-
-
-@_factor_batched.def_vmap
-def _factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
+def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     if axis_size > BATCH_LAST_MAX:
         return _first_vmap(
             _factor, in_batched, (A, B, Phi_u, Phi_x), RiccatiFactor(True, True, True, True, True)
@@ -266,13 +256,7 @@ def _factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     return out, RiccatiFactor(m_batched, True, True, True, True)
 
 
-@jax.custom_batching.custom_vmap
-def _apply_batched(f, g_u, g_x, rp):
-    return _apply(f, g_u, g_x, rp, _ELEMENTWISE)
-
-
-@_apply_batched.def_vmap
-def _apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
+def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     if axis_size > BATCH_LAST_MAX:
         return _first_vmap(_apply, in_batched, (f, g_u, g_x, rp), NewtonStep(True, True, True))
     fb, bu, bx, br = in_batched
@@ -286,17 +270,194 @@ def _apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     return NewtonStep(*(_to_first(a) for a in out)), NewtonStep(True, True, True)
 
 
-def _dot_derivative(fn):
-    """A custom_jvp rule: the derivative of ``fn``'s dot form."""
+# ------------------------------------------------------------------- the GPU kernels' layout
+#
+# The kernels of :mod:`rvdjax.solver.lanes` take the batch as the minor axis. Under ``vmap``
+# the operands arrive batch first; they are moved last for the kernel and the results moved
+# back. Between a factorisation and its solves the two moves cancel (XLA folds a transpose of
+# a transpose), so the gains stay in the kernels' layout on the device.
 
-    def jvp(primals, tangents):
+
+def _lane_cfg(interpret: bool):
+    return dataclasses.replace(lanes.default_config(), interpret=interpret)
+
+
+def _model_M(axis_size, A, B, bA, bB, batched: bool):
+    """[B, A] with the batch first when ``batched`` (else shared)."""
+    if batched:
+        A, B = _full(axis_size, A, bA), _full(axis_size, B, bB)
+    return jnp.concatenate([B, A], axis=-1)
+
+
+def _lane_M(M, batched: bool):
+    return _to_last(M) if batched else M
+
+
+def _pallas_factor_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, rhs=None):
+    """The factorisation (and, with ``rhs`` = ((g_u, g_x, rp), flags), the step of its first
+    right-hand side) by the kernels; outputs batch first, flags as the XLA rule's."""
+    bA, bB, bPu, bPx = in_batched
+    # the XLA rule above BATCH_LAST_MAX returns M batched: the branches must agree
+    m_batched = bool(bA or bB) or axis_size > BATCH_LAST_MAX
+    M = _model_M(axis_size, A, B, bA, bB, m_batched)
+    mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
+    cfg = _lane_cfg(interpret)
+    if rhs is None:
+        f = lanes.factor(_lane_M(M, m_batched), *mats, cfg=cfg)
+        step = None
+    else:
+        (g_u, g_x, rp), (bu, bx, br) = rhs
+        vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
+        f, s = lanes.factor_solve(_lane_M(M, m_batched), *mats, *vecs, cfg=cfg)
+        step = NewtonStep(*(_to_first(a) for a in s))
+    factor = RiccatiFactor(M, *(_to_first(a) for a in f))
+    return factor, step, RiccatiFactor(m_batched, True, True, True, True)
+
+
+def _pallas_apply_rule(interpret, axis_size, in_batched, f, g_u, g_x, rp):
+    fb, bu, bx, br = in_batched
+    mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
+    vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
+    s = lanes.apply(_lane_M(f.M, fb.M), *mats, *vecs, cfg=_lane_cfg(interpret))
+    return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
+
+
+KERNELS = ("auto", "xla", "pallas")
+
+
+def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
+    """Which factor fields carry the batch (the same for both forms)."""
+    if axis_size > BATCH_LAST_MAX:
+        return RiccatiFactor(True, True, True, True, True)
+    bA, bB = in_batched[:2]
+    return RiccatiFactor(bool(bA or bB), True, True, True, True)
+
+
+def _by_platform(kernel: str, xla, pallas, *args):
+    """``xla(*args)`` or ``pallas(interpret, *args)`` by the platform the program is compiled
+    for: "auto" runs the kernels on a CUDA GPU and XLA elsewhere (today's CPU path is the
+    faster one there, docs/benchmark.md), "pallas" runs the kernels everywhere (interpreted
+    off the GPU: the tests), "xla" never."""
+    if kernel == "xla":
+        return xla(*args)
+    off_gpu = xla if kernel == "auto" else functools.partial(pallas, True)
+    return lax.platform_dependent(*args, cuda=functools.partial(pallas, False), default=off_gpu)
+
+
+def _unbatched(rule):
+    """An unbatched call of a vmap rule: a batch of one."""
+
+    def fn(*args):
+        flags = jax.tree.map(lambda _: True, args)
+        out, _ = rule(1, flags, *jax.tree.map(lambda a: a[None], args))
+        return jax.tree.map(lambda a: a[0], out)
+
+    return fn
+
+
+@functools.cache
+def _batched(kernel: str):
+    """The custom_vmap functions (factor, apply, factor_solve) of one kernel choice."""
+
+    def xla_factor_solve_rule(axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
+        f, fb = _xla_factor_rule(axis_size, in_batched[:4], A, B, Phi_u, Phi_x)
+        s, sb = _xla_apply_rule(axis_size, (fb, *in_batched[4:]), f, g_u, g_x, rp)
+        return (f, s), (fb, sb)
+
+    @jax.custom_batching.custom_vmap
+    def factor_b(A, B, Phi_u, Phi_x):
+        def xla(*a):
+            return _factor(*a, _ELEMENTWISE)
+
+        def pallas(interpret, *a):
+            return _unbatched(lambda n, b, *x: _pallas_factor_rule(interpret, n, b, *x)[::2])(*a)
+
+        return _by_platform(kernel, xla, pallas, A, B, Phi_u, Phi_x)
+
+    @factor_b.def_vmap
+    def factor_rule(axis_size, in_batched, *args):
+        out = _by_platform(
+            kernel,
+            lambda *a: _xla_factor_rule(axis_size, in_batched, *a)[0],
+            lambda i, *a: _pallas_factor_rule(i, axis_size, in_batched, *a)[0],
+            *args,
+        )
+        return out, _factor_flags(axis_size, in_batched)
+
+    @jax.custom_batching.custom_vmap
+    def apply_b(f, g_u, g_x, rp):
+        def xla(*a):
+            return _apply(*a, _ELEMENTWISE)
+
+        def pallas(interpret, *a):
+            return _unbatched(functools.partial(_pallas_apply_rule, interpret))(*a)
+
+        return _by_platform(kernel, xla, pallas, f, g_u, g_x, rp)
+
+    @apply_b.def_vmap
+    def apply_rule(axis_size, in_batched, *args):
+        out = _by_platform(
+            kernel,
+            lambda *a: _xla_apply_rule(axis_size, in_batched, *a)[0],
+            lambda i, *a: _pallas_apply_rule(i, axis_size, in_batched, *a)[0],
+            *args,
+        )
+        return out, NewtonStep(True, True, True)
+
+    def pallas_fs_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
+        rhs = ((g_u, g_x, rp), in_batched[4:])
+        f, s, fb = _pallas_factor_rule(
+            interpret, axis_size, in_batched[:4], A, B, Phi_u, Phi_x, rhs
+        )
+        return (f, s), (fb, NewtonStep(True, True, True))
+
+    @jax.custom_batching.custom_vmap
+    def factor_solve_b(A, B, Phi_u, Phi_x, g_u, g_x, rp):
+        def xla(A, B, Phi_u, Phi_x, g_u, g_x, rp):
+            f = _factor(A, B, Phi_u, Phi_x, _ELEMENTWISE)
+            return f, _apply(f, g_u, g_x, rp, _ELEMENTWISE)
+
+        def pallas(interpret, *a):
+            return _unbatched(functools.partial(pallas_fs_rule, interpret))(*a)
+
+        return _by_platform(kernel, xla, pallas, A, B, Phi_u, Phi_x, g_u, g_x, rp)
+
+    @factor_solve_b.def_vmap
+    def factor_solve_rule(axis_size, in_batched, *args):
+        flags = (_factor_flags(axis_size, in_batched[:4]), NewtonStep(True, True, True))
+        out = _by_platform(
+            kernel,
+            lambda *a: xla_factor_solve_rule(axis_size, in_batched, *a)[0],
+            lambda i, *a: pallas_fs_rule(i, axis_size, in_batched, *a)[0],
+            *args,
+        )
+        return out, flags
+
+    return factor_b, apply_b, factor_solve_b
+
+
+def _dot_derivative(fn):
+    """A custom_jvp rule: the derivative of ``fn``'s dot form (``kernel`` is not
+    differentiated)."""
+
+    def jvp(kernel, primals, tangents):
         return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
 
     return jvp
 
 
-@jax.custom_jvp
-def riccati_factor(A, B, Phi_u, Phi_x) -> RiccatiFactor:
+def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
+    f = _factor(A, B, Phi_u, Phi_x, ops)
+    return f, _apply(f, g_u, g_x, rp, ops)
+
+
+def _check_kernel(kernel):
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
     """Backward Riccati sweep over the KKT matrix (paper 000 Eqs. 24-26 by stage elimination).
 
     The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx with P_N = Phi_x[N-1] and
@@ -308,28 +469,44 @@ def riccati_factor(A, B, Phi_u, Phi_x) -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
+        kernel: "auto" (the GPU kernels of :mod:`rvdjax.solver.lanes` on a CUDA GPU, XLA
+            elsewhere), "xla" or "pallas" (the kernels everywhere; interpreted off the GPU).
     """
-    return _factor_batched(A, B, Phi_u, Phi_x)
+    _check_kernel(kernel)
+    return _batched(kernel)[0](A, B, Phi_u, Phi_x)
 
 
 riccati_factor.defjvp(_dot_derivative(_factor))
 
 
-@jax.custom_jvp
-def riccati_apply(f: RiccatiFactor, g_u, g_x, rp) -> NewtonStep:
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def riccati_apply(f: RiccatiFactor, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
     """Solve the factorised KKT system for one right-hand side (g_u, g_x, rp).
 
     A backward sweep for the affine terms (p_t, k_t) and a forward sweep for the step:
     du_t = K_t dx_t + k_t, dx_{t+1} = A dx_t + B du_t - rp_t, nu+_t = -(P_{t+1} dx_{t+1} +
-    p_{t+1}).
+    p_{t+1}). ``kernel`` as :func:`riccati_factor`.
     """
-    return _apply_batched(f, g_u, g_x, rp)
+    _check_kernel(kernel)
+    return _batched(kernel)[1](f, g_u, g_x, rp)
 
 
 riccati_apply.defjvp(_dot_derivative(_apply))
 
 
-def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
+@functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
+def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto"):
+    """:func:`riccati_factor` and :func:`riccati_apply` of one right-hand side together:
+    (RiccatiFactor, NewtonStep). On a GPU both sweeps of the factorisation and the step run
+    in one kernel (:func:`rvdjax.solver.lanes.factor_solve`)."""
+    _check_kernel(kernel)
+    return _batched(kernel)[2](A, B, Phi_u, Phi_x, g_u, g_x, rp)
+
+
+riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
+
+
+def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
     """Solve the stage-structured KKT system: :func:`riccati_factor` then :func:`riccati_apply`.
 
     Args:
@@ -337,17 +514,18 @@ def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks.
         g_u: (N, nu), g_x: (N, nx) gradient blocks.
         rp: (N, nx) dynamics residual x_{t+1} - A_t x_t - B_t u_t - c_t.
+        kernel: as :func:`riccati_factor`.
 
     Returns:
         The :class:`NewtonStep`. Non-finite entries signal a failed factorisation.
     """
-    return riccati_apply(riccati_factor(A, B, Phi_u, Phi_x), g_u, g_x, rp)
+    return riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)[1]
 
 
-def dense_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp) -> NewtonStep:
+def dense_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
     """Solve the same KKT system densely (paper 000's ISNM): O((N (2 nx + nu))^3) work.
 
-    Arguments and result as :func:`riccati_solve`.
+    Arguments and result as :func:`riccati_solve` (``kernel`` is not used).
     """
     N, nx, nu = B.shape
     ns = nu + nx
@@ -384,10 +562,20 @@ class KKT(NamedTuple):
     factor: RiccatiFactor | None
 
 
-def kkt_factor(A, B, Phi_u, Phi_x, method: str) -> KKT:
+def kkt_factor(A, B, Phi_u, Phi_x, method: str, kernel: str = "auto") -> KKT:
     """Factorise (Riccati) or keep (dense) the Newton matrix of the given Hessian blocks."""
-    factor = riccati_factor(A, B, Phi_u, Phi_x) if method == "riccati" else None
+    factor = riccati_factor(A, B, Phi_u, Phi_x, kernel) if method == "riccati" else None
     return KKT(A, B, Phi_u, Phi_x, factor)
+
+
+def kkt_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, method: str, kernel: str = "auto"):
+    """:func:`kkt_factor` and :func:`kkt_solve` of a first right-hand side: (KKT, step). One
+    kernel on a GPU (:func:`riccati_factor_solve`)."""
+    if method != "riccati":
+        kkt = kkt_factor(A, B, Phi_u, Phi_x, method)
+        return kkt, kkt_solve(kkt, g_u, g_x, rp, method)
+    factor, step = riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)
+    return KKT(A, B, Phi_u, Phi_x, factor), step
 
 
 def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
@@ -400,16 +588,18 @@ def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
     return r_u, r_x, r_p
 
 
-def kkt_refine(kkt: KKT, g_u, g_x, rp, step: NewtonStep, method: str) -> NewtonStep:
+def kkt_refine(
+    kkt: KKT, g_u, g_x, rp, step: NewtonStep, method: str, kernel: str = "auto"
+) -> NewtonStep:
     """One step of iterative refinement: ``step`` plus the solve of its residual with the same
     factorisation (one more :func:`riccati_apply`)."""
     r_u, r_x, r_p = kkt_residual(kkt, g_u, g_x, rp, step)
-    d = kkt_solve(kkt, r_u, r_x, r_p, method)
+    d = kkt_solve(kkt, r_u, r_x, r_p, method, kernel)
     return NewtonStep(step.du + d.du, step.dx + d.dx, step.nu + d.nu)
 
 
-def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str) -> NewtonStep:
+def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto") -> NewtonStep:
     """Solve the Newton system of ``kkt`` for one right-hand side (g_u, g_x, rp)."""
     if method == "riccati":
-        return riccati_apply(kkt.factor, g_u, g_x, rp)
+        return riccati_apply(kkt.factor, g_u, g_x, rp, kernel)
     return KKT_SOLVERS[method](kkt.A, kkt.B, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp)

@@ -30,7 +30,7 @@ from rvdjax.solver.barrier import (
     u_slack,
     x_violation,
 )
-from rvdjax.solver.kkt import kkt_factor, kkt_solve
+from rvdjax.solver.kkt import kkt_factor_solve
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["NewtonState", "newton_iteration", "backtrack"]
@@ -180,8 +180,9 @@ def newton_iteration(
     Phi_u, Phi_x = hessian(ocp, rows, s.u, s.x, s.kappa)
     g_u, g_x = gradient(ocp, rows, s.u, s.x, s.kappa)
     r_p = dyn_residual(ocp, s.u, s.x)
-    kkt = kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, settings.method)
-    step = kkt_solve(kkt, g_u, g_x, r_p, settings.method)
+    _, step = kkt_factor_solve(
+        ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, r_p, settings.method, settings.kernel
+    )
     finite = (
         jnp.all(jnp.isfinite(step.du))
         & jnp.all(jnp.isfinite(step.dx))

@@ -26,7 +26,7 @@ from rvdjax.solver.barrier import (
     u_slack,
     x_violation,
 )
-from rvdjax.solver.kkt import kkt_factor, kkt_refine, kkt_solve
+from rvdjax.solver.kkt import kkt_factor_solve, kkt_refine, kkt_solve
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -74,31 +74,29 @@ def pd_start(rows, u0, x0s, nu0, kappa0, done, status) -> PDState:
     return PDState(u0, x0s, nu0, s0, lam, mu, pi, jnp.asarray(0), done, status, gap, inf, su, g)
 
 
-def _pd_step(
-    rows, st: PDState, kkt, base_u, base_x, rp, su, sx, tau_u, tau_x, tau_s, method, refine=False
-):
-    """One solve of the primal-dual Newton system for complementarity targets tau.
+def _pd_rhs(rows, st: PDState, base_u, base_x, su, sx, tau_u, tau_x, tau_s):
+    """Right-hand side (g_u, g_x) of the primal-dual Newton system for complementarity
+    targets tau, and h (the soft rows' slack term).
 
     Linearising lam su = tau_u, mu sx = tau_x, pi s = tau_s and rho = mu + pi, then eliminating
     the row variables leaves the stage-structured system of :mod:`rvdjax.solver.kkt` with
     input-row weight lam/su and soft-row weight a c / (a + c) (a = mu/sx, c = pi/s). ``base_u``,
-    ``base_x`` are the cost gradient (2 R u + r, 2 Q (x - x_ref) + q) and ``rp`` the dynamics
-    residual, shared by the predictor and the corrector. Returns the full steps of every
-    variable and Fx dx.
+    ``base_x`` are the cost gradient (2 R u + r, 2 Q (x - x_ref) + q), shared by the predictor
+    and the corrector.
     """
-    Du = rows.wu * st.lam / su
     a = st.mu / sx
     c = st.pi / st.s
     h = tau_x / sx + tau_s / st.s - rows.rho
     g_u = base_u + sw.mtv(rows.Fu, rows.wu * tau_u / su)
     g_x = base_x + sw.mtv(rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
-    step = kkt_solve(kkt, g_u, g_x, rp, method)
-    if refine:
-        # The corrector's step is the one taken. Near the solution the Newton matrix is as
-        # ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's
-        # residual depends on how XLA contracts its products (kkt.py): with loops compiled
-        # whole, 4 of 32 random N = 60 problems ended NONFINITE without this step.
-        step = kkt_refine(kkt, g_u, g_x, rp, step, method)
+    return g_u, g_x, h
+
+
+def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
+    """The full steps of every variable from the step of the stage system, and Fx dx."""
+    Du = rows.wu * st.lam / su
+    a = st.mu / sx
+    c = st.pi / st.s
     Fdu = sw.mv(rows.Fu, step.du)
     Fdx = sw.mv(rows.Fx, step.dx)
     ds = (a * Fdx + h) / (a + c)
@@ -124,7 +122,7 @@ def pd_iteration(
     ocp, rows, m_eff, x_scale, st: PDState, settings: SolverSettings, params: SolverParams
 ) -> PDState:
     """One Mehrotra predictor-corrector iteration from ``st``."""
-    method = settings.method
+    method, kernel = settings.method, settings.kernel
     su = st.su
     sx = st.s - st.g
     # shared by the predictor and the corrector
@@ -136,12 +134,14 @@ def pd_iteration(
     c = st.pi / st.s
     Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, Du)
     Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
-    kkt = kkt_factor(ocp.A, ocp.B, Phi_u, Phi_x, method)
     wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
 
-    # Predictor: the affine-scaling direction (tau = 0).
+    # Predictor: the affine-scaling direction (tau = 0), solved with the factorisation.
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
-    aff = _pd_step(rows, st, kkt, base_u, base_x, rp, su, sx, zero_u, zero_x, zero_x, method)
+    taus = (zero_u, zero_x, zero_x)
+    g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
+    kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel)
+    aff = _pd_unpack(rows, st, step, su, sx, *taus, h)
     _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a, _ = aff
     alpha_a = _max_step(
         ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
@@ -171,21 +171,19 @@ def pd_iteration(
     # for dozens of iterations (up to 82 per solve). Damping by alpha_a (one factor, as the
     # centring target also moves with the step) halved the iterations per solve there.
     damp = alpha_a
-    step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_step(
-        rows,
-        st,
-        kkt,
-        base_u,
-        base_x,
-        rp,
-        su,
-        sx,
+    taus = (
         kappa - damp * dsu_a * dlam_a,
         kappa - damp * dsx_a * dmu_a,
         kappa - damp * ds_a * dpi_a,
-        method,
-        refine=True,
     )
+    g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
+    step = kkt_solve(kkt, g_u, g_x, rp, method, kernel)
+    # The corrector's step is the one taken. Near the solution the Newton matrix is as
+    # ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's residual
+    # depends on how XLA contracts its products (kkt.py): with loops compiled whole, 4 of 32
+    # random N = 60 problems ended NONFINITE without this refinement step.
+    step = kkt_refine(kkt, g_u, g_x, rp, step, method, kernel)
+    step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
     finite = all_finite((step, ds, dlam, dmu, dpi, dsu, Fdx))
     alpha = _max_step(((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask)
     alpha = jnp.minimum(1.0, 0.99 * alpha)

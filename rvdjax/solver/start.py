@@ -70,7 +70,7 @@ def pull_inside(rows: Rows, u, margin=0.99):
     return u * theta[:, None]
 
 
-def track_plan(ocp: OCP, u_prev, x_prev, method: str):
+def track_plan(ocp: OCP, u_prev, x_prev, method: str, kernel: str = "auto"):
     """Inputs that follow a previous plan from the new x0: the minimiser of
     sum (x - x_prev)' Q (x - x_prev) + (u - u_prev)' R (u - u_prev) subject to the dynamics
     (one Riccati solve: the plan's own weights turn the deviation of x0 into the LQR
@@ -81,5 +81,5 @@ def track_plan(ocp: OCP, u_prev, x_prev, method: str):
     Phi_x = 2.0 * ocp.Q
     g_u = jnp.zeros_like(u_prev)
     g_x = 2.0 * sw.mv(ocp.Q, x_drift - x_prev)
-    step = KKT_SOLVERS[method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, jnp.zeros_like(x_prev))
+    step = KKT_SOLVERS[method](ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, jnp.zeros_like(x_prev), kernel)
     return jnp.where(jnp.all(jnp.isfinite(step.du)), u_prev + step.du, u_prev)

@@ -21,6 +21,7 @@ MODES = ("paper", "accurate", "barrier")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
+KERNELS = ("auto", "xla", "pallas")  # rvdjax.solver.kkt.KERNELS
 
 
 class Status:
@@ -72,6 +73,11 @@ class SolverSettings:
             inputs that follow the warm start's states from the new x0 (the LQR correction
             with the OCP's own Q, R; one extra Riccati solve). docs/reproduction.md gives the
             measurements behind the default.
+        kernel: how the Riccati sweeps of the Newton step run. "auto" (default): one GPU
+            kernel per sweep (:mod:`rvdjax.solver.lanes`) when the program is compiled for a
+            CUDA GPU, XLA's loops elsewhere (the CPU's faster path); "xla": XLA's loops
+            everywhere; "pallas": the GPU kernels everywhere, interpreted off the GPU (the
+            tests check them there). The three give the same iterates to rounding.
     """
 
     mode: str = "accurate"
@@ -81,6 +87,7 @@ class SolverSettings:
     line_search_batch: int = 8
     backend: str = "rvdjax"
     paper_start: str = "feasible"
+    kernel: str = "auto"
 
     def __post_init__(self):
         for name, allowed in (
@@ -88,6 +95,7 @@ class SolverSettings:
             ("method", METHODS),
             ("backend", BACKENDS),
             ("paper_start", PAPER_STARTS),
+            ("kernel", KERNELS),
         ):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")

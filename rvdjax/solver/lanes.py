@@ -1,0 +1,414 @@
+"""The Riccati factorisation and solves of the Newton step as GPU kernels, one problem per lane.
+
+On a GPU the XLA form of the recursion (:mod:`rvdjax.solver.kkt`) is a ``lax.scan`` over the
+horizon whose body becomes several small kernels per stage, every stage's blocks passing
+through device memory between them: at 65 536 problems an iteration took ~717 ns per problem
+on an H100 where its ~30 KB of traffic needs 10-20 ns (DESIGN §8a). Here the whole recursion
+is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU solvers do
+(GATO, CusADi: one instance per thread, the stages in a loop inside the kernel):
+
+* the batch is the minor axis: every array is laid out [stage][entry][problem] and a program
+  owns a tile of ``BLOCK`` consecutive problems, so each load of one matrix entry is one
+  coalesced vector load across the tile;
+* the 6x6, 6x3 and 3x3 algebra is written out entry by entry over those lane vectors
+  (nested lists of ``(BLOCK,)`` vectors, no ``dot``: float64 MMA needs blocks of 16 and more);
+  the cost-to-go P and the affine term p live in registers across the stage loop;
+* the gains K, BPA, P (and the backward sweep's k, p) are written once per stage and read
+  back by the forward sweep.
+
+Three kernels: :func:`factor_solve` (the backward factorisation together with the backward
+sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
+right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
+compute the recursion of :mod:`rvdjax.solver.kkt` in the same order (the Joseph form, the
+refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
+runs them on the CPU for the tests.
+
+Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
+axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
+(N, nx, nx, b), right-hand sides ``g_u`` (N, nu, b), ``g_x``, ``rp`` (N, nx, b). The batch is
+padded to a multiple of ``BLOCK`` inside.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+__all__ = [
+    "KernelConfig",
+    "configured",
+    "default_config",
+    "chol",
+    "chol_solve",
+    "factor",
+    "factor_solve",
+    "apply",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class KernelConfig:
+    """Static launch configuration of the kernels.
+
+    Attributes:
+        block: problems per program (the lanes of one tile); a power of two.
+        num_warps: warps per program (Triton): 4 warps = 128 threads, one problem each at
+            block = 128.
+        interpret: run the kernels in Pallas' interpreter (the CPU; tests).
+    """
+
+    block: int = 128
+    num_warps: int = 4
+    interpret: bool = False
+
+
+_DEFAULT = [KernelConfig()]
+
+
+def default_config() -> KernelConfig:
+    """The launch configuration the solver's kernels are traced with."""
+    return _DEFAULT[0]
+
+
+@contextlib.contextmanager
+def configured(**changes):
+    """Trace the solver's kernels with another launch configuration inside the block (e.g.
+    ``block=64`` in a benchmark); programs compiled before keep theirs."""
+    old = _DEFAULT[0]
+    _DEFAULT[0] = dataclasses.replace(old, **changes)
+    try:
+        yield _DEFAULT[0]
+    finally:
+        _DEFAULT[0] = old
+
+
+# ----------------------------------------------------------------------- lane-vector algebra
+#
+# A matrix is a list of rows, each a list of entries; an entry is anything that broadcasts
+# (a lane vector, a scalar of a shared model, a traced array with trailing batch axes). Sums
+# run left to right from 0, as the elementwise products of :mod:`rvdjax.solver.kkt` do.
+
+
+def _dot(xs, ys):
+    return sum(x * y for x, y in zip(xs, ys, strict=True))
+
+
+def _col(X, j):
+    return [row[j] for row in X]
+
+
+def _mm(X, Y):
+    """X @ Y."""
+    cols = [_col(Y, j) for j in range(len(Y[0]))]
+    return [[_dot(row, c) for c in cols] for row in X]
+
+
+def _mtm(X, Y):
+    """X^T @ Y."""
+    return [[_dot(_col(X, i), _col(Y, j)) for j in range(len(Y[0]))] for i in range(len(X[0]))]
+
+
+def _mv(X, v):
+    return [_dot(row, v) for row in X]
+
+
+def _mtv(X, v):
+    return [_dot(_col(X, j), v) for j in range(len(X[0]))]
+
+
+def _add(X, Y):
+    return [[x + y for x, y in zip(rx, ry, strict=True)] for rx, ry in zip(X, Y, strict=True)]
+
+
+def _sym(X):
+    n = len(X)
+    return [[0.5 * (X[i][j] + X[j][i]) for j in range(n)] for i in range(n)]
+
+
+def chol(H):
+    """Lower Cholesky factor of a small SPD matrix (lists), entry by entry; NaN if H is not
+    positive definite. The upper triangle is None."""
+    n = len(H)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = jnp.sqrt(H[j][j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            L[i][j] = (H[i][j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
+    return L
+
+
+def chol_solve(L, b):
+    """x with (L L^T) x = b for a lower factor from :func:`chol` and a vector b (list)."""
+    n = len(L)
+    y = []
+    for i in range(n):
+        y.append((b[i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i])
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, n))) / L[i][i]
+    return x
+
+
+def _chol_solve_mat(L, Bm):
+    """X with (L L^T) X = Bm, column by column."""
+    cols = [chol_solve(L, _col(Bm, j)) for j in range(len(Bm[0]))]
+    return [[c[i] for c in cols] for i in range(len(L))]
+
+
+# ----------------------------------------------------------------------- one stage of a sweep
+
+
+def _split(M, nu):
+    """(A, B) of a stage's [B, A]."""
+    return [row[nu:] for row in M], [row[:nu] for row in M]
+
+
+def _factor_stage(P, M, Phu, Phx_prev):
+    """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.kkt.riccati_factor`'s stage.
+    M is the stage's [B, A]."""
+    nu = len(Phu)
+    A, B = _split(M, nu)
+    PM = _mm(P, M)
+    BPM = _mtm(B, PM)
+    H = _add(Phu, _sym([row[:nu] for row in BPM]))
+    L = chol(H)
+    BPA = [row[nu:] for row in BPM]
+    K = [[-v for v in row] for row in _chol_solve_mat(L, BPA)]
+    # one refinement of K against H (the reason is in rvdjax.solver.kkt._factor)
+    E = _chol_solve_mat(L, _add(_mm(H, K), BPA))
+    K = [[k - e for k, e in zip(rk, re, strict=True)] for rk, re in zip(K, E, strict=True)]
+    PAcl = _add([row[nu:] for row in PM], _mm([row[:nu] for row in PM], K))
+    Acl = _add(A, _mm(B, K))
+    P_new = _add(_add(Phx_prev, _sym(_mtm(Acl, PAcl))), _sym(_mtm(K, _mm(Phu, K))))
+    return P_new, L, K, BPA
+
+
+def _backward_rhs(p, M, L, BPA, P, gu, r, gx_prev):
+    """(p_t, k_t) from p_{t+1}: :func:`rvdjax.solver.kkt.riccati_apply`'s backward stage."""
+    nu = len(L)
+    Pr = _mv(P, r)
+    Mp = _mtv(M, [pi - q for pi, q in zip(p, Pr, strict=True)])
+    k = [-v for v in chol_solve(L, [g + m for g, m in zip(gu, Mp[:nu], strict=True)])]
+    bk = _mtv(BPA, k)
+    p_new = [g + m + b for g, m, b in zip(gx_prev, Mp[nu:], bk, strict=True)]
+    return p_new, k
+
+
+def _forward(dx, M, K, k, r, P, p):
+    """(dx_{t+1}, du_t, nu_t) from dx_t: the forward stage of the step."""
+    du = [a + b for a, b in zip(_mv(K, dx), k, strict=True)]
+    dx_next = [v - ri for v, ri in zip(_mv(M, du + dx), r, strict=True)]
+    nu_t = [-(a + b) for a, b in zip(_mv(P, dx_next), p, strict=True)]
+    return dx_next, du, nu_t
+
+
+# ------------------------------------------------------------------------------ the kernels
+
+
+def _load(ref, t, *shape):
+    """The (shape) entries of stage t of a [stage][entry...][problem] ref."""
+    if len(shape) == 1:
+        return [ref[t, i] for i in range(shape[0])]
+    return [[ref[t, i, j] for j in range(shape[1])] for i in range(shape[0])]
+
+
+def _store(ref, t, X):
+    if not isinstance(X[0], list):
+        for i, v in enumerate(X):
+            ref[t, i] = v
+        return
+    for i, row in enumerate(X):
+        for j, v in enumerate(row):
+            ref[t, i, j] = jnp.zeros_like(X[0][0]) if v is None else v
+
+
+def _tri(P):
+    """The lower triangle of a symmetric list matrix as a flat tuple (the loop carry)."""
+    return tuple(P[i][j] for i in range(len(P)) for j in range(i + 1))
+
+
+def _untri(flat, n):
+    P = [[None] * n for _ in range(n)]
+    it = iter(flat)
+    for i in range(n):
+        for j in range(i + 1):
+            P[i][j] = P[j][i] = next(it)
+    return P
+
+
+def _kernel(N, nx, nu, lanes, with_rhs, factorise, *refs):
+    """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
+
+    refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
+    factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp; outputs: (factorise) L, K, BPA,
+    P; (with_rhs) du, dx, nu. The backward sweep keeps k_t in du's rows and p_{t+1} in nu's
+    rows until the forward sweep overwrites them.
+    """
+    refs = list(refs)
+    M_ref = refs[0]
+    pos = 1
+    if factorise:
+        Phu_ref, Phx_ref = refs[pos : pos + 2]
+        pos += 2
+    else:
+        L_in, K_in, BPA_in, P_in = refs[pos : pos + 4]
+        pos += 4
+    if with_rhs:
+        gu_ref, gx_ref, rp_ref = refs[pos : pos + 3]
+        pos += 3
+    outs = refs[pos:]
+    if factorise:
+        L_ref, K_ref, BPA_ref, P_ref = outs[:4]
+        outs = outs[4:]
+    else:
+        L_ref, K_ref, BPA_ref, P_ref = L_in, K_in, BPA_in, P_in
+    if with_rhs:
+        du_ref, dx_ref, nu_ref = outs
+    dtype = (Phx_ref if factorise else P_ref).dtype
+    zero = jnp.zeros((lanes,), dtype)
+
+    def backward(i, carry):
+        t = N - 1 - i
+        M = _load(M_ref, t, nx, nu + nx)
+        if factorise:
+            P = _untri(carry[0], nx)
+            Phu = _load(Phu_ref, t, nu, nu)
+            prev = jnp.maximum(t - 1, 0)
+            on = t > 0
+            Phx = _load(Phx_ref, prev, nx, nx)
+            Phx_prev = [[jnp.where(on, v, 0.0) for v in row] for row in Phx]
+            P_new, L, K, BPA = _factor_stage(P, M, Phu, Phx_prev)
+            _store(P_ref, t, P)
+            _store(L_ref, t, L)
+            _store(K_ref, t, K)
+            _store(BPA_ref, t, BPA)
+            new = (_tri(P_new),)
+        else:
+            P = _load(P_ref, t, nx, nx)
+            L = _load(L_ref, t, nu, nu)
+            BPA = _load(BPA_ref, t, nu, nx)
+            new = ()
+        if with_rhs:
+            p = list(carry[-1])
+            prev = jnp.maximum(t - 1, 0)
+            on = t > 0
+            gx_prev = [jnp.where(on, v, 0.0) for v in _load(gx_ref, prev, nx)]
+            p_new, k = _backward_rhs(
+                p, M, L, BPA, P, _load(gu_ref, t, nu), _load(rp_ref, t, nx), gx_prev
+            )
+            _store(du_ref, t, k)
+            _store(nu_ref, t, p)
+            new = new + (tuple(p_new),)
+        return new
+
+    carry = ()
+    if factorise:
+        carry += (_tri(_load(Phx_ref, N - 1, nx, nx)),)
+    if with_rhs:
+        carry += (tuple(_load(gx_ref, N - 1, nx)),)
+    lax.fori_loop(0, N, backward, carry)
+    if not with_rhs:
+        return
+
+    def forward(t, dx):
+        dx_next, du, nu_t = _forward(
+            list(dx),
+            _load(M_ref, t, nx, nu + nx),
+            _load(K_ref, t, nu, nx),
+            _load(du_ref, t, nu),
+            _load(rp_ref, t, nx),
+            _load(P_ref, t, nx, nx),
+            _load(nu_ref, t, nx),
+        )
+        _store(du_ref, t, du)
+        _store(dx_ref, t, dx_next)
+        _store(nu_ref, t, nu_t)
+        return tuple(dx_next)
+
+    lax.fori_loop(0, N, forward, tuple(zero for _ in range(nx)))
+
+
+def _compiler_params(cfg: KernelConfig):
+    if cfg.interpret:
+        return None
+    from jax.experimental.pallas import triton as pltr
+
+    return pltr.CompilerParams(num_warps=cfg.num_warps, num_stages=1)
+
+
+def _pad(a, b_pad):
+    """Pad the trailing batch axis to ``b_pad`` by repeating the last problem (padding lanes
+    then compute a real problem's numbers: no NaN, nothing to mask)."""
+    b = a.shape[-1]
+    if b == b_pad:
+        return a
+    return jnp.concatenate([a, jnp.broadcast_to(a[..., -1:], (*a.shape[:-1], b_pad - b))], -1)
+
+
+def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
+    from jax.experimental import pallas as pl
+
+    N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
+    b = mats[-1].shape[-1]
+    lanes = cfg.block
+    b_pad = -(-b // lanes) * lanes
+    model_batched = M.ndim == 4
+    if model_batched:
+        M = _pad(M, b_pad)
+    mats = [_pad(m, b_pad) for m in mats]
+    rhs = [_pad(r, b_pad) for r in rhs]
+    dtype = mats[-1].dtype
+
+    def spec(shape, batched=True):
+        n = len(shape)
+        if not batched:
+            return pl.BlockSpec(tuple(shape), lambda i: (0,) * n)
+        return pl.BlockSpec((*shape[:-1], lanes), lambda i: (0,) * (n - 1) + (i,))
+
+    out_shapes = []
+    if factorise:
+        out_shapes += [(N, nu, nu), (N, nu, nx), (N, nu, nx), (N, nx, nx)]
+    if with_rhs:
+        out_shapes += [(N, nu), (N, nx), (N, nx)]
+    out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
+    ins = [M, *mats, *rhs]
+    kernel = functools.partial(_kernel, N, nx, nu, lanes, with_rhs, factorise)
+    res = pl.pallas_call(
+        kernel,
+        out_shape=out_shapes,
+        grid=(b_pad // lanes,),
+        in_specs=[spec(M.shape, model_batched)] + [spec(a.shape) for a in ins[1:]],
+        out_specs=[spec(s.shape) for s in out_shapes],
+        interpret=cfg.interpret,
+        compiler_params=_compiler_params(cfg),
+        name="rvdjax_riccati" + ("_factor" if factorise else "") + ("_solve" if with_rhs else ""),
+    )(*ins)
+    return [r[..., :b] for r in res]
+
+
+def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig()):
+    """Backward Riccati factorisation: (L, K, BPA, P), each [stage][entry][problem].
+
+    Args:
+        M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared).
+        Phi_u: (N, nu, nu, b), Phi_x: (N, nx, nx, b) Hessian blocks.
+    """
+    return tuple(_call(cfg, True, False, M, [Phi_u, Phi_x], []))
+
+
+def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
+    """Factorisation and the step of one right-hand side in one kernel:
+    ((L, K, BPA, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b)."""
+    out = _call(cfg, True, True, M, [Phi_u, Phi_x], [g_u, g_x, rp])
+    return tuple(out[:4]), tuple(out[4:])
+
+
+def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation."""
+    return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp]))

@@ -1,0 +1,410 @@
+"""GPU benchmark: QPs per second and maneuvers per second on one GPU against the same
+machine's CPU cores, in one run of at most 5 minutes per part, compile included.
+
+Parts (``python sweeps/gpu_benchmark.py [qp|study|all]``, from the repository root with
+``PYTHONPATH=.`` on a machine whose jax has GPU support; nothing to install):
+
+* ``qp``: the fastmpc-3d first-step QPs (paper 000 Table 1, x0 perturbed, N = 30):
+  ``jit(vmap(solve))`` per QP at B = 1, 16 384 and 65 536 in accurate and paper modes, with
+  the Newton step's GPU kernels (``kernel="auto"``) and, for the same run's comparison, XLA's
+  loops on the GPU (``kernel="xla"``, the code before the kernels); the same rows on the
+  machine's CPU cores (one XLA host device per core, the batch split over them, chunks of
+  32 per core); float32 paper mode (NONFINITE count and objective error against float64);
+  one fastmpc-3d maneuver per MPC step on the GPU and on one CPU core; compile times, XLA's
+  planned memory per program, the GPU's peak memory, and the kernels per solver iteration
+  counted in the compiled GPU program.
+* ``study``: the batch engine at GPU scale (``sweeps/gpu_study_benchmark.py``).
+
+Every row is appended to ``OUT/gpu_benchmark.jsonl`` as it is measured (so a run cut short
+keeps what it measured) and the table is printed at the end. ``--smoke`` runs tiny sizes on
+whatever device there is (the CPU here): the script's own test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+import time
+
+# One XLA host device per core for the CPU rows: set before JAX starts.
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "")
+        + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
+    ).strip()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import rvdjax  # noqa: E402, F401  (float64)
+from rvdjax import devices  # noqa: E402
+from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0  # noqa: E402
+from rvdjax.solver import SolverSettings, Status, lanes, solve  # noqa: E402
+
+SIZES = (1, 16384, 65536)
+SMOKE_SIZES = (1, 64, 256)
+
+
+class Recorder:
+    """Rows appended to a JSON-lines file as they come, and kept for the table."""
+
+    def __init__(self, path):
+        self.path, self.rows = path, []
+
+    def add(self, **row):
+        row = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in row.items()}
+        self.rows.append(row)
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(row) + "\n")
+        print(
+            "  " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.items() if v is not None),
+            flush=True,
+        )
+
+
+def _fmt(v):
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def _time(fn, *args, repeats=3):
+    """(seconds of the fastest of ``repeats`` calls, the result)."""
+    best, out = np.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def _planned_mb(compiled) -> float:
+    try:
+        m = compiled.memory_analysis()
+        return (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes) / 2**20
+    except Exception:  # backend dependent
+        return float("nan")
+
+
+def _peak_mb(device) -> float:
+    try:
+        return device.memory_stats()["peak_bytes_in_use"] / 2**20
+    except Exception:  # the CPU has no memory stats
+        return float("nan")
+
+
+_WHILE = re.compile(r"\swhile\(.*?condition=%?([\w.\-]+),\s*body=%?([\w.\-]+)")
+_TRIP = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+_LAUNCH = re.compile(r"\s(fusion|custom-call|copy|transpose|dynamic-update-slice)\(")
+_CALLS = re.compile(
+    r"(?:calls|to_apply|true_computation|false_computation)=%?([\w.\-]+)"
+    r"|branch_computations=\{([^}]*)\}"
+)
+
+
+def _computations(hlo: str) -> tuple[dict, str]:
+    comps, name, entry = {}, None, None
+    for line in hlo.splitlines():
+        if line and not line[0].isspace() and line.rstrip().endswith("{"):
+            name = line.split()[1 if line.startswith("ENTRY") else 0].lstrip("%")
+            comps[name] = []
+            if line.startswith("ENTRY"):
+                entry = name
+        elif name is not None and line.startswith(" "):
+            comps[name].append(line)
+    return comps, entry
+
+
+def _called(line: str) -> list[str]:
+    out = []
+    for one, many in _CALLS.findall(line):
+        out += [one] if one else [c.strip().lstrip("%") for c in many.split(",")]
+    return [c for c in out if c]
+
+
+def kernels_per_iteration(hlo: str) -> dict:
+    """Kernel launches per solver iteration in a compiled program's HLO text: the body of the
+    largest top-level while loop (the solve loop), nested loops counted times their trip
+    count where XLA knows it (else once). A launch is a fusion, a custom call (a Pallas
+    kernel), or a copy, transpose or in-place update left unfused. Approximate (both
+    branches of a conditional count), for comparing programs."""
+    comps, entry = _computations(hlo)
+
+    def count(comp, seen=()):
+        if comp in seen or comp not in comps:
+            return 0, 0
+        launches = loops = 0
+        for line in comps[comp]:
+            w = _WHILE.search(line)
+            if w:
+                trip = _TRIP.search(line)
+                n = int(trip.group(1)) if trip else 1
+                inner, inner_loops = count(w.group(2), (*seen, comp))
+                launches += n * inner + 1  # + the loop condition's check
+                loops += 1 + inner_loops
+                continue
+            if _LAUNCH.search(line):
+                launches += 1
+            for c in _called(line):
+                if " fusion(" not in line:  # a fusion is one launch, whatever it calls
+                    a, b = count(c, (*seen, comp))
+                    launches, loops = launches + a, loops + b
+        return launches, loops
+
+    def top_level(comp, seen=()):
+        if comp in seen or comp not in comps:
+            return []
+        found = []
+        for line in comps[comp]:
+            w = _WHILE.search(line)
+            if w:
+                found.append(w.group(2))
+            elif " fusion(" not in line:
+                for c in _called(line):
+                    found += top_level(c, (*seen, comp))
+        return found
+
+    bodies = top_level(entry) if entry else []
+    if not bodies:
+        return {"launches": None, "inner_loops": None}
+    launches, loops = max(count(b) for b in bodies)
+    return {"launches": launches, "inner_loops": loops}
+
+
+def _ocps(n: int, dtype=jnp.float64):
+    x0s = perturbed_x0(0, n)
+    ocps = fastmpc3d_first_step_batch(x0s)
+    return jax.tree.map(lambda a: a.astype(dtype) if a.dtype == jnp.float64 else a, ocps)
+
+
+def _settings(mode: str, kernel: str) -> SolverSettings:
+    return SolverSettings.paper(kernel=kernel) if mode == "paper" else SolverSettings(kernel=kernel)
+
+
+def _gpu_row(rec, device, mode, kernel, n, ocps_host, dtype="float64", ref=None, label=None):
+    """One jit(vmap(solve)) row on ``device``; returns the solutions (host)."""
+    settings = _settings(mode, kernel)
+    fn = jax.jit(jax.vmap(lambda o: solve(o, settings)))
+    ocps = jax.device_put(ocps_host, device)
+    t0 = time.perf_counter()
+    compiled = fn.lower(ocps).compile()
+    compile_s = time.perf_counter() - t0
+    sec, sol = _time(compiled, ocps)
+    status = np.asarray(sol.status)
+    row = dict(
+        part="qp",
+        device=devices.describe(device),
+        kernel=label or kernel,
+        mode=mode,
+        dtype=dtype,
+        batch=n,
+        us_per_qp=1e6 * sec / n,
+        qps_per_s=n / sec,
+        iterations=float(np.mean(np.asarray(sol.iterations))),
+        nonfinite=int(np.sum(status == Status.NONFINITE)),
+        converged=int(np.sum(status == Status.CONVERGED)),
+        compile_s=compile_s,
+        planned_mb=_planned_mb(compiled),
+        peak_mb=_peak_mb(device),
+    )
+    if device.platform != "cpu":
+        row.update(kernels_per_iteration(compiled.as_text()))
+    if ref is not None:
+        J, J_ref = np.asarray(sol.objective, float), np.asarray(ref.objective, float)
+        ok = np.isfinite(J) & np.isfinite(J_ref)
+        row["max_rel_objective_error"] = float(
+            np.max(np.abs(J[ok] - J_ref[ok]) / np.abs(J_ref[ok]), initial=0.0)
+        )
+    rec.add(**row)
+    return jax.device_get(sol)
+
+
+def _cpu_row(rec, mode, n, ocps_host, chunk=32):
+    """The same QPs on every CPU core: the batch split over the host devices (shard_map),
+    each solving chunks of ``chunk`` (the CPU's fast path, rvdjax.solver.solve_batch)."""
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from rvdjax.solver import solve_batch
+
+    cpus = jax.devices("cpu")
+    D = max(d for d in range(1, len(cpus) + 1) if n % d == 0)
+    mesh = Mesh(np.asarray(cpus[:D]), ("b",))
+    settings = _settings(mode, "xla")
+
+    def local(ocps):
+        return solve_batch(ocps, settings, chunk=min(chunk, n // D))
+
+    fn = jax.jit(
+        jax.shard_map(local, mesh=mesh, in_specs=P("b"), out_specs=P("b"), check_vma=False)
+    )
+    ocps = jax.device_put(ocps_host, NamedSharding(mesh, P("b")))
+    t0 = time.perf_counter()
+    compiled = fn.lower(ocps).compile()
+    compile_s = time.perf_counter() - t0
+    sec, sol = _time(compiled, ocps)
+    rec.add(
+        part="qp",
+        device=f"cpu x {D} cores",
+        kernel="xla",
+        mode=mode,
+        dtype="float64",
+        batch=n,
+        us_per_qp=1e6 * sec / n,
+        qps_per_s=n / sec,
+        iterations=float(np.mean(np.asarray(sol.iterations))),
+        nonfinite=int(np.sum(np.asarray(sol.status) == Status.NONFINITE)),
+        converged=int(np.sum(np.asarray(sol.status) == Status.CONVERGED)),
+        compile_s=compile_s,
+        planned_mb=_planned_mb(compiled),
+        peak_mb=float("nan"),
+    )
+
+
+def _maneuver_row(rec, device, kernel="auto"):
+    """One fastmpc-3d maneuver (rvdjax run's closed loop) per MPC step on ``device``."""
+    from rvdjax.loop import fly
+    from rvdjax.scenarios import get_scenario
+
+    sc = get_scenario("fastmpc-3d")
+    params, x0 = sc.build()
+    loop = sc.loop(settings=sc.settings("accurate", kernel=kernel))
+    with jax.default_device(device):
+        f = jax.jit(lambda p, x: fly(loop, p, x)[1])
+        t0 = time.perf_counter()
+        m = jax.block_until_ready(f(params, x0))
+        compile_s = time.perf_counter() - t0
+        sec, m = _time(f, params, x0, repeats=2)
+    steps = int(m.steps)
+    rec.add(
+        part="maneuver",
+        device=devices.describe(device),
+        kernel=kernel,
+        mode="accurate",
+        scenario="fastmpc-3d",
+        ms_per_step=1e3 * sec / steps,
+        steps=steps,
+        effort_l1_N_s=float(m.effort_l1_N_s),
+        compile_s=compile_s,
+    )
+
+
+def qp_part(rec, budget_s: float, smoke: bool) -> None:
+    t_start = time.perf_counter()
+    sizes = SMOKE_SIZES if smoke else SIZES
+    accel = [d for d in jax.devices() if d.platform != "cpu"]
+    gpu = accel[0] if accel else jax.devices("cpu")[0]
+    if not accel:
+        print("no GPU: the 'gpu' rows run on the CPU (a smoke test of the script)", flush=True)
+    host = {n: jax.device_get(_ocps(n)) for n in sizes}
+
+    def left():
+        return budget_s - (time.perf_counter() - t_start)
+
+    # In priority order: the issue's targets first, then the comparisons.
+    plan = [("gpu", m, "auto", n) for m in ("accurate", "paper") for n in reversed(sizes)]
+    plan += [("gpu", "accurate", "xla", sizes[-1]), ("gpu", "accurate", "xla", 1)]
+    plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes]
+    plan += [("f32", "paper", "auto", sizes[-1]), ("maneuver", gpu), ("maneuver", "cpu")]
+    # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig), if time is left
+    plan += [("tile", block, warps, sizes[-1]) for block, warps in ((64, 2), (256, 8), (128, 2))]
+    refs = {}
+    for item in plan:
+        if left() < 20:
+            print(f"time budget reached: skipped {item}", flush=True)
+            continue
+        try:
+            if item[0] == "gpu":
+                _, mode, kernel, n = item
+                sol = _gpu_row(rec, gpu, mode, kernel, n, host[n])
+                refs.setdefault((mode, n), sol)
+            elif item[0] == "cpu":
+                _cpu_row(rec, item[1], item[3], host[item[3]])
+            elif item[0] == "tile":
+                _, block, warps, n = item
+                with lanes.configured(block=block, num_warps=warps):
+                    label = f"auto, block {block}, {warps} warps"
+                    _gpu_row(rec, gpu, "accurate", "auto", n, host[n], label=label)
+            elif item[0] == "f32":
+                _, mode, kernel, n = item
+                h32 = jax.tree.map(
+                    lambda a: a.astype(np.float32) if a.dtype == np.float64 else a, host[n]
+                )
+                _gpu_row(rec, gpu, mode, kernel, n, h32, "float32", refs.get((mode, n)))
+            else:
+                dev = jax.devices("cpu")[0] if item[1] == "cpu" else item[1]
+                _maneuver_row(rec, dev)
+        except Exception as err:  # a failed row is a result too: say it and go on
+            rec.add(part="qp", error=f"{item}: {type(err).__name__}: {err}"[:500])
+
+
+def format_table(rows) -> str:
+    keys = [
+        ("device", "{}"),
+        ("kernel", "{}"),
+        ("mode", "{}"),
+        ("dtype", "{}"),
+        ("batch", "{}"),
+        ("us_per_qp", "{:.3g}"),
+        ("qps_per_s", "{:.4g}"),
+        ("iterations", "{:.3g}"),
+        ("nonfinite", "{}"),
+        ("launches", "{}"),
+        ("compile_s", "{:.1f}"),
+        ("planned_mb", "{:.0f}"),
+        ("peak_mb", "{:.0f}"),
+        ("max_rel_objective_error", "{:.1e}"),
+    ]
+    qp = [r for r in rows if r.get("part") == "qp" and "error" not in r]
+    out = ["| " + " | ".join(k for k, _ in keys) + " |", "|" + " --- |" * len(keys)]
+    for r in qp:
+        cells = []
+        for k, f in keys:
+            v = r.get(k)
+            cells.append("" if v is None or (isinstance(v, float) and np.isnan(v)) else f.format(v))
+        out.append("| " + " | ".join(cells) + " |")
+    for r in rows:
+        if r.get("part") == "maneuver":
+            out.append(
+                f"one fastmpc-3d maneuver on {r['device']}: {r['ms_per_step']:.3g} ms per MPC "
+                f"step ({r['steps']} steps, compile {r['compile_s']:.1f} s)"
+            )
+        if "error" in r:
+            out.append(f"error: {r['error']}")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("part", nargs="?", default="all", choices=("qp", "study", "all"))
+    ap.add_argument("--out", default="results/gpu", help="directory for gpu_benchmark.jsonl")
+    ap.add_argument("--budget-s", type=float, default=None, help="seconds per part (290)")
+    ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
+    args = ap.parse_args(argv)
+    budget = args.budget_s or (60.0 if args.smoke else 290.0)
+    from rvdjax.outputs import check_dir
+
+    check_dir(args.out, "--out")
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "gpu_benchmark.jsonl")
+    rec = Recorder(path)
+    from rvdjax.bench import machine_info
+
+    rec.add(part="machine", machine=machine_info(), devices=[str(d) for d in jax.devices()])
+    if args.part in ("qp", "all"):
+        qp_part(rec, budget, args.smoke)
+    if args.part in ("study", "all"):
+        sys.path.insert(0, os.path.dirname(__file__))
+        import gpu_study_benchmark
+
+        study_args = ["--out", args.out, "--budget-s", str(budget)]
+        gpu_study_benchmark.main(study_args + (["--smoke"] if args.smoke else []))
+    print(format_table(rec.rows))
+    print(f"rows: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,164 @@
+"""The Newton step's GPU kernels (rvdjax.solver.lanes) inside the solver: interpreted on the
+CPU they give today's iterates, statuses, iteration counts and derivatives; compiled for a
+CUDA GPU (lowered here, no GPU needed) the Riccati sweeps are a few kernels per iteration
+and no loop over stages is left in the iteration."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from ocp_factory import SHAPE_CLASSES, random_ocp
+
+from rvdjax.problems import fastmpc3d_first_step, stack_ocps
+from rvdjax.solver import SolverParams, SolverSettings, Status, iterate, lanes, solve, start
+
+# Problems are padded to a tile of ``block`` lanes: a small tile keeps the interpreter cheap.
+BLOCK = 8
+
+
+@functools.cache
+def _solver(settings: SolverSettings):
+    return jax.jit(jax.vmap(lambda o: solve(o, settings)))
+
+
+def _solve(settings, ocps):
+    with lanes.configured(block=BLOCK):
+        return _solver(settings)(ocps)
+
+
+def _rel(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return np.linalg.norm(a - b) / max(np.linalg.norm(a), 1e-300)
+
+
+def _fastmpc_pair():
+    o = fastmpc3d_first_step(obstacles=True)
+    return stack_ocps([o, o._replace(x_mask=jnp.zeros_like(o.x_mask))])
+
+
+CASES = {
+    "fastmpc-3d accurate": (SolverSettings, _fastmpc_pair),
+    "small accurate": (SolverSettings, lambda: _random("small", 4)),
+    "small paper": (SolverSettings.paper, lambda: _random("small", 4)),
+    "medium accurate": (SolverSettings, lambda: _random("medium", 3)),
+}
+
+
+def _random(name, n):
+    return stack_ocps([random_ocp(seed, SHAPE_CLASSES[name]) for seed in range(n)])
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_kernels_give_the_xla_iterates(case):
+    """The same statuses and iteration counts, and the same answer: to 1e-10 relative (in
+    norm) in the plan and the multipliers. Both forms round differently (fused products,
+    summation inside the kernel), and the Newton matrix's conditioning amplifies rounding as
+    the gap closes: on fastmpc-3d the iterates agree to 1e-16 at the first iterations and
+    to ~1e-11 at the ninth, where the XLA form's own batched and unbatched solves differ by
+    2.5e-12 (docs/solver.md). The answer is checked against Clarabel in test_solver."""
+    make, ocps = CASES[case]
+    ocps = ocps()
+    xla = _solve(make(kernel="xla"), ocps)
+    pal = _solve(make(kernel="pallas"), ocps)
+    np.testing.assert_array_equal(np.asarray(pal.status), np.asarray(xla.status))
+    np.testing.assert_array_equal(np.asarray(pal.iterations), np.asarray(xla.iterations))
+    assert set(np.asarray(xla.status).tolist()) <= {Status.CONVERGED, Status.MAX_ITER}
+    for name in ("u", "x", "nu"):
+        assert _rel(getattr(xla, name), getattr(pal, name)) <= 1e-10, name
+    np.testing.assert_allclose(np.asarray(pal.objective), np.asarray(xla.objective), rtol=1e-12)
+
+
+def test_one_iteration_from_the_same_iterate_agrees_to_rounding():
+    """From the same iterate, one accurate-mode iteration with either form lands on the same
+    next iterate to 1e-13 relative while the problem is well conditioned (the first five
+    iterations of fastmpc-3d, gap above 1e3 times the tolerance; later ones are covered by
+    the whole solves above)."""
+    ocps = _fastmpc_pair()
+    params = SolverParams()
+    xs, ps = SolverSettings(kernel="xla"), SolverSettings(kernel="pallas")
+
+    def xla_iterates(o):  # the XLA form's first five iterates, stacked
+        oc, st = start(o, xs, params)
+
+        def body(st, _):
+            return iterate(oc, st, xs, params), st
+
+        return oc, jax.lax.scan(body, st, length=5)[1]
+
+    ocs, states = jax.jit(jax.vmap(xla_iterates))(ocps)
+    ocs = jax.tree.map(lambda a: jnp.repeat(a[:, None], 5, axis=1), ocs)
+
+    def step(settings):
+        one = lambda oc, st: iterate(oc, st, settings, params).core  # noqa: E731
+        return jax.jit(jax.vmap(jax.vmap(one)))
+
+    a = step(xs)(ocs, states)
+    with lanes.configured(block=BLOCK):
+        b = step(ps)(ocs, states)
+    for name in ("u", "x", "nu", "lam", "mu", "pi", "s"):
+        for k in range(5):
+            assert _rel(getattr(a, name)[:, k], getattr(b, name)[:, k]) <= 1e-13, (name, k)
+
+
+def test_kernel_gradients_match_central_differences():
+    """Reverse mode through a solve whose Newton steps and implicit derivative (its adjoint
+    solve) run in the kernels: the XLA form's gradient, and central differences. Paper mode
+    at a fixed kappa solved to convergence, as in test_gradients (a well-conditioned
+    barrier point; accurate mode's tight point amplifies rounding in either form)."""
+    ocp = random_ocp(3, SHAPE_CLASSES["small"])
+    params = SolverParams(kappa=0.5, tol=1e-13)
+
+    def loss(settings, scale, x0):
+        o = ocp._replace(x0=x0, R=ocp.R * scale)
+        sol = solve(o, settings, params=params)
+        return sol.objective + jnp.sum(sol.u**2)
+
+    grads, fds = {}, {}
+    h = 1e-5
+    for kernel in ("xla", "pallas"):
+        settings = SolverSettings.paper(kernel=kernel, max_iter=200)
+        f = jax.jit(functools.partial(loss, settings))
+        with lanes.configured(block=BLOCK):
+            grads[kernel] = jax.jit(jax.grad(functools.partial(loss, settings), (0, 1)))(
+                1.3, ocp.x0
+            )
+            fds[kernel] = (float(f(1.3 + h, ocp.x0)) - float(f(1.3 - h, ocp.x0))) / (2 * h)
+    (gs_x, g0_x), (gs_p, g0_p) = grads["xla"], grads["pallas"]
+    assert float(gs_p) == pytest.approx(float(gs_x), rel=1e-9)
+    np.testing.assert_allclose(np.asarray(g0_p), np.asarray(g0_x), rtol=1e-9)
+    assert float(gs_p) == pytest.approx(fds["pallas"], rel=1e-6)
+    assert fds["pallas"] == pytest.approx(fds["xla"], rel=1e-8)
+
+
+def _cuda_text(fn, *args):
+    return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+
+
+@pytest.mark.parametrize(
+    "settings, kernels, loops",
+    [
+        # accurate: factorisation + predictor, corrector, refinement; loops: the solve, the
+        # start's drift of the warm-start inputs
+        (SolverSettings(), 3, 2),
+        # paper: factorisation + step; loops: the solve, the drift, the line search
+        (SolverSettings.paper(), 1, 3),
+    ],
+)
+def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops):
+    """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
+    a batched and an unbatched solve hold the Riccati sweeps as ``kernels`` Triton kernels
+    and no loop over stages beyond the solve loop, the start's drift and (paper mode) the
+    line search; compiled for the CPU the same program keeps XLA's loops."""
+    ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
+    one = jax.tree.map(lambda a: a[0], ocps)
+    batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
+    single = _cuda_text(lambda o: solve(o, settings), one)
+    for text in (batched, single):
+        assert text.count("__gpu$xla.gpu.triton") == kernels
+        assert text.count("stablehlo.while") == loops
+    cpu = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
+    assert "triton" not in cpu and cpu.count("stablehlo.while") > loops
