@@ -293,25 +293,21 @@ def _lane_M(M, batched: bool):
     return _to_last(M) if batched else M
 
 
-def _pallas_factor_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, rhs=None):
-    """The factorisation (and, with ``rhs`` = ((g_u, g_x, rp), flags), the step of its first
-    right-hand side) by the kernels; outputs batch first, flags as the XLA rule's."""
-    bA, bB, bPu, bPx = in_batched
-    # the XLA rule above BATCH_LAST_MAX returns M batched: the branches must agree
-    m_batched = bool(bA or bB) or axis_size > BATCH_LAST_MAX
-    M = _model_M(axis_size, A, B, bA, bB, m_batched)
+def _pallas_factor_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
+    """The factorisation by the kernels (with a right-hand side ``rhs`` = g_u, g_x, rp: and
+    its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's."""
+    bA, bB, bPu, bPx = in_batched[:4]
+    flags = _factor_flags(axis_size, in_batched)
+    M = _model_M(axis_size, A, B, bA, bB, flags.M)
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     cfg = _lane_cfg(interpret)
-    if rhs is None:
-        f = lanes.factor(_lane_M(M, m_batched), *mats, cfg=cfg)
-        step = None
-    else:
-        (g_u, g_x, rp), (bu, bx, br) = rhs
-        vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
-        f, s = lanes.factor_solve(_lane_M(M, m_batched), *mats, *vecs, cfg=cfg)
-        step = NewtonStep(*(_to_first(a) for a in s))
-    factor = RiccatiFactor(M, *(_to_first(a) for a in f))
-    return factor, step, RiccatiFactor(m_batched, True, True, True, True)
+    if not rhs:
+        f = lanes.factor(_lane_M(M, flags.M), *mats, cfg=cfg)
+        return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
+    vecs = [_to_last(_full(axis_size, a, b)) for a, b in zip(rhs, in_batched[4:], strict=True)]
+    f, s = lanes.factor_solve(_lane_M(M, flags.M), *mats, *vecs, cfg=cfg)
+    out = (RiccatiFactor(M, *(_to_first(a) for a in f)), NewtonStep(*(_to_first(a) for a in s)))
+    return out, (flags, NewtonStep(True, True, True))
 
 
 def _pallas_apply_rule(interpret, axis_size, in_batched, f, g_u, g_x, rp):
@@ -322,11 +318,23 @@ def _pallas_apply_rule(interpret, axis_size, in_batched, f, g_u, g_x, rp):
     return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
 
 
+def _xla_factor_solve_rule(axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
+    f, fb = _xla_factor_rule(axis_size, in_batched[:4], A, B, Phi_u, Phi_x)
+    s, sb = _xla_apply_rule(axis_size, (fb, *in_batched[4:]), f, g_u, g_x, rp)
+    return (f, s), (fb, sb)
+
+
+def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
+    f = _factor(A, B, Phi_u, Phi_x, ops)
+    return f, _apply(f, g_u, g_x, rp, ops)
+
+
 KERNELS = ("auto", "xla", "pallas")
 
 
 def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
-    """Which factor fields carry the batch (the same for both forms)."""
+    """Which factor fields carry the batch (the same for both forms: the XLA rule above
+    BATCH_LAST_MAX returns M batched)."""
     if axis_size > BATCH_LAST_MAX:
         return RiccatiFactor(True, True, True, True, True)
     bA, bB = in_batched[:2]
@@ -344,96 +352,53 @@ def _by_platform(kernel: str, xla, pallas, *args):
     return lax.platform_dependent(*args, cuda=functools.partial(pallas, False), default=off_gpu)
 
 
-def _unbatched(rule):
-    """An unbatched call of a vmap rule: a batch of one."""
-
-    def fn(*args):
-        flags = jax.tree.map(lambda _: True, args)
-        out, _ = rule(1, flags, *jax.tree.map(lambda a: a[None], args))
-        return jax.tree.map(lambda a: a[0], out)
-
-    return fn
+# op: (unbatched XLA form, XLA vmap rule, kernels' vmap rule); a rule returns (out, flags)
+_OPS = {
+    "factor": (functools.partial(_factor, ops=_ELEMENTWISE), _xla_factor_rule, _pallas_factor_rule),
+    "apply": (functools.partial(_apply, ops=_ELEMENTWISE), _xla_apply_rule, _pallas_apply_rule),
+    "factor_solve": (
+        functools.partial(_factor_solve, ops=_ELEMENTWISE),
+        _xla_factor_solve_rule,
+        _pallas_factor_rule,
+    ),
+}
 
 
 @functools.cache
-def _batched(kernel: str):
-    """The custom_vmap functions (factor, apply, factor_solve) of one kernel choice."""
+def _batched(op: str, kernel: str):
+    """The recursion ``op`` as a custom_vmap function dispatching on ``kernel``: unbatched,
+    the kernels run a batch of one; under vmap, the rules above (the batch dimension of each
+    output is the same whichever form runs)."""
+    xla_fn, xla_rule, pallas_rule = _OPS[op]
 
-    def xla_factor_solve_rule(axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
-        f, fb = _xla_factor_rule(axis_size, in_batched[:4], A, B, Phi_u, Phi_x)
-        s, sb = _xla_apply_rule(axis_size, (fb, *in_batched[4:]), f, g_u, g_x, rp)
-        return (f, s), (fb, sb)
+    def flags(axis_size, in_batched):
+        shapes = (axis_size, in_batched)
+        if op == "factor":
+            return _factor_flags(*shapes)
+        if op == "apply":
+            return NewtonStep(True, True, True)
+        return _factor_flags(*shapes), NewtonStep(True, True, True)
 
-    @jax.custom_batching.custom_vmap
-    def factor_b(A, B, Phi_u, Phi_x):
-        def xla(*a):
-            return _factor(*a, _ELEMENTWISE)
-
-        def pallas(interpret, *a):
-            return _unbatched(lambda n, b, *x: _pallas_factor_rule(interpret, n, b, *x)[::2])(*a)
-
-        return _by_platform(kernel, xla, pallas, A, B, Phi_u, Phi_x)
-
-    @factor_b.def_vmap
-    def factor_rule(axis_size, in_batched, *args):
-        out = _by_platform(
-            kernel,
-            lambda *a: _xla_factor_rule(axis_size, in_batched, *a)[0],
-            lambda i, *a: _pallas_factor_rule(i, axis_size, in_batched, *a)[0],
-            *args,
-        )
-        return out, _factor_flags(axis_size, in_batched)
+    def one(interpret, *args):
+        batched = jax.tree.map(lambda _: True, args)
+        out, _ = pallas_rule(interpret, 1, batched, *jax.tree.map(lambda a: a[None], args))
+        return jax.tree.map(lambda a: a[0], out)
 
     @jax.custom_batching.custom_vmap
-    def apply_b(f, g_u, g_x, rp):
-        def xla(*a):
-            return _apply(*a, _ELEMENTWISE)
+    def fn(*args):
+        return _by_platform(kernel, xla_fn, one, *args)
 
-        def pallas(interpret, *a):
-            return _unbatched(functools.partial(_pallas_apply_rule, interpret))(*a)
-
-        return _by_platform(kernel, xla, pallas, f, g_u, g_x, rp)
-
-    @apply_b.def_vmap
-    def apply_rule(axis_size, in_batched, *args):
+    @fn.def_vmap
+    def rule(axis_size, in_batched, *args):
         out = _by_platform(
             kernel,
-            lambda *a: _xla_apply_rule(axis_size, in_batched, *a)[0],
-            lambda i, *a: _pallas_apply_rule(i, axis_size, in_batched, *a)[0],
+            lambda *a: xla_rule(axis_size, in_batched, *a)[0],
+            lambda i, *a: pallas_rule(i, axis_size, in_batched, *a)[0],
             *args,
         )
-        return out, NewtonStep(True, True, True)
+        return out, flags(axis_size, in_batched)
 
-    def pallas_fs_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
-        rhs = ((g_u, g_x, rp), in_batched[4:])
-        f, s, fb = _pallas_factor_rule(
-            interpret, axis_size, in_batched[:4], A, B, Phi_u, Phi_x, rhs
-        )
-        return (f, s), (fb, NewtonStep(True, True, True))
-
-    @jax.custom_batching.custom_vmap
-    def factor_solve_b(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-        def xla(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-            f = _factor(A, B, Phi_u, Phi_x, _ELEMENTWISE)
-            return f, _apply(f, g_u, g_x, rp, _ELEMENTWISE)
-
-        def pallas(interpret, *a):
-            return _unbatched(functools.partial(pallas_fs_rule, interpret))(*a)
-
-        return _by_platform(kernel, xla, pallas, A, B, Phi_u, Phi_x, g_u, g_x, rp)
-
-    @factor_solve_b.def_vmap
-    def factor_solve_rule(axis_size, in_batched, *args):
-        flags = (_factor_flags(axis_size, in_batched[:4]), NewtonStep(True, True, True))
-        out = _by_platform(
-            kernel,
-            lambda *a: xla_factor_solve_rule(axis_size, in_batched, *a)[0],
-            lambda i, *a: pallas_fs_rule(i, axis_size, in_batched, *a)[0],
-            *args,
-        )
-        return out, flags
-
-    return factor_b, apply_b, factor_solve_b
+    return fn
 
 
 def _dot_derivative(fn):
@@ -444,11 +409,6 @@ def _dot_derivative(fn):
         return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
 
     return jvp
-
-
-def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
-    f = _factor(A, B, Phi_u, Phi_x, ops)
-    return f, _apply(f, g_u, g_x, rp, ops)
 
 
 def _check_kernel(kernel):
@@ -473,7 +433,7 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
             elsewhere), "xla" or "pallas" (the kernels everywhere; interpreted off the GPU).
     """
     _check_kernel(kernel)
-    return _batched(kernel)[0](A, B, Phi_u, Phi_x)
+    return _batched("factor", kernel)(A, B, Phi_u, Phi_x)
 
 
 riccati_factor.defjvp(_dot_derivative(_factor))
@@ -488,7 +448,7 @@ def riccati_apply(f: RiccatiFactor, g_u, g_x, rp, kernel: str = "auto") -> Newto
     p_{t+1}). ``kernel`` as :func:`riccati_factor`.
     """
     _check_kernel(kernel)
-    return _batched(kernel)[1](f, g_u, g_x, rp)
+    return _batched("apply", kernel)(f, g_u, g_x, rp)
 
 
 riccati_apply.defjvp(_dot_derivative(_apply))
@@ -500,7 +460,7 @@ def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto")
     (RiccatiFactor, NewtonStep). On a GPU both sweeps of the factorisation and the step run
     in one kernel (:func:`rvdjax.solver.lanes.factor_solve`)."""
     _check_kernel(kernel)
-    return _batched(kernel)[2](A, B, Phi_u, Phi_x, g_u, g_x, rp)
+    return _batched("factor_solve", kernel)(A, B, Phi_u, Phi_x, g_u, g_x, rp)
 
 
 riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
