@@ -40,9 +40,9 @@ __all__ = ["Fired", "fire", "wrench_rows", "FIRE_NOTES"]
 FIRE_NOTES = (
     "thrusters: the body-to-model rotation is the attitude at the start of each control "
     "period, held over it; the allocation uses the true attitude",
-    "thrusters: PWM and Schmitt pulses start at the beginning of the control period, "
-    "delta-sigma pulses are whole ticks; a fault acts from the first period starting at or "
-    "after its time",
+    "thrusters: PWM and Schmitt pulses open when the command arrives (the set's alignment "
+    "'start') or are centred in the control period ('centre'), delta-sigma pulses are whole "
+    "ticks; a fault acts from the first period starting at or after its time",
 )
 
 
@@ -177,10 +177,12 @@ def fire(
     t_dem = on_time_demand(alloc.f, thr.thrust, ts)
 
     if act.modulator == "pwm":
-        cmd, mod_next, dropped = pwm(t_dem, ts, thr.valve_s, thr.min_on_s, mod, act.carry)
+        cmd, mod_next, dropped = pwm(
+            t_dem, ts, thr.valve_s, thr.min_on_s, mod, act.carry, act.align
+        )
     elif act.modulator == "schmitt":
         cmd, mod_next, dropped = schmitt(
-            t_dem, ts, thr.valve_s, thr.min_on_s, thr.schmitt_on, thr.schmitt_off, mod
+            t_dem, ts, thr.valve_s, thr.min_on_s, thr.schmitt_on, thr.schmitt_off, mod, act.align
         )
     else:
         cmd, mod_next = delta_sigma(t_dem, ts, mod, act.ticks)

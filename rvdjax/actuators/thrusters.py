@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
+from rvdjax.actuators.modulation import ALIGNMENTS
 
 __all__ = [
     "G0",
@@ -89,6 +90,10 @@ class Actuation:
             whole ticks of Ts / ``ticks``, driven by the integral of command minus fired).
         carry: PWM: the impulse lost to quantisation and to dropped pulses is added to the
             next command of the same thruster (error feedback); False drops it (paper 003).
+        align: PWM and Schmitt: "start" (the pulse opens with the period: an impulsive
+            model's delta-v acts as early as it can) or "centre" (centred in the period: a
+            zero-order-hold model's impulse centroid, exact for a double integrator at the
+            period's end), :data:`rvdjax.actuators.modulation.ALIGNMENTS`.
         ticks: delta-sigma ticks per control period.
         rows: the wrench rows (0-2 force x, y, z; 3-5 torque x, y, z, body frame) the
             allocation must meet; the family's force inputs map to rows 0, 1(, 2) in order,
@@ -112,6 +117,7 @@ class Actuation:
     n: int
     modulator: str = "pwm"
     carry: bool = False
+    align: str = "start"
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
@@ -122,6 +128,7 @@ class Actuation:
     def __post_init__(self):
         checks.integer("n (number of thrusters)", self.n)
         checks.choice("modulator", self.modulator, MODULATORS)
+        checks.choice("align (pulse position in the period)", self.align, ALIGNMENTS)
         checks.integer("ticks (delta-sigma ticks per control period)", self.ticks)
         checks.choice("frame", self.frame, ("attitude", "fixed"))
         if not self.rows or any(r not in range(6) for r in self.rows):
@@ -140,7 +147,7 @@ class ThrusterSet:
         valve_s: valve resolution [s] (> 0).
         min_on_s: minimum on-time [s] (>= 0).
         isp_s: specific impulse [s] (> 0).
-        modulator, carry, ticks, rows, frame, pair_groups, fdir: :class:`Actuation`.
+        modulator, carry, align, ticks, rows, frame, pair_groups, fdir: :class:`Actuation`.
         schmitt_levels: (on, off) levels of the Schmitt trigger, fractions of min_on_s.
         assumptions: what rvdjax chose where the papers are silent (printed with a run).
     """
@@ -154,6 +161,7 @@ class ThrusterSet:
     isp_s: float = 70.0
     modulator: str = "pwm"
     carry: bool = False
+    align: str = "start"
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
@@ -230,6 +238,8 @@ class ThrusterSet:
         mod = self.modulator + (
             f" ({self.ticks} ticks a period)" if self.modulator == "delta-sigma" else ""
         )
+        if self.modulator in ("pwm", "schmitt"):
+            mod += ", pulses centred in the period" if self.align == "centre" else ""
         if self.modulator == "pwm":
             mod += ", short pulses carried" if self.carry else ", short pulses dropped"
         return (
