@@ -73,12 +73,14 @@ def test_every_case_docks_at_the_port(any_run):
 def test_constraints_of_the_truth(any_run):
     params, infos, m = any_run
     # keep-out sphere (rendezvous) and overshoot plane (approach), judged at the samples and
-    # between them: never entered by the three QP cases; the V-bar runs without set point
-    # and with the LP rendezvous graze the 100 m sphere between two samples (2.8 and 8.5 cm)
-    n = len(m.docked)
-    grazing = np.full(n, True) if n == 1 else np.arange(n) >= len(CASES)
-    assert np.all(m.max_violation_m[~grazing] == 0.0), m.max_violation_m
-    assert np.all(m.max_violation_m[grazing] < 0.1)
+    # between them, and the docking cone once the chaser has entered it. The keep-out planes
+    # also hold between samples in the plans (Config.between_samples): the V-bar runs without
+    # set point and with the LP rendezvous, which ride the 100 m sphere, no longer graze it
+    # (2.8 and 8.5 cm when only the samples were planned). The docking cone is met at the
+    # samples and grazed between them by at most 2 mm (the rotating target's cone turns)
+    assert np.all(m.max_violation_m <= 2e-3), m.max_violation_m
+    for name in ("keep_out", "overshoot"):
+        assert np.all(m.margins_m[name] >= 0.0), (name, m.margins_m[name])
     for i in range(len(m.docked)):
         act = infos.active[i]
         dock_steps = np.flatnonzero(act & (infos.phase[i] == 2))

@@ -31,6 +31,7 @@ __all__ = [
     "Actuation",
     "ThrusterSet",
     "MODULATORS",
+    "ALLOCATIONS",
     "FAULTS",
     "effectiveness",
     "rotation_z",
@@ -41,6 +42,7 @@ __all__ = [
 
 G0 = 9.80665  # standard gravity [m/s^2] (propellant mass from specific impulse)
 MODULATORS = ("pwm", "schmitt", "delta-sigma")
+ALLOCATIONS = ("least-thrust", "separate")
 FAULTS = ("healthy", "stuck-off", "stuck-on")
 
 
@@ -107,6 +109,12 @@ class Actuation:
             thrust, shared equally), exact whenever no torque is demanded: single-thruster
             groups (thrusters through the centre of mass) always, larger groups when the
             family has no torque input and no fault can split a group. Empty: the LP.
+        allocation: "least-thrust" (the least total thrust that meets force and torque
+            together: a torque may come for free from firing a pair unevenly) or "separate"
+            (a simple vehicle's split: the force by ``pair_groups``, each group's thrusters
+            sharing it equally so that it gives no torque, plus the torque by the least-thrust
+            pure couple; the sum is scaled down as a whole where a thruster saturates). Needs
+            ``pair_groups``, a torque row and no faults.
         fdir: the allocation knows a failed thruster from its onset (it allocates around a
             stuck-off thruster and subtracts a stuck-on one from the demand); False: the
             fault goes unnoticed.
@@ -122,6 +130,7 @@ class Actuation:
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
     pair_groups: tuple[tuple[int, ...], ...] = ()
+    allocation: str = "least-thrust"
     fdir: bool = True
     faults: bool = False
 
@@ -133,6 +142,14 @@ class Actuation:
         checks.choice("frame", self.frame, ("attitude", "fixed"))
         if not self.rows or any(r not in range(6) for r in self.rows):
             raise ValueError(f"rows must be wrench rows in 0..5, got {self.rows!r}")
+        checks.choice("allocation", self.allocation, ALLOCATIONS)
+        if self.allocation == "separate":
+            n_axes = len(self.pair_groups) // 2
+            if not self.pair_groups or len(self.rows) <= n_axes or self.faults:
+                raise ValueError(
+                    "allocation='separate' needs pair_groups, a torque row after the force "
+                    "rows and no faults"
+                )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +164,8 @@ class ThrusterSet:
         valve_s: valve resolution [s] (> 0).
         min_on_s: minimum on-time [s] (>= 0).
         isp_s: specific impulse [s] (> 0).
-        modulator, carry, align, ticks, rows, frame, pair_groups, fdir: :class:`Actuation`.
+        modulator, carry, align, ticks, rows, frame, pair_groups, allocation, fdir:
+            :class:`Actuation`.
         schmitt_levels: (on, off) levels of the Schmitt trigger, fractions of min_on_s.
         assumptions: what rvdjax chose where the papers are silent (printed with a run).
     """
@@ -166,6 +184,7 @@ class ThrusterSet:
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
     pair_groups: tuple[tuple[int, ...], ...] = ()
+    allocation: str = "least-thrust"
     fdir: bool = True
     schmitt_levels: tuple[float, float] = (0.75, 0.25)
     assumptions: tuple[str, ...] = ()
@@ -242,6 +261,8 @@ class ThrusterSet:
             mod += ", pulses centred in the period" if self.align == "centre" else ""
         if self.modulator == "pwm":
             mod += ", short pulses carried" if self.carry else ", short pulses dropped"
+        if self.allocation == "separate":
+            mod += ", force and couple allocated separately"
         return (
             f"{self.name}: {self.n} thrusters of {'/'.join(f'{t:g}' for t in thrust)} N, "
             f"{mod}, valve resolution {self.valve_s:g} s, minimum on-time {self.min_on_s:g} s, "
