@@ -313,3 +313,30 @@ def test_keep_out_planes_turn_with_the_natural_motion():
         n_fast = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, fast, v0))
         np.testing.assert_allclose(n_fast[-1], np.asarray(a_final), atol=1e-12)
         assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
+
+
+def test_keep_out_rows_between_samples_are_the_coasted_states():
+    """Config.between_samples: the rendezvous keep-out rows at j Ts / 8 act on x_{t+1} through
+    the coast back e^{-Ac (Ts - tau_j)} (SciPy's expm), and their slack is the plane's slack at
+    the state the chaser coasted through (an impulsive delta-v at the step start)."""
+    from scipy.linalg import expm
+
+    from rvdjax.constraints import between_samples, block_margin, keep_out_plane
+
+    p, _ = SCENARIOS["thesis-vbar"].build()
+    Ac, ts = np.asarray(p.Ac), float(p.ts[0])
+    back = np.asarray(ph._coast_back(p.Ac, p.ts[0]))
+    taus = ts * np.arange(1, ph.SUBSAMPLES) / ph.SUBSAMPLES
+    for j, tau in enumerate(taus):
+        np.testing.assert_allclose(back[j], expm(-Ac * (ts - tau)), rtol=0, atol=1e-12)
+    rng = np.random.default_rng(1)
+    x_plus = np.array([300.0, -200.0, 20.0, 0.4, 0.6, 0.0])  # just after the impulse
+    x_next = expm(Ac * ts) @ x_plus
+    n = rng.normal(size=(1, 3))
+    n /= np.linalg.norm(n)
+    plane = keep_out_plane(jnp.asarray(n), 100.0, 6, (0, 1, 2))
+    rows = between_samples(plane, back)
+    slack = np.asarray(block_margin(rows, jnp.asarray(x_next)))[0]
+    states = [expm(Ac * tau) @ x_plus for tau in taus]
+    expected = [float(n[0] @ s[:3] - 100.0) for s in states]
+    np.testing.assert_allclose(slack, expected, atol=1e-9)

@@ -593,23 +593,30 @@ def finite_burn(p: Params, A, ts, dv_bar):
 
     A delta-v dv_j on axis j is a burn of w_j = m |dv_j| / F_j seconds from the period's start
     (PWM aligned to the start; the thesis' on-time bound u_max keeps w_j <= 5 s). Its effect
-    at the period's end is e^{Ac (Ts - w_j / 2)} b_j dv_j to second order in w_j (b_j the unit
-    delta-v column): the position lags the impulse's by m dv_j |dv_j| / (2 F_j) for the
-    double integrator. That is nonlinear in dv_j; its tangent at the previous plan's delta-v
-    dv_bar (shifted one stage), with e^{Ac (Ts - s)} = A (I - s Ac) + O(s^2), is
+    at the period's end is A (1 / w) int_0^w e^{-Ac s} ds b_j dv_j
+    = A (I - w/2 Ac + w^2/6 Ac^2) b_j dv_j + O(w^3) (b_j the unit delta-v column): for the
+    double integrator the position lags the impulse's by m dv_j |dv_j| / (2 F_j). That is
+    nonlinear in dv_j; its tangent at the previous plan's delta-v dv_bar (shifted one stage) is
 
-        B_t = A (b - Ac b diag(w_bar)),    c_t = A Ac b (w_bar / 2 * dv_bar)
+        B_t = A (b - Ac b diag(w) + Ac^2 b diag(w^2) / 2),
+        c_t = A (Ac b (w / 2 * dv_bar) - Ac^2 b (w^2 / 3 * dv_bar))
 
-    (exact where the plan keeps its delta-v; the error is m (|dv| - |dv_bar|)^2 / (2 F) per
-    axis). With ideal impulses (no thrusters) the family keeps Eq. 3.1 exactly.
+    with w = w(dv_bar): exact where the plan keeps its delta-v (the error is
+    m (|dv| - |dv_bar|)^2 / (2 F) per axis otherwise). With ideal impulses (no thrusters)
+    the family keeps Eq. 3.1 exactly.
     """
     plus, minus = axis_thrust(p.thrusters)
     F = jnp.where(dv_bar >= 0.0, plus, minus)
     w = jnp.minimum(p.mass * jnp.abs(dv_bar) / jnp.maximum(F, 1e-12), ts)  # (N, 3)
     b = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3)]).astype(A.dtype)  # unit delta-v columns
     Ab = p.Ac @ b  # (6, 3)
-    B = jnp.einsum("ij,tjk->tik", A, b[None] - Ab[None] * w[:, None, :])
-    c = jnp.einsum("ij,tj->ti", A @ Ab, 0.5 * w * dv_bar)
+    AAb = p.Ac @ Ab
+    B = jnp.einsum(
+        "ij,tjk->tik", A, b[None] - Ab[None] * w[:, None, :] + 0.5 * AAb[None] * (w**2)[:, None, :]
+    )
+    c = jnp.einsum("ij,tj->ti", A @ Ab, 0.5 * w * dv_bar) - jnp.einsum(
+        "ij,tj->ti", A @ AAb, (w**2 / 3.0) * dv_bar
+    )
     return B, c
 
 
