@@ -114,5 +114,9 @@ CUBESAT_6U = axis_set(
         "becomes a pulse of m |dv| / 0.5 N from the start of the period (Eq. 2.5), quantised "
         "to 0.01 s; pulses under the minimum on-time 0.02 s (minimum impulse bit 10 mN s; "
         "not given) are discarded (Eq. 2.6); Isp 220 s (the thesis' AF-M315E example)",
+        "thrusters: the guidance's model has the finite burns (a delta-v dv is a burn of "
+        "m |dv| / 0.5 N from the period's start, up to 5 s: the impulse of Eq. 3.1 acts at the "
+        "burn's centre, linearised about the previous plan's delta-v); the thesis' impulsive "
+        "model with the burns (Config finite_burn=False) lags its plans by up to 0.45 m a step",
     ),
 )
