@@ -20,6 +20,7 @@ constant-thrust segments, each integrated by RK4 (:func:`rvdjax.propagate.propag
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from rvdjax.actuators.modulation import Pulses
@@ -76,7 +77,7 @@ def pulse_states(Ac, Bc, x, taus, pulses: Pulses, g, grid: bool = False):
     from rvdjax.dynamics import zoh_states
 
     free = zoh_states(Ac, Bc, x, jnp.zeros(Bc.shape[1], x.dtype), taus)
-    forced = jnp.stack([pulse_response(Ac, Bc, tau, pulses, g, grid) for tau in taus])
+    forced = jax.vmap(lambda tau: pulse_response(Ac, Bc, tau, pulses, g, grid))(taus)
     return free + forced
 
 

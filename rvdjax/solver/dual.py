@@ -100,8 +100,7 @@ def solve_dual(ocp: OCP, max_iter: int, params: SolverParams) -> Solution:
         zero; ``objective`` filled in by the driver).
     """
     dtype = ocp.B.dtype
-    leaves = [a for a in jax.tree.leaves(ocp)]
-    ok_in = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
+    ok_in = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(ocp)]))
     ocp = jax.tree.map(lambda a: jnp.where(ok_in, a, jnp.zeros_like(a)), ocp)
     eye_R = jnp.broadcast_to(jnp.eye(ocp.nu, dtype=dtype), ocp.R.shape)
     ocp = ocp._replace(R=jnp.where(ok_in, ocp.R, eye_R))
