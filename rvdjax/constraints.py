@@ -56,6 +56,7 @@ __all__ = [
     "overshoot",
     "velocity_bound",
     "cost_rows",
+    "between_samples",
 ]
 
 KINDS = ("hard", "penalty", "monitor")
@@ -690,4 +691,36 @@ def cost_rows(W, centre_value, rho=1.0, name="l1_cost") -> Block:
         name,
         "penalty",
         rho=rho,
+    )
+
+
+def between_samples(block: Block, back, name: str | None = None) -> Block:
+    """A state block's rows also at instants between samples where the state is a linear
+    function of the sample it precedes: x(tau_j) = back_j x_{t+1} (a coast after an
+    impulsive delta-v: back_j = e^{-Ac (Ts - tau_j)}; also after a finite burn has ended).
+
+    Args:
+        block: state rows ``F x_{t+1} <= f`` (N, m, nx).
+        back: (M, nx, nx) or per stage (N, M, nx, nx) maps from x_{t+1} to the M instants.
+
+    Returns:
+        A block of M m rows per stage, ``(F back_j) x_{t+1} <= f``, instant-major; its slack is
+        the original row's slack at x(tau_j).
+    """
+    if block.acts_on != "x":
+        raise ValueError("between_samples takes a state block")
+    back = jnp.asarray(back)
+    if back.ndim == 3:
+        back = jnp.broadcast_to(back, (block.N, *back.shape))
+    M = back.shape[1]
+    F = jnp.einsum("tin,tjnk->tjik", block.F, back).reshape(block.N, M * block.m, -1)
+    tile = lambda a: jnp.tile(a, (1, M))  # noqa: E731
+    return dataclasses.replace(
+        block,
+        F=F,
+        f=tile(block.f),
+        rho=tile(block.rho),
+        mask=tile(block.mask),
+        hard=None if block.hard is None else tile(block.hard),
+        name=block.name if name is None else name,
     )

@@ -127,6 +127,8 @@ def run_nmpc_loop(p: Params, x0, loop: Loop, ipopt_tol=1e-8):
         torque_l1_N_m_s=np.float64(0.0),
         phase_delta_v_m_s=np.array([impulse / float(p.mass)]),
         phase_time_s=np.array([n * ts]),
+        phase_effort_l1_N_s=np.array([np.sum(np.abs(u_all)) * ts]),
+        phase_thruster_impulse_N_s=np.array([0.0]),
         max_violation_m=np.float64(max(0.0, -float(np.min(margins, initial=np.inf)))),
         margins_m={"keep_out": np.float64(np.min(margins, initial=np.inf))},
         status_counts=counts,

@@ -66,6 +66,31 @@ def test_faster_rotation_costs_more_effort(runs):
     assert m.effort_l1_N_s[2] > m.effort_l1_N_s[0]
 
 
+def test_a_port_turning_away_is_still_approached_safely(runs):
+    """The three cases turning clockwise, the port away from the chaser (paper 002 gives no
+    sense): the final approach's circles are linearised about the port axis, so no step is
+    infeasible and the truth stays out of the keep-out circle and in the cone. Linearised
+    about the previous plan, case C had 27 infeasible steps, the truth 8 cm inside the
+    keep-out circle and 0.8 m outside the cone."""
+    from flights import flyer, stack
+
+    loop, params, _, _ = runs
+    built = [
+        SCENARIOS[c].build(target_rate_deg_s=-SCENARIOS[c].physical["target_rate_deg_s"])
+        for c in CASES
+    ]
+    p = stack([b[0] for b in built])
+    x0 = np.stack([b[1] for b in built])
+    keys = jax.vmap(jax.random.key)(np.arange(len(CASES)))
+    infos, m = flyer(loop)(p, x0, keys, SCENARIOS[CASES[0]].solver_params())
+    m = jax.tree.map(np.asarray, m)
+    assert np.all(m.docked)
+    assert np.all(m.status_counts[:, Status.INFEASIBLE] == 0)
+    assert np.all(m.max_violation_m <= 1e-6)
+    assert np.min(m.margins_m["entry_cone"]) >= -1e-3
+    assert np.all(m.time_to_dock_s <= 100.0)
+
+
 GOOD = dict(SCENARIOS["rotating-target-b"].physical)
 
 

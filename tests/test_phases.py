@@ -73,12 +73,14 @@ def test_every_case_docks_at_the_port(any_run):
 def test_constraints_of_the_truth(any_run):
     params, infos, m = any_run
     # keep-out sphere (rendezvous) and overshoot plane (approach), judged at the samples and
-    # between them: never entered by the three QP cases; the V-bar runs without set point
-    # and with the LP rendezvous graze the 100 m sphere between two samples (2.8 and 8.5 cm)
-    n = len(m.docked)
-    grazing = np.full(n, True) if n == 1 else np.arange(n) >= len(CASES)
-    assert np.all(m.max_violation_m[~grazing] == 0.0), m.max_violation_m
-    assert np.all(m.max_violation_m[grazing] < 0.1)
+    # between them, and the docking cone once the chaser has entered it. The keep-out planes
+    # also hold between samples in the plans (Config.between_samples): the V-bar runs without
+    # set point and with the LP rendezvous, which ride the 100 m sphere, no longer graze it
+    # (2.8 and 8.5 cm when only the samples were planned). The docking cone is met at the
+    # samples and grazed between them by at most 2 mm (the rotating target's cone turns)
+    assert np.all(m.max_violation_m <= 2e-3), m.max_violation_m
+    for name in ("keep_out", "overshoot"):
+        assert np.all(m.margins_m[name] >= 0.0), (name, m.margins_m[name])
     for i in range(len(m.docked)):
         act = infos.active[i]
         dock_steps = np.flatnonzero(act & (infos.phase[i] == 2))
@@ -144,12 +146,14 @@ def test_compare_with_thesis(runs):
 
 def test_compare_with_table_3_6(runs, lp_run):
     """Paper 003 Sec. 3.6.4, Table 3.6 (V-bar rendezvous cost variants). Within 15 %: the LP
-    maneuver time. Delta-v comes out ~18-20 % below the thesis in every variant (as for the
-    V-bar QP with set point) and the time without set point ~23 % below: not asserted. The
-    thesis' qualitative results hold: without the set point the maneuver takes much longer
-    (thesis 2.45x, here ~2.3x), the LP takes longer than the QP with set point but uses less
-    delta-v, and the order of the times (set point < LP < no set point) and of the delta-v
-    (no set point < LP < set point) is the thesis' order."""
+    maneuver time. Delta-v comes out ~18 % below the thesis in every variant (as for the
+    V-bar QP with set point) and the time without set point ~37 % below: not asserted. The
+    thesis' qualitative results that hold: without the set point the maneuver takes much
+    longer than with it (thesis 2.45x, here 1.9x), so does the LP, and the order of the
+    delta-v (no set point < LP < set point) is the thesis' order. With the rendezvous
+    keep-out planned between samples (Config.between_samples, which keeps the chaser out of
+    the sphere that it grazed by 2.8 cm between samples) the run without set point takes
+    45 min instead of 55, about as long as the LP's (thesis: 71 against 41 min)."""
     _, infos, m = runs
     _, lp_infos, lp = lp_run
     qp, nosp = CASES.index("vbar"), RUNS.index("vbar-nosetpoint")
@@ -157,13 +161,12 @@ def test_compare_with_table_3_6(runs, lp_run):
     assert lp.time_to_dock_s[0] == pytest.approx(tf_lp, rel=0.15)
     t = {"qp": m.time_to_dock_s[qp], "nosp": m.time_to_dock_s[nosp], "lp": lp.time_to_dock_s[0]}
     dv = {"qp": m.delta_v_m_s[qp], "nosp": m.delta_v_m_s[nosp], "lp": lp.delta_v_m_s[0]}
-    assert t["nosp"] > 2.0 * t["qp"]
-    assert t["qp"] < t["lp"] < t["nosp"]
+    assert t["nosp"] > 1.5 * t["qp"] and t["lp"] > 1.5 * t["qp"]
     assert dv["nosp"] < dv["lp"] < dv["qp"]
-    # same order of magnitude as the thesis: within 30 % on delta-v and time
+    # same order of magnitude as the thesis: within 30 % on delta-v
     for key, name in (("nosp", "vbar-nosetpoint"), ("lp", "vbar-lp")):
-        _, _, dv_t, tf_t = thesis.COST_VARIANTS[name]
-        assert 0.7 < dv[key] / dv_t < 1.3 and 0.7 < t[key] / tf_t < 1.3
+        _, _, dv_t, _ = thesis.COST_VARIANTS[name]
+        assert 0.7 < dv[key] / dv_t < 1.3
     # the rendezvous phase stays the dominant one
     assert m.phase_delta_v_m_s[nosp, 0] / dv["nosp"] > 0.6
     assert lp.phase_delta_v_m_s[0, 0] / dv["lp"] > 0.6
@@ -311,3 +314,30 @@ def test_keep_out_planes_turn_with_the_natural_motion():
         n_fast = np.asarray(ph._plane_normals(r0, a_final, 30, 30, 30.0, fast, v0))
         np.testing.assert_allclose(n_fast[-1], np.asarray(a_final), atol=1e-12)
         assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
+
+
+def test_keep_out_rows_between_samples_are_the_coasted_states():
+    """Config.between_samples: the rendezvous keep-out rows at j Ts / 8 act on x_{t+1} through
+    the coast back e^{-Ac (Ts - tau_j)} (SciPy's expm), and their slack is the plane's slack at
+    the state the chaser coasted through (an impulsive delta-v at the step start)."""
+    from scipy.linalg import expm
+
+    from rvdjax.constraints import between_samples, block_margin, keep_out_plane
+
+    p, _ = SCENARIOS["thesis-vbar"].build()
+    Ac, ts = np.asarray(p.Ac), float(p.ts[0])
+    back = np.asarray(ph._coast_back(p.Ac, p.ts[0]))
+    taus = ts * np.arange(1, ph.SUBSAMPLES) / ph.SUBSAMPLES
+    for j, tau in enumerate(taus):
+        np.testing.assert_allclose(back[j], expm(-Ac * (ts - tau)), rtol=0, atol=1e-12)
+    rng = np.random.default_rng(1)
+    x_plus = np.array([300.0, -200.0, 20.0, 0.4, 0.6, 0.0])  # just after the impulse
+    x_next = expm(Ac * ts) @ x_plus
+    n = rng.normal(size=(1, 3))
+    n /= np.linalg.norm(n)
+    plane = keep_out_plane(jnp.asarray(n), 100.0, 6, (0, 1, 2))
+    rows = between_samples(plane, back)
+    slack = np.asarray(block_margin(rows, jnp.asarray(x_next)))[0]
+    states = [expm(Ac * tau) @ x_plus for tau in taus]
+    expected = [float(n[0] @ s[:3] - 100.0) for s in states]
+    np.testing.assert_allclose(slack, expected, atol=1e-9)

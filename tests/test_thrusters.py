@@ -89,8 +89,9 @@ def test_pulse_response_equals_an_ode_integration(model):
     )
 
 
-def test_nonlinear_truth_segments_equal_an_ode_integration():
-    """Two-body truth under PWM pulses (segments between valve closings, RK4) against SciPy
+@pytest.mark.parametrize("align", ["start", "centre"])
+def test_nonlinear_truth_segments_equal_an_ode_integration(align):
+    """Two-body truth under PWM pulses (segments between valve events, RK4) against SciPy
     integrating both bodies inertially with the thrust rotated into LVLH at every instant."""
     from rvdjax.propagate import MU_EARTH  # noqa: F401
 
@@ -98,7 +99,8 @@ def test_nonlinear_truth_segments_equal_an_ode_integration():
     ts, mass = 30.0, 14.0
     T = 6
     width = np.array([3.0, 0.0, 7.5, 12.25, 0.02, 30.0])
-    pulses = Pulses(jnp.zeros((T, 1)), jnp.asarray(width[:, None]))
+    start = np.zeros(T) if align == "start" else 0.5 * (ts - width)
+    pulses = Pulses(jnp.asarray(start[:, None]), jnp.asarray(width[:, None]))
     g = RNG.normal(size=(T, 3)) * 0.5
     x0 = np.array([100.0, -800.0, 20.0, -0.1, 0.3, 0.01])
 
@@ -109,7 +111,16 @@ def test_nonlinear_truth_segments_equal_an_ode_integration():
     params.mass = mass
     params.drag = None
     x1, _ = truth_step_pulses(
-        "two-body", 40, None, params, orbit, jnp.asarray(x0), pulses, jnp.asarray(g), ts
+        "two-body",
+        40,
+        None,
+        params,
+        orbit,
+        jnp.asarray(x0),
+        pulses,
+        jnp.asarray(g),
+        ts,
+        from_start=align == "start",
     )
 
     rc, vc = lvlh_to_inertial(orbit, jnp.asarray(x0))
@@ -117,14 +128,14 @@ def test_nonlinear_truth_segments_equal_an_ode_integration():
 
     def rhs(t, y):
         rt, vt, r, v = y[:3], y[3:6], y[6:9], y[9:]
-        on = (t < width).astype(float)
+        on = ((t >= start) & (t < start + width)).astype(float)
         f_lvlh = on @ g
         R, _ = lvlh_basis(jnp.asarray(rt), jnp.asarray(vt))
         a_t = -3.986004418e14 * rt / np.linalg.norm(rt) ** 3
         a_c = -3.986004418e14 * r / np.linalg.norm(r) ** 3 + np.asarray(R) @ f_lvlh / mass
         return np.concatenate([vt, a_t, v, a_c])
 
-    events = np.unique(np.concatenate([[0.0, ts], width]))
+    events = np.unique(np.concatenate([[0.0, ts], start, start + width]))
     y = y0
     for a, b in zip(events[:-1], events[1:], strict=True):
         if b > a:
@@ -138,9 +149,88 @@ def test_nonlinear_truth_segments_equal_an_ode_integration():
     )
     np.testing.assert_allclose(np.asarray(x1), ref, rtol=0, atol=1e-6)
     # segments: durations add up to the period and every force is the sum of the open thrusters
-    d, f = pulse_segments(pulses, jnp.asarray(g), ts)
+    d, f = pulse_segments(pulses, jnp.asarray(g), ts, from_start=align == "start")
     assert float(jnp.sum(d)) == pytest.approx(ts)
-    np.testing.assert_allclose(f[0], g[width > 0].sum(axis=0), atol=1e-14)
+    # the impulse of the segments is every pulse's
+    np.testing.assert_allclose(d @ f, width @ g, atol=1e-12)
+
+
+def test_centred_pulses_meet_the_zero_order_hold():
+    """PWM centred in the period: for the planar double integrator the state at the period's
+    end equals the zero-order-hold model's for the mean force, whatever the widths; pulses
+    from the period's start miss it by dv (Ts - w) / 2."""
+    Ac, Bc = planar3dof_continuous(10.0, 0.15)
+    ts = 2.0
+    demand = jnp.asarray(RNG.uniform(0.0, ts, 8))
+    centred, _, _ = pwm(demand, ts, 1e-6, 0.0, jnp.zeros(8), carry=False, align="centre")
+    early, _, _ = pwm(demand, ts, 1e-6, 0.0, jnp.zeros(8), carry=False)
+    w = np.asarray(centred.width[:, 0])
+    np.testing.assert_allclose(np.asarray(centred.start[:, 0]), 0.5 * (ts - w), atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(early.width), np.asarray(centred.width))
+    g = RNG.normal(size=(8, 3)) * 0.15
+    _, Bd = discretize_zoh(Ac, Bc, ts)
+    mean = w @ g / ts
+    ref = np.asarray(Bd @ mean)
+    ours = np.asarray(pulse_response(Ac, Bc, ts, centred, jnp.asarray(g)))
+    np.testing.assert_allclose(ours, ref, atol=1e-12)
+    lag = np.asarray(pulse_response(Ac, Bc, ts, early, jnp.asarray(g))) - ref
+    assert np.max(np.abs(lag[:2])) > 1e-3  # the start-aligned pulses are ahead of the model
+
+
+def test_separate_allocation_is_a_pure_force_plus_a_pure_couple(docking_layout):
+    """allocation='separate': the wrench is delivered, and the thrust is the pairs' |Fx| + |Fy|
+    plus the least-thrust pure couple (SciPy's linprog), never less than the joint LP's."""
+    from scipy.optimize import linprog
+
+    from rvdjax.actuators.thrusters import effectiveness
+
+    base = sets.POSEIDYN_PWM.replace(valve_s=1e-6, min_on_s=0.0)
+    joint = base.actuation()
+    sep = base.replace(allocation="separate").actuation()
+    thr = base.build()
+    M = np.asarray(effectiveness(thr.position, thr.direction))[[0, 1, 5]]
+    ts = 2.0
+    for _ in range(12):
+        u = RNG.uniform(-1, 1, 3) * np.array([0.1, 0.1, 0.01])
+        args = (thr, docking_layout, jnp.zeros(6), jnp.asarray(u), ts, 10.0, 0.0, jnp.zeros(8))
+        out_sep = _fire(sep, *args)
+        out_joint = _fire(joint, *args)
+        np.testing.assert_allclose(out_sep.u_applied, u, atol=1e-6)
+        couple = linprog(np.ones(8), A_eq=M, b_eq=[0.0, 0.0, u[2]], bounds=[(0, 0.15)] * 8)
+        assert couple.status == 0
+        expected = (abs(u[0]) + abs(u[1]) + couple.fun) * ts
+        assert float(out_sep.thrust_impulse) == pytest.approx(expected, rel=1e-5)
+        assert float(out_sep.thrust_impulse) >= float(out_joint.thrust_impulse) - 1e-5
+    with pytest.raises(ValueError, match="separate"):
+        sets.CUBESAT_6U.replace(allocation="separate").actuation()
+
+
+def test_finite_burn_model_predicts_the_burn():
+    """The three-phase model with the thrusters' finite burns (families.phases.finite_burn),
+    linearised at the delta-v it is asked for, predicts the truth under the PWM burn from
+    the period's start; the impulsive model (paper 003 Eq. 3.1) misses it by m dv^2 / (2 F),
+    0.45 m for a 5 s burn."""
+    from rvdjax.families import phases as ph
+    from rvdjax.families.phases import LAYOUT
+
+    sc = get_scenario("thesis-vbar")
+    tset = sc.thrusters.replace(valve_s=1e-6, min_on_s=0.0)
+    p, _ = sc.build(thrusters=tset)
+    act = tset.actuation()
+    k = 1  # approach phase, Ts = 20 s
+    ts = float(p.ts[k])
+    x = jnp.asarray([5.0, 30.0, 0.3, 0.01, -0.2, 0.0])
+    for dv in ([0.1786, 0.0, 0.0], [-0.05, 0.12, 0.0], [0.0, 0.0, -0.0357]):
+        dv = jnp.asarray(dv)
+        B, c = ph.finite_burn(p, p.A[k], ts, dv[None])
+        model = np.asarray(p.A[k] @ x + B[0] @ dv + c[0])
+        out = _fire(act, p.thrusters, LAYOUT, x, dv, ts, p.mass, 0.0, jnp.zeros(6))
+        truth, _ = truth_step_pulses("linear", 1, p.A[k], p, None, x, out.pulses, out.g, ts)
+        np.testing.assert_allclose(model, np.asarray(truth), atol=1e-5)
+        impulsive = np.asarray(p.A[k] @ x + p.B[k] @ dv)
+        lag = float(np.max(np.abs(impulsive - np.asarray(truth))[:3]))
+        expected = float(np.max(14.0 * dv**2 / (2 * 0.5)))
+        assert lag == pytest.approx(expected, rel=0.01)
 
 
 def test_pwm_quantises_drops_and_carries():
@@ -331,6 +421,17 @@ def test_closed_loop_with_thrusters_docks_and_counts_its_pulses(rotating_flights
     u, u_cmd = infos.u[0][active], infos.u_cmd[0][active]
     per_step = np.abs(u - u_cmd)[:, :2] * 2.0  # force impulse error [N s]
     assert per_step.max() <= 8 * 0.15 * 0.01 / 2 + 1e-9
+    # every pulse centred in its period (the set's alignment)
+    start = infos.pulses.start[0][active]
+    on = width > 0
+    np.testing.assert_allclose((start + width / 2)[on], 1.0, atol=1e-12)
+    # the per-phase figures add up to the run's, phase by phase from the step records
+    phase = infos.phase[0][active]
+    per_step_imp = (width.sum(-1) * thrust).sum(-1)
+    for k in range(2):
+        assert m.phase_thruster_impulse_N_s[0, k] == pytest.approx(per_step_imp[phase == k].sum())
+    assert m.phase_thruster_impulse_N_s[0].sum() == pytest.approx(m.thruster_impulse_N_s[0])
+    assert m.phase_effort_l1_N_s[0].sum() == pytest.approx(m.effort_l1_N_s[0])
 
 
 def test_a_thruster_stuck_off_never_fires(rotating_flights):

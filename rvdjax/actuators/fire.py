@@ -2,7 +2,8 @@
 
 :func:`fire` takes the guidance's command in the family's units (a force held over Ts, or a
 delta-v), turns it into the mean wrench over the period in the body frame, allocates it to
-the thrusters (:mod:`rvdjax.actuators.allocation`: the least total thrust), modulates each
+the thrusters (:mod:`rvdjax.actuators.allocation`: the least total thrust, or with
+``allocation="separate"`` a pure force by opposing pairs plus a pure couple), modulates each
 thruster's mean force into valve pulses (:mod:`rvdjax.actuators.modulation`), applies the
 faults, and returns the pulses with each thruster's generalised force in the model frame
 (actual: magnitude error, misalignment, Gauss-Markov thrust error; nominal: what the flight
@@ -25,7 +26,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from rvdjax.actuators.allocation import allocate, allocate_pairs
+from rvdjax.actuators.allocation import Allocation, allocate, allocate_pairs
 from rvdjax.actuators.modulation import Pulses, delta_sigma, on_time_demand, pwm, schmitt
 from rvdjax.actuators.thrusters import (
     Actuation,
@@ -40,9 +41,9 @@ __all__ = ["Fired", "fire", "wrench_rows", "FIRE_NOTES"]
 FIRE_NOTES = (
     "thrusters: the body-to-model rotation is the attitude at the start of each control "
     "period, held over it; the allocation uses the true attitude",
-    "thrusters: PWM and Schmitt pulses start at the beginning of the control period, "
-    "delta-sigma pulses are whole ticks; a fault acts from the first period starting at or "
-    "after its time",
+    "thrusters: PWM and Schmitt pulses open when the command arrives (the set's alignment "
+    "'start') or are centred in the control period ('centre'), delta-sigma pulses are whole "
+    "ticks; a fault acts from the first period starting at or after its time",
 )
 
 
@@ -104,6 +105,19 @@ def _pairs_exact(act: Actuation, layout) -> bool:
     return not layout.torque and not act.faults
 
 
+def _pair_shares(act: Actuation, d_axes, F_alloc, dtype) -> Allocation:
+    """The closed form of opposing pair groups (:func:`allocate_pairs`) with each group's
+    force shared equally by its alike thrusters, so that it gives no torque."""
+    groups = act.pair_groups
+    F_group = jnp.stack([sum(F_alloc[i] for i in g) for g in groups])
+    pair = allocate_pairs(d_axes, F_group[0::2], F_group[1::2])
+    share = jnp.zeros(F_alloc.shape[0], dtype)
+    for j, g in enumerate(groups):
+        for i in g:
+            share = share.at[i].set(pair.f[j] / len(g))
+    return pair._replace(f=share)
+
+
 def _full_on(ts, like):
     """The pulses of a valve stuck open for the whole period."""
     P = like.shape[-1]
@@ -163,24 +177,27 @@ def fire(
     if act.fdir and act.faults:  # allocate around the failed, net of the stuck-on thrust
         F_alloc = jnp.where(stuck_off | stuck_on, 0.0, F_alloc)
         d = d - M @ jnp.where(stuck_on, thr.thrust, 0.0)
-    if _pairs_exact(act, layout):
-        groups = act.pair_groups
-        F_group = jnp.stack([sum(F_alloc[i] for i in g) for g in groups])
-        pair = allocate_pairs(d[: len(groups) // 2], F_group[0::2], F_group[1::2])
-        share = jnp.zeros(T, dtype)
-        for j, g in enumerate(groups):  # equal shares of alike thrusters: no torque
-            for i in g:
-                share = share.at[i].set(pair.f[j] / len(g))
-        alloc = pair._replace(f=share)
+    if act.allocation == "separate":  # a pure force by pairs plus a pure couple
+        n_axes = len(act.pair_groups) // 2
+        force = _pair_shares(act, d[:n_axes], F_alloc, dtype)
+        couple = allocate(M, d.at[:n_axes].set(0.0), F_alloc)
+        f = force.f + couple.f
+        over = jnp.max(f / jnp.where(F_alloc > 0, F_alloc, jnp.inf))
+        shrink = 1.0 / jnp.maximum(over, 1.0)  # the whole wrench scaled: its direction kept
+        alloc = Allocation(f=f * shrink, scale=jnp.minimum(force.scale, couple.scale) * shrink)
+    elif _pairs_exact(act, layout):
+        alloc = _pair_shares(act, d[: len(act.pair_groups) // 2], F_alloc, dtype)
     else:
         alloc = allocate(M, d, F_alloc)
     t_dem = on_time_demand(alloc.f, thr.thrust, ts)
 
     if act.modulator == "pwm":
-        cmd, mod_next, dropped = pwm(t_dem, ts, thr.valve_s, thr.min_on_s, mod, act.carry)
+        cmd, mod_next, dropped = pwm(
+            t_dem, ts, thr.valve_s, thr.min_on_s, mod, act.carry, act.align
+        )
     elif act.modulator == "schmitt":
         cmd, mod_next, dropped = schmitt(
-            t_dem, ts, thr.valve_s, thr.min_on_s, thr.schmitt_on, thr.schmitt_off, mod
+            t_dem, ts, thr.valve_s, thr.min_on_s, thr.schmitt_on, thr.schmitt_off, mod, act.align
         )
     else:
         cmd, mod_next = delta_sigma(t_dem, ts, mod, act.ticks)

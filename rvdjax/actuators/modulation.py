@@ -6,8 +6,9 @@ full thrust F_i. The modulators here turn that into pulses ``(start, width)`` in
 (times from the period's start [s], P pulses per thruster, a width of 0 for none) and keep
 their own state between periods (in the loop state, so batches, studies and replays carry it):
 
-* :func:`pwm`: one pulse from the start of the period, its width rounded to the valve
-  resolution and capped at Ts. A pulse shorter than the minimum on-time is dropped (paper 003
+* :func:`pwm`: one pulse per period, its width rounded to the valve resolution and capped at
+  Ts, from the period's start (``align="start"``) or centred in the period
+  (``align="centre"``). A pulse shorter than the minimum on-time is dropped (paper 003
   Sec. 2.1.2, Eq. 2.6: "the control is simply discarded"); with ``carry`` the impulse lost to
   rounding or to a dropped pulse is added to the next period's command (error feedback,
   state: the carried on-time [s]).
@@ -32,7 +33,15 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-__all__ = ["Pulses", "pwm", "schmitt", "delta_sigma", "on_time_demand"]
+__all__ = ["Pulses", "pwm", "schmitt", "delta_sigma", "on_time_demand", "ALIGNMENTS"]
+
+#: Where a PWM / Schmitt pulse sits in its period. "start": it opens when the command arrives,
+#: so its impulse acts as early as it can (an impulsive model, paper 003 Eq. 3.1, puts the
+#: delta-v at the period's start). "centre": centred on Ts / 2, where a zero-order-hold model
+#: puts the centroid of the period's impulse; for a double integrator the state reached at
+#: the period's end is then exactly the model's, whatever the pulse's width (position
+#: v Ts + dv (Ts - c) with c the pulse's centre: c = Ts / 2 for both).
+ALIGNMENTS = ("start", "centre")
 
 
 class Pulses(NamedTuple):
@@ -62,14 +71,21 @@ def _quantise(t, valve_s, ts):
     return jnp.clip(jnp.round(t / valve_s), 0.0, n_max) * valve_s
 
 
-def pwm(t_demand, ts, valve_s, min_on_s, carried, carry: bool):
-    """One pulse per thruster from the period's start.
+def _placed(w, ts, align: str):
+    """Pulses (T, 1) of widths ``w`` placed in the period by ``align`` (:data:`ALIGNMENTS`)."""
+    start = jnp.zeros_like(w) if align == "start" else 0.5 * (ts - w)
+    return Pulses(start[:, None], w[:, None])
+
+
+def pwm(t_demand, ts, valve_s, min_on_s, carried, carry: bool, align: str = "start"):
+    """One pulse per thruster, from the period's start or centred in it (``align``).
 
     Args:
         t_demand: (T,) on-time asked for [s].
         ts: () control period [s]. valve_s, min_on_s: () [s].
         carried: (T,) on-time carried from earlier periods [s] (zeros without ``carry``).
         carry: static; keep the lost on-time for the next period.
+        align: static, :data:`ALIGNMENTS`.
 
     Returns:
         (Pulses with P = 1, carried', dropped (T,) bool: a non-zero pulse under the minimum
@@ -83,10 +99,10 @@ def pwm(t_demand, ts, valve_s, min_on_s, carried, carry: bool):
         carried_next = jnp.clip(want - w, -valve_s, jnp.maximum(min_on_s, valve_s))
     else:
         carried_next = jnp.zeros_like(carried)
-    return Pulses(jnp.zeros_like(w)[:, None], w[:, None]), carried_next, dropped
+    return _placed(w, ts, align), carried_next, dropped
 
 
-def schmitt(t_demand, ts, valve_s, min_on_s, on_level, off_level, fired_last):
+def schmitt(t_demand, ts, valve_s, min_on_s, on_level, off_level, fired_last, align="start"):
     """PWM with a Schmitt trigger on pulses shorter than the minimum on-time.
 
     Returns:
@@ -101,7 +117,7 @@ def schmitt(t_demand, ts, valve_s, min_on_s, on_level, off_level, fired_last):
     w = jnp.where(short, jnp.where(fire_min & (t_demand > 0), w_min, 0.0), w)
     dropped = short & (t_demand > 0) & (w == 0)
     fired = (w > 0).astype(w.dtype)
-    return Pulses(jnp.zeros_like(w)[:, None], w[:, None]), fired, dropped
+    return _placed(w, ts, align), fired, dropped
 
 
 def delta_sigma(t_demand, ts, integrator, ticks: int):

@@ -20,11 +20,12 @@ constant-thrust segments, each integrated by RK4 (:func:`rvdjax.propagate.propag
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from rvdjax.actuators.modulation import Pulses
 
-__all__ = ["N_TERMS", "pulse_response", "pulse_segments", "check_series"]
+__all__ = ["N_TERMS", "pulse_response", "pulse_states", "pulse_segments", "check_series"]
 
 N_TERMS = 10
 
@@ -69,19 +70,37 @@ def pulse_response(Ac, Bc, tau, pulses: Pulses, g, grid: bool = False):
     return out
 
 
-def pulse_segments(pulses: Pulses, g, ts):
-    """Constant-thrust segments of a period whose pulses all start at its beginning (PWM).
+def pulse_states(Ac, Bc, x, taus, pulses: Pulses, g, grid: bool = False):
+    """(M, nx) linear truth at the times ``taus`` (M,) [s] inside the period, from ``x`` at
+    its start under ``pulses``: e^{Ac tau} x plus :func:`pulse_response` at tau (the pulses'
+    own path, not the model's mean input)."""
+    from rvdjax.dynamics import zoh_states
+
+    free = zoh_states(Ac, Bc, x, jnp.zeros(Bc.shape[1], x.dtype), taus)
+    forced = jax.vmap(lambda tau: pulse_response(Ac, Bc, tau, pulses, g, grid))(taus)
+    return free + forced
+
+
+def pulse_segments(pulses: Pulses, g, ts, from_start: bool = True):
+    """Constant-thrust segments of a period with one pulse per thruster (PWM, Schmitt).
+
+    Args:
+        from_start: static; every pulse starts at the period's beginning (the segments are
+            then cut at the valve closings only: T + 1 of them); False: anywhere in the
+            period (cut at every opening and closing: 2 T + 1 segments).
 
     Returns:
-        (durations (T+1,) [s], forces (T+1, nu)): segment j runs from the j-th valve closing
-        (sorted) to the next one (the last to Ts) with the thrusters still open.
+        (durations (S,) [s], forces (S, nu)): the segments in time order, each with the sum
+        of the generalised forces of the thrusters open during it.
     """
-    ends = jnp.minimum(pulses.start[:, 0] + pulses.width[:, 0], ts)
-    closing = jnp.sort(ends)
-    bounds = jnp.concatenate([jnp.zeros((1,), ends.dtype), closing, jnp.reshape(ts, (1,))])
+    start = jnp.clip(pulses.start[:, 0], 0.0, ts)
+    ends = jnp.minimum(start + pulses.width[:, 0], ts)
+    cuts = ends if from_start else jnp.concatenate([start, ends])
+    bounds = jnp.concatenate([jnp.zeros((1,), ends.dtype), jnp.sort(cuts), jnp.reshape(ts, (1,))])
     durations = jnp.diff(bounds)
-    # thruster i is open during segment j when it closes at or after the segment's end
-    open_ = ends[None, :] >= bounds[1:, None] - 0.0  # (T+1, T)
+    # thruster i is open during segment j when it opened by the segment's start and closes
+    # at or after its end
+    open_ = (start[None, :] <= bounds[:-1, None]) & (ends[None, :] >= bounds[1:, None])
     open_ = open_ & (pulses.width[:, 0] > 0)[None, :]
     forces = open_.astype(g.dtype) @ g
     return durations, forces

@@ -21,6 +21,11 @@ from rvdjax.actuators.thrusters import axis_set, planar_eight
 
 __all__ = ["FASTMPC_3D", "SPOT", "POSEIDYN_PWM", "POSEIDYN_DELTA_SIGMA", "CUBESAT_6U"]
 
+_CENTRED = (
+    "PWM pulses centred in each period (the zero-order-hold model's impulse centroid: for the "
+    "double integrator the state at the period's end is the model's whatever the width); "
+)
+
 _LAB = (
     "valve resolution 0.01 s (paper 002: 'a resolution of 0.01 s for each thruster'); "
     "minimum on-time 0.01 s (one valve tick; not given); Isp 60 s (compressed-air cold gas; "
@@ -34,11 +39,12 @@ FASTMPC_3D = axis_set(
     min_on_s=0.0,
     isp_s=220.0,
     modulator="pwm",
+    align="centre",
     assumptions=(
         "thrusters: six 20 N thrusters along the body axes through the centre of mass, body "
-        "axes on LVLH (paper 000 applies ideal per-axis forces |u_i| <= 20 N); PWM from the "
-        "start of each 15 s period, valve resolution 0.01 s, no minimum on-time, Isp 220 s "
-        "(hydrazine; not given)",
+        "axes on LVLH (paper 000 applies ideal per-axis forces |u_i| <= 20 N); PWM centred in "
+        "each 15 s period (the zero-order-hold model's impulse centroid), valve resolution "
+        "0.01 s, no minimum on-time, Isp 220 s (hydrazine; not given)",
     ),
 )
 
@@ -51,10 +57,10 @@ SPOT = planar_eight(
     min_on_s=0.01,
     isp_s=60.0,
     modulator="pwm",
+    align="centre",
     assumptions=(
         "thrusters: eight 0.15 N thrusters, two on each face of the 0.3 m platform at 83 mm "
-        "either side of the face centre, firing along the face normal; PWM from the start of "
-        "each period; " + _LAB,
+        "either side of the face centre, firing along the face normal; " + _CENTRED + _LAB,
     ),
 )
 
@@ -67,11 +73,12 @@ POSEIDYN_PWM = planar_eight(
     min_on_s=0.01,
     isp_s=60.0,
     modulator="pwm",
+    align="centre",
     assumptions=(
         "thrusters: eight 0.15 N thrusters (0.3 N per axis: paper 001's 0.15 N limit is 'a "
         "half of the actual achievable level'), two on each face of a 0.3 m body, 0.1 m either "
         "side of the face centre; attitude torque through the same thrusters, counted in "
-        "paper 002 Eq. 11's effort; PWM from the start of each period; " + _LAB,
+        "paper 002 Eq. 11's effort; " + _CENTRED + _LAB,
     ),
 )
 
@@ -107,5 +114,9 @@ CUBESAT_6U = axis_set(
         "becomes a pulse of m |dv| / 0.5 N from the start of the period (Eq. 2.5), quantised "
         "to 0.01 s; pulses under the minimum on-time 0.02 s (minimum impulse bit 10 mN s; "
         "not given) are discarded (Eq. 2.6); Isp 220 s (the thesis' AF-M315E example)",
+        "thrusters: the guidance's model has the finite burns (a delta-v dv is a burn of "
+        "m |dv| / 0.5 N from the period's start, up to 5 s: the impulse of Eq. 3.1 acts at the "
+        "burn's centre, linearised about the previous plan's delta-v); the thesis' impulsive "
+        "model with the burns (Config finite_burn=False) lags its plans by up to 0.45 m a step",
     ),
 )

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
+from rvdjax.actuators.modulation import ALIGNMENTS
 
 __all__ = [
     "G0",
@@ -30,6 +31,7 @@ __all__ = [
     "Actuation",
     "ThrusterSet",
     "MODULATORS",
+    "ALLOCATIONS",
     "FAULTS",
     "effectiveness",
     "rotation_z",
@@ -40,6 +42,7 @@ __all__ = [
 
 G0 = 9.80665  # standard gravity [m/s^2] (propellant mass from specific impulse)
 MODULATORS = ("pwm", "schmitt", "delta-sigma")
+ALLOCATIONS = ("least-thrust", "separate")
 FAULTS = ("healthy", "stuck-off", "stuck-on")
 
 
@@ -89,6 +92,10 @@ class Actuation:
             whole ticks of Ts / ``ticks``, driven by the integral of command minus fired).
         carry: PWM: the impulse lost to quantisation and to dropped pulses is added to the
             next command of the same thruster (error feedback); False drops it (paper 003).
+        align: PWM and Schmitt: "start" (the pulse opens with the period: an impulsive
+            model's delta-v acts as early as it can) or "centre" (centred in the period: a
+            zero-order-hold model's impulse centroid, exact for a double integrator at the
+            period's end), :data:`rvdjax.actuators.modulation.ALIGNMENTS`.
         ticks: delta-sigma ticks per control period.
         rows: the wrench rows (0-2 force x, y, z; 3-5 torque x, y, z, body frame) the
             allocation must meet; the family's force inputs map to rows 0, 1(, 2) in order,
@@ -102,6 +109,12 @@ class Actuation:
             thrust, shared equally), exact whenever no torque is demanded: single-thruster
             groups (thrusters through the centre of mass) always, larger groups when the
             family has no torque input and no fault can split a group. Empty: the LP.
+        allocation: "least-thrust" (the least total thrust that meets force and torque
+            together: a torque may come for free from firing a pair unevenly) or "separate"
+            (a simple vehicle's split: the force by ``pair_groups``, each group's thrusters
+            sharing it equally so that it gives no torque, plus the torque by the least-thrust
+            pure couple; the sum is scaled down as a whole where a thruster saturates). Needs
+            ``pair_groups``, a torque row and no faults.
         fdir: the allocation knows a failed thruster from its onset (it allocates around a
             stuck-off thruster and subtracts a stuck-on one from the demand); False: the
             fault goes unnoticed.
@@ -112,20 +125,31 @@ class Actuation:
     n: int
     modulator: str = "pwm"
     carry: bool = False
+    align: str = "start"
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
     pair_groups: tuple[tuple[int, ...], ...] = ()
+    allocation: str = "least-thrust"
     fdir: bool = True
     faults: bool = False
 
     def __post_init__(self):
         checks.integer("n (number of thrusters)", self.n)
         checks.choice("modulator", self.modulator, MODULATORS)
+        checks.choice("align (pulse position in the period)", self.align, ALIGNMENTS)
         checks.integer("ticks (delta-sigma ticks per control period)", self.ticks)
         checks.choice("frame", self.frame, ("attitude", "fixed"))
         if not self.rows or any(r not in range(6) for r in self.rows):
             raise ValueError(f"rows must be wrench rows in 0..5, got {self.rows!r}")
+        checks.choice("allocation", self.allocation, ALLOCATIONS)
+        if self.allocation == "separate":
+            n_axes = len(self.pair_groups) // 2
+            if not self.pair_groups or len(self.rows) <= n_axes or self.faults:
+                raise ValueError(
+                    "allocation='separate' needs pair_groups, a torque row after the force "
+                    "rows and no faults"
+                )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,7 +164,8 @@ class ThrusterSet:
         valve_s: valve resolution [s] (> 0).
         min_on_s: minimum on-time [s] (>= 0).
         isp_s: specific impulse [s] (> 0).
-        modulator, carry, ticks, rows, frame, pair_groups, fdir: :class:`Actuation`.
+        modulator, carry, align, ticks, rows, frame, pair_groups, allocation, fdir:
+            :class:`Actuation`.
         schmitt_levels: (on, off) levels of the Schmitt trigger, fractions of min_on_s.
         assumptions: what rvdjax chose where the papers are silent (printed with a run).
     """
@@ -154,10 +179,12 @@ class ThrusterSet:
     isp_s: float = 70.0
     modulator: str = "pwm"
     carry: bool = False
+    align: str = "start"
     ticks: int = 50
     rows: tuple[int, ...] = (0, 1, 2)
     frame: str = "fixed"
     pair_groups: tuple[tuple[int, ...], ...] = ()
+    allocation: str = "least-thrust"
     fdir: bool = True
     schmitt_levels: tuple[float, float] = (0.75, 0.25)
     assumptions: tuple[str, ...] = ()
@@ -230,8 +257,12 @@ class ThrusterSet:
         mod = self.modulator + (
             f" ({self.ticks} ticks a period)" if self.modulator == "delta-sigma" else ""
         )
+        if self.modulator in ("pwm", "schmitt"):
+            mod += ", pulses centred in the period" if self.align == "centre" else ""
         if self.modulator == "pwm":
             mod += ", short pulses carried" if self.carry else ", short pulses dropped"
+        if self.allocation == "separate":
+            mod += ", force and couple allocated separately"
         return (
             f"{self.name}: {self.n} thrusters of {'/'.join(f'{t:g}' for t in thrust)} N, "
             f"{mod}, valve resolution {self.valve_s:g} s, minimum on-time {self.min_on_s:g} s, "

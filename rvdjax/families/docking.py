@@ -337,7 +337,17 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     x_ref = jnp.concatenate(
         [hold, theta_ref[:, None], v_hold, jnp.full((N, 1), p.target_rate)], axis=-1
     )
-    guess = plan.x[:, :2]
+    # The circles are linearised about the previous plan (paper 000 Eqs. 8-9), except in
+    # paper 002's final approach: the chaser, which entered it at the holding point in front
+    # of the port, must then stay in the entry cone over the whole horizon, so they are
+    # linearised about the port axis (tangent lines across the cone, within 1.7 cm of the
+    # circles inside a 20 deg cone at 1.2 m; paper 002's NMPC keeps the circles exact). About
+    # a plan that lags a port turning away from the chaser, the tangents cut the cone off:
+    # every step infeasible and the truth through the keep-out circle (case C turning
+    # clockwise: 27 steps, -8 cm). Paper 000's cone turns on by distance, wherever the
+    # chaser is, so its circles stay linearised about the plan.
+    axis_lin = g.cone_on if fc.logic == "two-phase" else False
+    guess = jnp.where(axis_lin, centre + hold_r * e, plan.x[:, :2])
     blocks = [
         holding_radius(guess, centre, p.r_t, nx, POS, rho=p.rho, name="target_keep_out"),
         holding_radius(guess, centre, g.r_hold, nx, POS, rho=p.rho, name="holding_radius"),

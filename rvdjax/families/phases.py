@@ -45,6 +45,8 @@ from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
     approach_cone,
     approach_cone_penalty,
+    between_samples,
+    block_margin,
     cost_rows,
     exclusive,
     keep_out_plane,
@@ -164,11 +166,24 @@ class Config:
         rendezvous_cost: "qp" (Eq. 3.2, the thesis' default) or "lp": the rendezvous phase
             minimises the 1-norm cost of Eq. 2.10 (Sec. 3.6.4, Table 3.6), see :func:`ocp`.
             "lp" splits the input of every phase (one shape for all).
+        between_samples: the rendezvous keep-out planes also hold at the instants the truth
+            is judged between samples (j Ts / 8, the state there a coast back from x_{t+1}:
+            :func:`rvdjax.constraints.between_samples`). The thesis constrains the samples
+            only; a chord between two samples outside the 100 m sphere can cut into it
+            (by centimetres where the plan rides the sphere). rvdjax's choice, on by
+            default: the keep-out sphere is judged between samples.
+        finite_burn: with the thrusters flying (``params.thrusters``), the model has their
+            finite burns (:func:`finite_burn`); False keeps the thesis' impulsive model
+            (Eq. 3.1) while the thrusters burn for up to 5 s from each period's start, as the
+            thesis' own formulation does: its truth then lags the plans by up to
+            m u_max^2 / (2 F) = 0.45 m per step and crosses the overshoot plane.
     """
 
     N: tuple[int, int, int] = (30, 15, 12)
     n_faces: int = 4
     rendezvous_cost: str = "qp"
+    between_samples: bool = True
+    finite_burn: bool = True
 
     def __post_init__(self):
         if len(self.N) != N_PHASES or any(not isinstance(k, int) or k < 1 for k in self.N):
@@ -176,12 +191,18 @@ class Config:
         if not isinstance(self.n_faces, int) or self.n_faces < 3:
             raise ValueError(f"n_faces must be an int >= 3, got {self.n_faces!r}")
         checks.choice("rendezvous_cost", self.rendezvous_cost, ("qp", "lp"))
+        for name in ("between_samples", "finite_burn"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
 
 
 class Guidance(NamedTuple):
-    """The current phase: 0 rendezvous, 1 approach, 2 docking."""
+    """The current phase (0 rendezvous, 1 approach, 2 docking) and whether the chaser has
+    been inside the docking cone at a sample of the docking phase (from then on the truth
+    must stay in it: the docking cone is judged; before, the chaser is still entering)."""
 
     phase: jnp.ndarray
+    entered: jnp.ndarray | bool = True
 
 
 def make_params(
@@ -396,7 +417,7 @@ def _in_cone(p: Params, r, t, n_faces):
 
 
 def init(p: Params, fc: Config, x0):
-    return Guidance(phase=jnp.asarray(0, jnp.int32))
+    return Guidance(phase=jnp.asarray(0, jnp.int32), entered=jnp.asarray(False))
 
 
 def _N(fc: Config) -> int:
@@ -453,14 +474,17 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n, x[3:])
     # The phases' rows are never active together, so they share rows (constraints.exclusive):
     # 10 state rows per stage instead of 16 (the solver's row work scales with the count).
+    keep_out = keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0)
     cone_penalty = approach_cone_penalty(
         jnp.zeros((N, 3), dtype), axis, p.half_angle[phase], p.lam[phase], 6, POS, nf
     ).masked(jnp.where(p0, last, on * p1))
     per_phase = [
-        [
-            keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0),
-            cone_penalty,
-        ],
+        [keep_out, cone_penalty]
+        + (
+            [between_samples(keep_out, _coast_back(p.Ac, ts), "keep_out_between")]
+            if fc.between_samples
+            else []
+        ),
         [cone_penalty, overshoot(axis, p.r2, 6, POS, rho=p.rho).masked(on * p1)],
         [
             approach_cone(
@@ -472,7 +496,11 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
 
     eye = jnp.eye(6, dtype=dtype)
     A = jnp.where(real[:, None, None], p.A[phase], eye)
-    B = jnp.where(real[:, None, None], p.B[phase], 0.0)
+    B_phase, c = p.B[phase], jnp.zeros((N, 6), dtype)
+    if p.thrusters is not None and fc.finite_burn:  # the vehicle's burns, not impulses
+        B_phase, c = finite_burn(p, p.A[phase], ts, _plan_dv(fc, g, plan))
+        c = jnp.where(real[:, None], c, 0.0)
+    B = jnp.where(real[:, None, None], B_phase, 0.0)
     Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
     Q = Q.at[-1].set(p.Q_f[phase])
     R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
@@ -520,7 +548,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     problem = OCP(
         A=A,
         B=B,
-        c=jnp.zeros((N, 6), dtype),
+        c=c,
         x0=x,
         Q=Q,
         R=R,
@@ -536,6 +564,69 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         x_mask=x_mask,
     )
     return problem, blocks
+
+
+def _coast_back(Ac, ts):
+    """(SUBSAMPLES - 1, 6, 6) e^{-Ac (ts - tau_j)} for tau_j = j ts / SUBSAMPLES: the state at
+    tau_j from the state at ts when nothing fires in between (power series; n ts <= 0.1)."""
+    s = ts * (1.0 - jnp.arange(1, SUBSAMPLES, dtype=Ac.dtype) / SUBSAMPLES)
+    eye = jnp.eye(Ac.shape[0], dtype=Ac.dtype)
+    M = -s[:, None, None] * Ac[None]
+    out = jnp.broadcast_to(eye, M.shape)
+    for k in range(12, 0, -1):  # Horner: I + M (I + M / 2 (I + M / 3 (...)))
+        out = eye + (M / k) @ out
+    return out
+
+
+def _plan_dv(fc: Config, g: Guidance, plan):
+    """(N, 3) the delta-v of each stage of a plan (the LP's split inputs recombined)."""
+    u = plan.u
+    if fc.rendezvous_cost == "lp":
+        return u[:, :3] - jnp.where(g.phase == 0, u[:, 3:], 0.0)
+    return u
+
+
+def axis_thrust(thr: Thrusters):
+    """(3,), (3,) thrust [N] along +x, +y, +z and -x, -y, -z of a set whose body axes are the
+    model's (``frame="fixed"``): each direction's thrusters fire together on a demand along
+    it (the least-thrust allocation), so a delta-v dv_j takes m |dv_j| / F_j seconds."""
+    d = thr.direction  # (T, 3)
+    plus = jnp.sum(thr.thrust[:, None] * jnp.maximum(d, 0.0), axis=0)
+    minus = jnp.sum(thr.thrust[:, None] * jnp.maximum(-d, 0.0), axis=0)
+    return plus, minus
+
+
+def finite_burn(p: Params, A, ts, dv_bar):
+    """The impulsive model (paper 003 Eq. 3.1) with the thrusters' finite burns, linearised
+    about the delta-v of the previous plan: (B (N, 6, 3), c (N, 6)) per stage.
+
+    A delta-v dv_j on axis j is a burn of w_j = m |dv_j| / F_j seconds from the period's start
+    (PWM aligned to the start; the thesis' on-time bound u_max keeps w_j <= 5 s). Its effect
+    at the period's end is A (1 / w) int_0^w e^{-Ac s} ds b_j dv_j
+    = A (I - w/2 Ac + w^2/6 Ac^2) b_j dv_j + O(w^3) (b_j the unit delta-v column): for the
+    double integrator the position lags the impulse's by m dv_j |dv_j| / (2 F_j). That is
+    nonlinear in dv_j; its tangent at the previous plan's delta-v dv_bar (shifted one stage) is
+
+        B_t = A (b - Ac b diag(w) + Ac^2 b diag(w^2) / 2),
+        c_t = A (Ac b (w / 2 * dv_bar) - Ac^2 b (w^2 / 3 * dv_bar))
+
+    with w = w(dv_bar): exact where the plan keeps its delta-v (the error is
+    m (|dv| - |dv_bar|)^2 / (2 F) per axis otherwise). With ideal impulses (no thrusters)
+    the family keeps Eq. 3.1 exactly.
+    """
+    plus, minus = axis_thrust(p.thrusters)
+    F = jnp.where(dv_bar >= 0.0, plus, minus)
+    w = jnp.minimum(p.mass * jnp.abs(dv_bar) / jnp.maximum(F, 1e-12), ts)  # (N, 3)
+    b = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3)]).astype(A.dtype)  # unit delta-v columns
+    Ab = p.Ac @ b  # (6, 3)
+    AAb = p.Ac @ Ab
+    B = jnp.einsum(
+        "ij,tjk->tik", A, b[None] - Ab[None] * w[:, None, :] + 0.5 * AAb[None] * (w**2)[:, None, :]
+    )
+    c = jnp.einsum("ij,tj->ti", A @ Ab, 0.5 * w * dv_bar) - jnp.einsum(
+        "ij,tj->ti", A @ AAb, (w**2 / 3.0) * dv_bar
+    )
+    return B, c
 
 
 def control(p, fc: Config, g: Guidance, sol):
@@ -558,7 +649,7 @@ def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
     t_next = t + ts
     r = x_next[:3]
     dist = jnp.linalg.norm(r)
-    port_n, _, _ = target_state(p, t_next)
+    port_n, _, axis_next = target_state(p, t_next)
     in_cone = _in_cone(p, r, t_next, fc.n_faces) >= 0
     to1 = (g.phase == 0) & in_cone & (dist <= p.r1 * (1 + p.switch_tol))
     to2 = (g.phase == 1) & (dist <= p.r2 * (1 + p.switch_tol))
@@ -567,7 +658,10 @@ def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
     # the sub-samples are judged, except on a step that changes phase: its end lies inside
     # the keep-out sphere (through the cone) or past r2 by design
     judged = jnp.broadcast_to(phase == g.phase, samples[0].shape)
-    return Guidance(phase=phase), docked, ts, judged
+    cone = approach_cone(port_n[None], axis_next[None], p.half_angle[2], fc.n_faces, 6, POS)
+    inside = jnp.min(block_margin(cone, x_next)) >= 0.0
+    entered = jnp.asarray(g.entered) | ((phase == 2) & inside)
+    return Guidance(phase=phase, entered=entered), docked, ts, judged
 
 
 SUBSAMPLES = 8  # intervals a step is cut into for the truth between samples
@@ -588,8 +682,9 @@ def subsamples(p: Params, fc: Config, x, u, dt):
 
 
 def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
-    """Keep-out sphere (phase 0) and overshoot plane (phase 1) are judged; the docking cone and
-    the speed bound (phase 2, after an entry transient) are reported."""
+    """Keep-out sphere (phase 0), overshoot plane (phase 1) and docking cone (phase 2, once the
+    chaser has been inside it: before, it is still entering) are judged; the speed bound
+    (phase 2) is reported."""
     t = jnp.asarray(t)
     port, _, axis = target_state(p, t)
     r = x[None, :3]
@@ -597,15 +692,8 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
         sphere_keep_out(r, jnp.zeros((1, 3)), p.r1, 6, POS, name="keep_out").masked(g.phase == 0),
         overshoot(axis[None], p.r2, 6, POS).masked(g.phase == 1),
         approach_cone(
-            port[None],
-            axis[None],
-            p.half_angle[2],
-            fc.n_faces,
-            6,
-            POS,
-            name="docking_cone",
-            kind="monitor",
-        ).masked(g.phase == 2),
+            port[None], axis[None], p.half_angle[2], fc.n_faces, 6, POS, name="docking_cone"
+        ).masked((g.phase == 2) & jnp.asarray(g.entered)),
         velocity_bound(p.v_max, 1, 6, VEL).with_(kind="monitor").masked(g.phase == 2),
     ]
 

@@ -30,6 +30,7 @@ from jax import lax
 
 from rvdjax.actuators.fire import fire
 from rvdjax.actuators.modulation import Pulses
+from rvdjax.actuators.response import pulse_states
 from rvdjax.actuators.thrusters import G0, Actuation
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, gm_step, measure, minimum_impulse_bit, thrust_factor
@@ -186,6 +187,8 @@ class Accumulator(NamedTuple):
     torque_l1: jnp.ndarray  # () sum |torque| dt [N m s]
     phase_dv: jnp.ndarray  # (P,) L2 delta-v per phase [m/s]
     phase_time: jnp.ndarray  # (P,) time per phase [s]
+    phase_impulse_l1: jnp.ndarray  # (P,) sum ||impulse||_1 per phase [N s]
+    phase_thrust_impulse: jnp.ndarray  # (P,) thruster impulse per phase [N s]
     margins: dict  # name -> () smallest truth margin so far [m]
     status_counts: jnp.ndarray  # (4,) solver statuses
     iterations: jnp.ndarray  # () solver iterations
@@ -285,6 +288,8 @@ class Metrics(NamedTuple):
     torque_l1_N_m_s: jnp.ndarray  # sum_k |torque_k| dt (planar 3-DOF)
     phase_delta_v_m_s: jnp.ndarray  # (P,) L2 delta-v per phase
     phase_time_s: jnp.ndarray  # (P,) time per phase [s]
+    phase_effort_l1_N_s: jnp.ndarray  # (P,) effort_l1_N_s per phase
+    phase_thruster_impulse_N_s: jnp.ndarray  # (P,) thruster_impulse_N_s per phase
     max_violation_m: jnp.ndarray  # largest violation of a hard constraint by the truth
     margins_m: dict  # name -> smallest truth margin of that block over the run
     status_counts: jnp.ndarray  # (4,) solver statuses over the steps flown
@@ -320,6 +325,8 @@ def _empty_acc(loop: Loop, params, x0, g, dtype) -> Accumulator:
         torque_l1=zero,
         phase_dv=jnp.zeros(P, dtype),
         phase_time=jnp.zeros(P, dtype),
+        phase_impulse_l1=jnp.zeros(P, dtype),
+        phase_thrust_impulse=jnp.zeros(P, dtype),
         margins={n: jnp.asarray(jnp.inf, dtype) for n in names},
         status_counts=jnp.zeros(4, jnp.int32),
         iterations=jnp.zeros((), jnp.int32),
@@ -524,9 +531,20 @@ def advance(
             g_fired,
             dt,
             grid=cfg.actuation.modulator == "delta-sigma",
+            from_start=cfg.actuation.align == "start",
         )
     if fam.subsamples is not None:
         taus, subs = fam.subsamples(params, fc, state.x, u, dt)
+        if fired is not None and cfg.truth == "linear":  # the pulses' path, not the mean input's
+            subs = pulse_states(
+                params.Ac,
+                params.Bc,
+                state.x,
+                taus,
+                fired.pulses,
+                g_fired,
+                grid=cfg.actuation.modulator == "delta-sigma",
+            )
     else:
         taus, subs = jnp.zeros((0,), dtype), jnp.zeros((0, lay.nx), dtype)
     t_next = state.t + dt
@@ -602,16 +620,20 @@ def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo, fired=None
     P = loop.family.n_phases
     in_phase = (info.phase == jnp.arange(P)) & act
     hist_bin = jnp.minimum(info.iterations, HIST_BINS - 1)
+    imp_l1 = jnp.sum(jnp.abs(imp))
+    thrust_imp = 0.0 if fired is None else fired.thrust_impulse
     return Accumulator(
         steps=acc.steps + act.astype(jnp.int32),
         time_s=acc.time_s + info.dt,
         impulse_l2=acc.impulse_l2 + jnp.where(act, jnp.linalg.norm(imp), 0.0),
-        impulse_l1=acc.impulse_l1 + jnp.where(act, jnp.sum(jnp.abs(imp)), 0.0),
+        impulse_l1=acc.impulse_l1 + jnp.where(act, imp_l1, 0.0),
         dv_l2=acc.dv_l2 + jnp.where(act, dv2, 0.0),
         dv_l1=acc.dv_l1 + jnp.where(act, jnp.sum(jnp.abs(dv)), 0.0),
         torque_l1=acc.torque_l1 + jnp.where(act, torque, 0.0),
         phase_dv=acc.phase_dv + jnp.where(in_phase, dv2, 0.0),
         phase_time=acc.phase_time + jnp.where(in_phase, info.dt, 0.0),
+        phase_impulse_l1=acc.phase_impulse_l1 + jnp.where(in_phase, imp_l1, 0.0),
+        phase_thrust_impulse=acc.phase_thrust_impulse + jnp.where(in_phase, thrust_imp, 0.0),
         margins={
             n: jnp.minimum(low, jnp.where(act, jnp.min(info.margins[n]), jnp.inf))
             for n, low in acc.margins.items()
@@ -619,8 +641,7 @@ def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo, fired=None
         status_counts=acc.status_counts + Status.counts(info.status, act).astype(jnp.int32),
         iterations=acc.iterations + jnp.where(act, info.iterations, 0).astype(jnp.int32),
         histogram=acc.histogram.at[hist_bin].add(act.astype(jnp.int32)),
-        thrust_impulse=acc.thrust_impulse
-        + (0.0 if fired is None else jnp.where(act, fired.thrust_impulse, 0.0)),
+        thrust_impulse=acc.thrust_impulse + jnp.where(act, thrust_imp, 0.0),
         openings=acc.openings
         + (0 if fired is None else jnp.where(act, fired.openings, 0).astype(jnp.int32)),
         dropped=acc.dropped
@@ -660,6 +681,8 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
         torque_l1_N_m_s=acc.torque_l1,
         phase_delta_v_m_s=acc.phase_dv,
         phase_time_s=acc.phase_time,
+        phase_effort_l1_N_s=acc.phase_impulse_l1,
+        phase_thruster_impulse_N_s=acc.phase_thrust_impulse,
         max_violation_m=jnp.maximum(0.0, -worst),
         margins_m=acc.margins,
         status_counts=acc.status_counts,

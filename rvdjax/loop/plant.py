@@ -55,7 +55,17 @@ def truth_step(layout, truth: str, substeps: int, A, B, params, orbit, x, u, dt)
 
 
 def truth_step_pulses(
-    truth: str, substeps: int, A, params, orbit, x, pulses, g, dt, grid: bool = False
+    truth: str,
+    substeps: int,
+    A,
+    params,
+    orbit,
+    x,
+    pulses,
+    g,
+    dt,
+    grid: bool = False,
+    from_start: bool = True,
 ):
     """(x_next, orbit_next) of the truth under valve pulses (:mod:`rvdjax.actuators`).
 
@@ -68,12 +78,14 @@ def truth_step_pulses(
         pulses: (T, P) starts and widths [s]; g: (T, nu) generalised force of each thruster
             while open, model frame [N, N m].
         grid: static; whole ticks of one shared grid (delta-sigma, linear truth only).
+        from_start: static; every pulse starts with the period (PWM aligned to its start):
+            the nonlinear truths then cut it at the valve closings only.
     """
     if truth == "linear":
         return A @ x + pulse_response(params.Ac, params.Bc, dt, pulses, g, grid), orbit
     j2 = truth != "two-body"
     drag = params.drag if truth == "two-body-j2-drag" else None
-    durations, forces = pulse_segments(pulses, g, dt)
+    durations, forces = pulse_segments(pulses, g, dt, from_start)
 
     def seg(carry, piece):
         o, xc = carry

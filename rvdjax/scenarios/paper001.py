@@ -62,7 +62,8 @@ ASSUMPTIONS = (
     "thrusters); no navigation noise, no air-bearing disturbances; effort (Eq. 14) = int "
     "(|Fx| + |Fy|) dt of the applied force up to the docking instant",
     "QP solved to optimality by rvdjax's interior-point solver (<= 100 iterations), warm "
-    "started from the shifted previous plan",
+    "started from the shifted previous plan; paper 001's own solver, the dual method of its "
+    "ref. 38 capped at 100 iterations, is SolverSettings(mode='dual', max_iter=100)",
 )
 
 

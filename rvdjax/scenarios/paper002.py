@@ -17,7 +17,9 @@ ASSUMPTIONS = (
     "position error < 0.1 m and attitude error < 10 deg (thresholds c_alpha1, c_alpha2 are not "
     "given); docked when r_hold = r_t and the chaser is within 0.05 m of its holding position",
     "the entry cone (20 deg) is enforced over the whole horizon once the final phase starts; "
-    "its 0.5 m corridor length is not modelled",
+    "its 0.5 m corridor length is not modelled; in the final phase the keep-out and holding "
+    "circles are linearised about the port axis (tangent lines across the cone; paper 002's "
+    "NMPC keeps them exact), in free flight about the previous plan",
     "keep-out and cone rows are soft (exact penalty rho = 1e5 per metre)",
     "effort: with ideal forces, sum_k (|Fx| + |Fy|) Ts (attitude not counted); with the "
     "thrusters (rvdjax run --thrusters) paper 002 Eq. 11, the impulse of all 8 thrusters, "

@@ -69,6 +69,9 @@ ASSUMPTIONS = (
     "x 5 s, 0.0357 = x 1 s); the printed unit m/s^2 does not fit the delta-v input",
     "keep-out planes, overshoot, docking cone and velocity bound are soft rows with exact "
     f"penalty rho = {ASSUMED['rho']:g} (hard in the thesis); cone penalties use rho = lambda",
+    "the rendezvous keep-out planes also hold at the 7 instants between samples where the "
+    "truth is judged (the thesis constrains the samples only); the docking cone is judged once "
+    "the chaser has been inside it",
     "keep-out plane normal rotates from the chaser's bearing towards the cone axis at most at "
     "the orbit rate: along the shortest great circle when that fits in the horizon, otherwise "
     "in the sense the bearing already turns (the thesis' 'natural relative orbit motion', read "

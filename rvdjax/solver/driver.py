@@ -35,6 +35,7 @@ from rvdjax.solver.barrier import (
     x_violation,
 )
 from rvdjax.solver.clarabel import solve_clarabel_backend
+from rvdjax.solver.dual import solve_dual
 from rvdjax.solver.implicit import implicit_bwd, kkt_at
 from rvdjax.solver.kkt import kkt_solve
 from rvdjax.solver.newton import NewtonState, newton_iteration
@@ -97,6 +98,8 @@ def start(
         poison every iterate: the returned OCP is then a neutral copy and the state is finished
         with status NONFINITE.
     """
+    if settings.mode == "dual":
+        raise ValueError("mode='dual' runs through solve() only (not start / iterate / finish)")
     dtype = ocp.B.dtype
     params = _prepared(params, dtype)
     data = {
@@ -280,6 +283,8 @@ _solve_core.defvjp(_solve_core_fwd, implicit_bwd)
 def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None, params: SolverParams):
     if settings.backend != "rvdjax":
         sol = solve_clarabel_backend(ocp, settings.backend)
+    elif settings.mode == "dual":  # paper 001's PQP, a fixed number of iterations
+        sol = solve_dual(ocp, settings.max_iter, params.astype(ocp.B.dtype))
     else:
         sol = _solve_core(ocp, params.astype(ocp.B.dtype), init, settings)
     return with_objective(ocp, sol)

@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = ["Status", "SolverSettings", "SolverParams", "Solution", "Plan"]
 
-MODES = ("paper", "accurate", "barrier")
+MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
@@ -51,7 +51,10 @@ class SolverSettings:
 
     Attributes:
         mode: "paper" (fixed kappa, Algorithm 1 of paper 000), "accurate" (primal-dual
-            barrier continuation, the default) or "barrier" (primal barrier continuation).
+            barrier continuation, the default), "barrier" (primal barrier continuation) or
+            "dual" (paper 001's solver: ``max_iter`` multiplicative updates of the PQP dual
+            method, :mod:`rvdjax.solver.dual`; through :func:`solve` only, not the batch
+            engine's start / iterate / finish).
         method: "riccati" (structured step) or "dense" (ISNM, dense KKT solve).
         max_iter: Newton iteration cap.
         max_line_search: cap on backtracking steps per iteration (when it is reached the
