@@ -175,15 +175,16 @@ def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
     for a, b in zip(_bits(out["metrics"]), _bits(reference), strict=True):
         np.testing.assert_array_equal(a, b)
     # the lanes, segment by segment
-    cfg = EngineConfig(slots=8, chunk=CHUNK, ticks_per_segment=3)
-    source = arrays_source(X0S)
-    eng = E._initial_state(LOOP, cfg, source, PARAMS, SP)
+    cfg = EngineConfig(slots=8, chunk=CHUNK, ticks_per_segment=5)
+    source = arrays_source(X0S, keys)
+    eng = E._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
     seg = E._build(LOOP, cfg, source.fn)
     limit = jnp.asarray(E._block_limit(cfg, Block(None, 0, len(X0S)), [3, 3, 3, 3], len(X0S)))
+    one, zero = jnp.int32(1), jnp.int32(0)
     seen = set()
     for _ in range(120):
-        eng = seg(eng, source.data, 0, limit, False, PARAMS, SP, 1)
-        run, live = np.asarray(eng.slots.run)[0], np.asarray(eng.slots.live)[0]
+        eng = seg(eng, source.data, zero, limit, jnp.asarray(False), PARAMS, SP, one, zero, one)
+        run, live = np.asarray(eng.slots.run), np.asarray(eng.slots.live)
         slot = np.flatnonzero(live)
         assert np.all(run[slot] % CHUNK == slot % CHUNK)
         seen |= set(run[slot].tolist())

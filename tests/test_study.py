@@ -249,16 +249,12 @@ def test_a_killed_study_resumes_to_the_same_table_bit_for_bit(study_env):
 def test_four_devices_give_the_same_table(study_env):
     root, env, reference = study_env
     out = root / "devices"
-    env4 = {**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    # (the optimisation level of the tests' XLA_FLAGS kept: the reference is flown at it)
+    flags = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    env4 = {**env, "XLA_FLAGS": flags.strip()}
     r = _cli(["--runs", "160", "--out", str(out), "--devices", "4", *ARGS], env4, timeout=600)
     assert r.returncode == 0, r.stderr
-    table = read_table(out)
-    # the same runs, statuses and step counts; the figures agree to rounding: XLA partitions
-    # the 4-device program (shard_map) and may associate sums differently than on one device
-    exact = ["run", "ic", "replicate", "status", "docked", "steps", "failure"]
-    _frames_equal(table[exact], reference[exact])
-    floats = reference.select_dtypes("float").columns
-    np.testing.assert_allclose(table[floats], reference[floats], rtol=1e-10, atol=1e-12)
+    _frames_equal(read_table(out), reference)
 
 
 def _free_port() -> int:

@@ -120,9 +120,9 @@ class EngineConfig:
         iterations: solver iterations per slot per tick.
         ticks_per_segment: ticks between two collections of results on the host.
         ring: finished results kept on the device between collections (0: 4 x slots).
-        devices: the slots are sharded over this many devices (the first ``devices`` of the
-            platform's local devices; a ``Mesh`` with one axis), with no communication
-            between devices.
+        devices: the slots are split over this many devices (the first ``devices`` of the
+            platform's local devices), each running the one-device program on its share of
+            the slots and of the queue, with no communication between devices.
         refresh: "masked" (every chunk with a slot to refresh runs the refresh for all its
             slots, the others masked) or "compacted" (the slots to refresh are gathered into
             groups of ``group`` and only those run it).
@@ -593,22 +593,24 @@ def _unslice(tree, start, new):
     return jax.tree.map(lambda a, v: lax.dynamic_update_slice_in_dim(a, v, start, 0), tree, new)
 
 
-def _segment(loop: Loop, cfg: EngineConfig, source_fn, axis_index: Callable, D: int):
-    """The segment function of one device (not jitted). ``axis_index()``: this device's
-    index (traced) among ``D``."""
+def _segment(loop: Loop, cfg: EngineConfig, source_fn):
+    """The segment function of one device (not jitted). The device's index d among D devices
+    is data (the last two arguments): every device, and one device alone, runs the same
+    program."""
     C, n_chunks, R = cfg.chunk_size, cfg.n_chunks, cfg.ring_size
     S = cfg.n_slots
     G = cfg.group_size
 
-    def position(seq, d):
+    def position(seq, d, D):
         """The queue position of this device's sequence number ``seq``: with lanes, runs
         (j D + d) C + l for lane l = seq mod C and j = seq // C; without, d + D seq."""
         if cfg.assign == "lane":
             return ((seq // C) * D + d) * C + seq % C
         return d + D * seq
 
-    def segment(eng: EngineState, source_data, base, limit, more, shared_params, shared_sp, ticks):
-        d = axis_index()
+    def segment(
+        eng: EngineState, source_data, base, limit, more, shared_params, shared_sp, ticks, d, D
+    ):
         probe = jax.eval_shape(lambda: source_fn(source_data, jnp.asarray(0)))
         per_run = (probe.params is not None, probe.solver is not None)
         ctx = _Ctx(loop, shared_params, shared_sp, *per_run)
@@ -617,7 +619,7 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn, axis_index: Callable, D: 
             return source_fn(source_data, i)
 
         def inputs_at(seq):
-            return position(seq, d) - base
+            return position(seq, d, D) - base
 
         # this device's queue: the sequence numbers below `end` (per lane, or one queue)
         end = _local_end(cfg, limit, d, D, jnp)
@@ -796,10 +798,7 @@ def _block_limit(cfg: EngineConfig, block: Block, lane_counts, n_runs: int):
     return np.asarray([min(block.stop, n_runs)], np.int32)
 
 
-_AXIS = "slots"
-
-
-def _mesh(cfg: EngineConfig):
+def _devices(cfg: EngineConfig) -> list:
     devices = jax.local_devices(backend=cfg.platform)
     if cfg.devices > len(devices):
         raise ValueError(
@@ -807,41 +806,25 @@ def _mesh(cfg: EngineConfig):
             f"devices here), got {cfg.devices}; on a CPU, "
             "XLA_FLAGS=--xla_force_host_platform_device_count=N makes N devices"
         )
-    return jax.sharding.Mesh(np.asarray(devices[: cfg.devices]), (_AXIS,))
+    return devices[: cfg.devices]
 
 
 @functools.lru_cache(maxsize=64)
 def _build(loop: Loop, cfg: EngineConfig, source_fn):
-    """The jitted segment function (cached: one compile per loop, engine config and queue
-    function, whatever the data), its slots sharded over ``cfg.devices`` devices
-    (``shard_map``): every device runs the one-device segment on its slots and its share of
-    the queue. The engine state has a leading device axis; no communication between devices.
-    One device takes the same path (a one-device mesh)."""
-    from jax.sharding import PartitionSpec as P
-
-    D = cfg.devices
-    seg = _segment(loop, cfg.per_device, source_fn, lambda: lax.axis_index(_AXIS), D)
-
-    def local(eng, *args):
-        eng = jax.tree.map(lambda a: a[0], eng)
-        eng = seg(eng, *args)
-        return jax.tree.map(lambda a: a[None], eng)
-
-    return jax.jit(
-        jax.shard_map(
-            local,
-            mesh=_mesh(cfg),
-            in_specs=(P(_AXIS),) + (P(),) * 7,
-            out_specs=P(_AXIS),
-            check_vma=False,
-        )
-    )
+    """The jitted segment function of one device (cached: one compile per loop, engine
+    configuration of a device and queue function, whatever the data). Several devices run
+    it each on its own slots and share of the queue, with no communication: the same
+    program (JAX compiles a one-device program once and runs it on any device) and so the
+    same bits as on one device. (A ``shard_map`` over the devices was partitioned by XLA:
+    one of the solver's shared-model products took another layout, and the last bits of
+    some runs differed from one device's.)"""
+    return jax.jit(_segment(loop, cfg.per_device, source_fn))
 
 
 def segment_program(loop: Loop, cfg: EngineConfig, source_fn):
-    """The jitted segment of one device, without the device mesh: what each device runs
-    (for :func:`export_segment` and for reading its compiled program)."""
-    return jax.jit(_segment(loop, cfg.per_device, source_fn, lambda: jnp.asarray(0), 1))
+    """The jitted segment of one device: what each device runs (for :func:`export_segment`
+    and for reading its compiled program)."""
+    return _build(loop, cfg, source_fn)
 
 
 def _compact(cfg: EngineConfig):
@@ -862,16 +845,16 @@ def _compact(cfg: EngineConfig):
 
 
 @functools.lru_cache(maxsize=16)
-def _compact_sharded(cfg: EngineConfig):
-    return jax.jit(jax.vmap(_compact(cfg.per_device)))
+def _compact_jit(cfg: EngineConfig):
+    return jax.jit(_compact(cfg.per_device))
 
 
 @functools.lru_cache(maxsize=64)
 def _gather(size: int):
-    """Pick ``size`` ring entries (device, position) out of the sharded ring."""
+    """Pick ``size`` ring entries of one device's ring."""
 
-    def take(ring, ring_run, dev, pos):
-        return jax.tree.map(lambda a: a[dev, pos], ring), ring_run[dev, pos]
+    def take(ring, ring_run, pos):
+        return jax.tree.map(lambda a: a[pos], ring), ring_run[pos]
 
     return jax.jit(take)
 
@@ -887,13 +870,10 @@ def _slot_builder(loop: Loop, source_fn, per_run_params: bool, per_run_solver: b
     return jax.jit(build)
 
 
-def _initial_state(loop, config: EngineConfig, source: Source, params, sp):
-    """One engine state per device, stacked on a sharded leading axis."""
-    per = _initial_state_one(loop, config.per_device, source, params, sp)
-    D = config.devices
-    stacked = jax.tree.map(lambda a: jnp.broadcast_to(a, (D, *a.shape)), per)
-    sharding = jax.sharding.NamedSharding(_mesh(config), jax.sharding.PartitionSpec(_AXIS))
-    return jax.device_put(stacked, sharding)
+def _initial_state(loop, config: EngineConfig, source: Source, params, sp) -> list:
+    """One engine state per device (on it)."""
+    one = _initial_state_one(loop, config.per_device, source, params, sp)
+    return [jax.device_put(one, d) for d in _devices(config)]
 
 
 def _initial_state_one(loop, config: EngineConfig, source: Source, params, sp):
@@ -915,9 +895,8 @@ def _initial_state_one(loop, config: EngineConfig, source: Source, params, sp):
     )
 
 
-def _positions(cfg: EngineConfig, dev, seq):
-    """Queue positions of (device, sequence number) pairs (NumPy)."""
-    D = cfg.devices
+def _positions(cfg: EngineConfig, dev, D: int, seq):
+    """Queue positions of device ``dev``'s sequence numbers (NumPy)."""
     if cfg.assign == "lane":
         C = cfg.chunk_size
         return ((seq // C) * D + dev) * C + seq % C
@@ -1028,15 +1007,15 @@ def run_stream(
         end = int(lane_counts.max()) * C
     else:
         end = n_runs
-    mesh = _mesh(cfg)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    put = lambda tree: jax.device_put(tree, replicated)  # noqa: E731
+    devices = _devices(cfg)
+    D = len(devices)
+    put = lambda tree: [jax.device_put(tree, dev) for dev in devices]  # noqa: E731
     params_d, sp_d = put(params), put(sp)
     data = put(block.data)
-    eng = _initial_state(loop, cfg, Source(source_fn, data), params_d, sp_d)
+    engs = _initial_state(loop, cfg, Source(source_fn, block.data), params, sp)
     segment = _build(loop, cfg, source_fn)
-    pack = _compact_sharded(cfg)
-    ticks = put(jnp.asarray(cfg.ticks_per_segment))
+    pack = _compact_jit(cfg)
+    ticks = jnp.asarray(cfg.ticks_per_segment, jnp.int32)
     upcoming = _next_block(blocks, block.stop, end)
     collected_idx, collected = [], []
     done = 0
@@ -1045,56 +1024,59 @@ def run_stream(
     clock = _Clock()
     t0 = time.perf_counter()
 
-    def dispatch(eng, block, upcoming):
-        args = (
-            jnp.asarray(block.start, jnp.int32),
-            jnp.asarray(_block_limit(cfg, block, lane_counts, n_runs)),
-            jnp.asarray(upcoming is not None),
-        )
+    def dispatch(engs, block, upcoming):
+        limit = jnp.asarray(_block_limit(cfg, block, lane_counts, n_runs))
+        args = (jnp.asarray(block.start, jnp.int32), limit, jnp.asarray(upcoming is not None))
         t = time.perf_counter()
-        out = segment(eng, data, *put(args), params_d, sp_d, ticks)
-        clock.dispatched(t, out.ticks)
+        out = [
+            segment(e, data[d], *args, params_d[d], sp_d[d], ticks, jnp.int32(d), jnp.int32(D))
+            for d, e in enumerate(engs)
+        ]
+        clock.dispatched(t, [e.ticks for e in out])
         return out
 
-    eng = dispatch(eng, block, upcoming)
+    engs = dispatch(engs, block, upcoming)
     try:
         while True:
             segments += 1
-            ring_done = np.asarray(eng.ring_done)  # waits for the segment
+            ring_done = [np.asarray(e.ring_done) for e in engs]  # waits for the segment
             th = time.perf_counter()
-            dev, pos = np.nonzero(ring_done)
-            gathered = None
-            if len(dev):
-                size = 1 << max(0, int(len(dev) - 1).bit_length())
-                gathered = _gather(size)(eng.ring, eng.ring_run, _pad(dev, size), _pad(pos, size))
-            n_done = done + len(dev)
+            found = [np.flatnonzero(r) for r in ring_done]
+            gathered = [
+                _gather(_bucket(len(pos)))(e.ring, e.ring_run, _pad(pos, _bucket(len(pos))))
+                if len(pos)
+                else None
+                for e, pos in zip(engs, found, strict=True)
+            ]
+            n_done = done + sum(len(p) for p in found)
             # the next segment: a new block once every run of this one is handed out
-            next_seq = np.asarray(eng.next_seq)
+            next_seq = np.stack([np.asarray(e.next_seq) for e in engs])
             limit = _block_limit(cfg, block, lane_counts, n_runs)
             handed_out = _handed_out(cfg, next_seq, limit)
             if handed_out and upcoming is not None:
                 block, upcoming = upcoming, _next_block(blocks, upcoming.stop, end)
                 data = put(block.data)
-            live = bool(np.asarray(eng.slots.live).any())
-            if handed_out and upcoming is None and live and cfg.n_chunks > 1:
-                eng = pack(eng)
+            if handed_out and upcoming is None and cfg.n_chunks > 1:
+                engs = [pack(e) for e in engs]
             finished_all = n_done >= n_runs
             late = deadline is not None and time.perf_counter() > deadline
             if not finished_all and not late:
-                eng = dispatch(eng, block, upcoming)
+                engs = dispatch(engs, block, upcoming)
             host += time.perf_counter() - th
-            if gathered is not None:
-                th = time.perf_counter()
-                res, seq = jax.tree.map(np.asarray, gathered)
-                n = len(dev)
+            th = time.perf_counter()
+            for d, (pos, g) in enumerate(zip(found, gathered, strict=True)):
+                if g is None:
+                    continue
+                res, seq = jax.tree.map(np.asarray, g)
+                n = len(pos)
                 res = jax.tree.map(lambda a, n=n: a[:n], res)
-                positions = _positions(cfg, dev, seq[:n])
+                positions = _positions(cfg, d, D, seq[:n])
                 if keep:
                     collected_idx.append(positions)
                     collected.append(res)
                 if on_results is not None:
                     on_results(positions, res)
-                host += time.perf_counter() - th
+            host += time.perf_counter() - th
             done = n_done
             if progress is not None:
                 progress(done, n_runs)
@@ -1104,7 +1086,7 @@ def run_stream(
         clock.close()
     out = {
         "done": done,
-        "ticks": int(np.max(np.asarray(eng.ticks))),
+        "ticks": max(int(e.ticks) for e in engs),
         "seconds": time.perf_counter() - t0,
         "device_busy_s": clock.busy,
         "host_s": host,
@@ -1117,6 +1099,11 @@ def run_stream(
         out["run"] = idx[order]
         out["metrics"] = jax.tree.map(lambda *a: np.concatenate(a)[order], *collected)
     return out
+
+
+def _bucket(n: int) -> int:
+    """Gathers of 1, 2, 4, ... entries: few compiles."""
+    return 1 << max(0, int(n - 1).bit_length())
 
 
 def _pad(a, size: int):
@@ -1183,6 +1170,7 @@ def run_batch(
 
 
 def _abstract_args(loop, config: EngineConfig, source: Source, params, sp):
+    """The segment's arguments as shapes."""
     eng = jax.eval_shape(lambda: _initial_state_one(loop, config.per_device, source, params, sp))
     scalar = lambda dtype: jax.ShapeDtypeStruct((), dtype)  # noqa: E731
     shape = lambda tree: jax.tree.map(  # noqa: E731
@@ -1196,7 +1184,9 @@ def _abstract_args(loop, config: EngineConfig, source: Source, params, sp):
         scalar(jnp.bool_),
         shape(params),
         shape(sp),
-        scalar(jnp.asarray(config.ticks_per_segment).dtype),
+        scalar(jnp.int32),
+        scalar(jnp.int32),
+        scalar(jnp.int32),
     )
 
 
@@ -1205,20 +1195,28 @@ def compile_engine(
 ) -> float:
     """Compile the engine's programs for ``loop``, the queue's function and ``config`` without
     flying (a later :func:`run_batch` with the same shapes reuses them); returns XLA's planned
-    memory of the segment program [MB]: arguments + outputs + temporaries, set by the slots
-    and the ring, not by the number of runs in the queue."""
+    memory of one device's segment program [MB]: arguments + outputs + temporaries, set by
+    the slots and the ring, not by the number of runs in the queue."""
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
     config = _resolve(loop, config, source, params, sp, None)
-    mesh = _mesh(config)
-    put = lambda tree: jax.device_put(  # noqa: E731
-        tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    )
-    params, sp, data = put(params), put(sp), put(source.data)
-    eng = _initial_state(loop, config, Source(source.fn, data), params, sp)
-    args = put((jnp.asarray(0, jnp.int32), jnp.ones(config.lanes, jnp.int32), jnp.asarray(False)))
+    device = _devices(config)[0]
+    eng = _initial_state(loop, config, source, params, sp)[0]
+    put = lambda tree: jax.device_put(tree, device)  # noqa: E731
+    limit = jnp.ones(config.lanes, jnp.int32)
     compiled = (
         _build(loop, config, source.fn)
-        .lower(eng, data, *args, params, sp, put(jnp.asarray(config.ticks_per_segment)))
+        .lower(
+            eng,
+            put(source.data),
+            jnp.int32(0),
+            limit,
+            jnp.asarray(False),
+            put(params),
+            put(sp),
+            jnp.asarray(config.ticks_per_segment, jnp.int32),
+            jnp.int32(0),
+            jnp.int32(config.devices),
+        )
         .compile()
     )
     try:

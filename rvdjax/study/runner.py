@@ -9,11 +9,13 @@ columns and are written to Parquet parts as they come (:mod:`rvdjax.study.table`
 device flies the next segment. ``resume=True`` flies only the runs not on disk.
 
 A run's bits depend on its inputs and on the engine's lane it flies in (on a CPU; see
-:mod:`rvdjax.loop.engine`). Both are functions of the run index alone: the inputs are drawn in
-programs of ``ALIGN`` runs aligned on the run index (run r is always entry r mod ``ALIGN`` of
-the same program), and with ``assign="lane"`` run r flies in lane r mod chunk. So a study's
-table has the same bits whatever its slots, devices, processes, and however often it was
-killed and resumed.
+:mod:`rvdjax.loop.engine`). Both are functions of the run index alone. The inputs are drawn
+one run at a time (``lax.map``: scalar code, which XLA neither vectorises nor splits over
+threads; a ``vmap`` gave other last bits to some runs with 4 host devices than with one), in
+calls of ``ALIGN`` runs aligned on the run index (run r is always entry r mod ``ALIGN`` of the
+same program). With ``assign="lane"`` run r flies in lane r mod chunk. So a study's table has
+the same bits whatever its slots, devices and processes, and however often it was killed and
+resumed.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pyarrow as pa
+from jax import lax
 
 from rvdjax.loop import RunStatus
 from rvdjax.loop.engine import (
@@ -89,7 +92,7 @@ def _ic_sampler(kind: str, seed: int):
         def one(ic, n):
             return samplers.paper003_initial_state(samplers.initial_key(seed, ic), n)
 
-        return jax.jit(jax.vmap(one, in_axes=(0, None)))
+        return jax.jit(lambda ics, n: lax.map(lambda ic: one(ic, n), ics))
     raise ValueError(kind)
 
 
@@ -162,7 +165,7 @@ def _vary_drawer(spec_vary: tuple, seed: int):
             for j, (d, nom) in enumerate(zip(dists, nominals, strict=True))
         ]
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0)))
+    return jax.jit(lambda ic, rep, nominals: lax.map(lambda a: one(*a), (ic, rep, nominals)))
 
 
 def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
