@@ -218,8 +218,9 @@ def test_engine_settings_are_chosen_for_the_device():
     )
     assert "CPU defaults" in cfg.chosen and "256 slots" in cfg.describe()
     two = auto_config(platform="cpu", devices=2, n_runs=100, iterations=4, slots=None)
-    assert (two.slots, two.iterations, two.devices) == (100, 4, 2)
-    assert two.per_device.n_slots == 64  # 50 runs a device, in whole chunks of 32
+    # 50 runs a device, in whole chunks of 32 (the lanes keep their width)
+    assert (two.slots, two.iterations, two.devices, two.per_device.chunk_size) == (128, 4, 2, 32)
+    assert auto_config(platform="cpu", slots=8).n_slots == 32
     assert "iterations=4" in two.chosen and "100 runs" in two.chosen
     # 80 GiB, 100 KiB a slot x 8 for temporaries: 52 428 fit, a power of two
     assert accelerator_slots(80 * 2**30, 100 * 2**10) == 32768

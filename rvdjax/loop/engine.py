@@ -169,9 +169,9 @@ class EngineConfig:
 
     @property
     def chunk_size(self) -> int:
-        # a run's lane is its queue position mod the chunk: the width cannot shrink with the
-        # slots without changing the bits
-        return self.chunk if self.assign == "lane" else min(self.chunk, self.slots)
+        """Slots per chunk: ``chunk``, or all slots when fewer. With lanes a run's bits depend
+        on this width (:func:`auto_config` keeps it at ``chunk``)."""
+        return min(self.chunk, self.slots)
 
     @property
     def n_chunks(self) -> int:
@@ -345,6 +345,11 @@ def auto_config(
     values.update(overrides)
     if platform != "cpu" and "chunk" not in overrides and "slots" in overrides:
         values["chunk"] = math.ceil(values["slots"] / devices)
+    if values["assign"] == "lane":
+        # whole chunks on every device: a run's lane (its bits) is its index mod the chunk
+        # whatever the slots and devices
+        per = values["chunk"] * math.ceil(math.ceil(values["slots"] / devices) / values["chunk"])
+        values["slots"] = per * devices
     if values["refresh"] == "compacted" and values["assign"] == "any" and "group" not in overrides:
         values["group"] = max(1, values["chunk"] // ACCEL_REFRESH_SHARE)
     if overrides:
