@@ -700,11 +700,15 @@ def _study_spec(args):
 
 
 def _distributed(args) -> tuple[int, int]:
-    """(process index, process count): jax.distributed when --coordinator is given."""
+    """(process index, process count): jax.distributed when --coordinator is given; with
+    ``--coordinator auto`` JAX reads the cluster's environment (Slurm's srun, Open MPI, ...)."""
     if not args.coordinator:
         return 0, 1
     import jax
 
+    if args.coordinator == "auto":
+        jax.distributed.initialize(initialization_timeout=120)
+        return jax.process_index(), jax.process_count()
     if args.num_processes is None or args.process_id is None:
         raise ValueError("--coordinator needs --num-processes and --process-id")
     jax.distributed.initialize(
@@ -1102,7 +1106,8 @@ def main(argv=None) -> int:
         q.add_argument(
             "--coordinator",
             metavar="HOST:PORT",
-            help="jax.distributed coordinator: this process flies its share of the runs",
+            help="jax.distributed coordinator: this process flies its share of the runs "
+            "(auto: from the cluster's environment, e.g. under Slurm's srun)",
         )
         q.add_argument(
             "--devices",

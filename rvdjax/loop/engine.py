@@ -79,6 +79,7 @@ __all__ = [
     "EngineConfig",
     "auto_config",
     "accelerator_slots",
+    "default_platform",
     "slot_bytes",
     "run_batch",
     "run_stream",
@@ -205,7 +206,7 @@ class EngineConfig:
             f"{self.ticks_per_segment} ticks per segment, {self.refresh} refresh"
             + (f" in groups of {per.group_size}" if self.refresh == "compacted" else "")
             + f", runs assigned to {'their lane' if self.assign == 'lane' else 'any free slot'}"
-            + f", platform {self.platform or jax.default_backend()}"
+            + f", platform {self.platform or default_platform()}"
         )
         return f"{text}; {self.chosen}" if self.chosen else text
 
@@ -266,6 +267,17 @@ def _device_memory(device) -> int | None:
     return stats.get("bytes_limit") or stats.get("bytes_reservable_limit")
 
 
+def default_platform() -> str:
+    """The platform work goes to: that of ``jax.default_device`` when set (e.g. by the
+    command line's ``--device``), else JAX's default backend."""
+    device = jax.config.jax_default_device
+    if isinstance(device, str):
+        return jax.devices(device)[0].platform
+    if device is not None:
+        return device.platform
+    return jax.default_backend()
+
+
 def _pow2_floor(n: int) -> int:
     return 1 << max(0, int(n).bit_length() - 1)
 
@@ -301,7 +313,7 @@ def auto_config(
     compacted refresh in groups of a quarter of the slots, runs to any free slot. With
     ``n_runs``, no more slots than the runs fill.
     """
-    platform = platform or jax.default_backend()
+    platform = platform or default_platform()
     overrides = {k: v for k, v in overrides.items() if v is not None}
     unknown = set(overrides) - {f.name for f in dataclasses.fields(EngineConfig)} - {"chosen"}
     if unknown:
@@ -804,18 +816,23 @@ def _block_limit(cfg: EngineConfig, block: Block, lane_counts, n_runs: int):
 
 
 def _devices(cfg: EngineConfig) -> list:
-    devices = jax.local_devices(backend=cfg.platform)
+    platform = cfg.platform or default_platform()
+    devices = jax.local_devices(backend=platform)
     if cfg.devices > len(devices):
         raise ValueError(
-            f"devices must be <= {len(devices)} (local {cfg.platform or jax.default_backend()} "
+            f"devices must be <= {len(devices)} (local {platform} "
             f"devices here), got {cfg.devices}; on a CPU, "
             "XLA_FLAGS=--xla_force_host_platform_device_count=N makes N devices"
         )
     return devices[: cfg.devices]
 
 
-@functools.lru_cache(maxsize=64)
 def _build(loop: Loop, cfg: EngineConfig, source_fn):
+    return _build_one(loop, cfg.per_device, source_fn)
+
+
+@functools.lru_cache(maxsize=64)
+def _build_one(loop: Loop, cfg: EngineConfig, source_fn):
     """The jitted segment function of one device (cached: one compile per loop, engine
     configuration of a device and queue function, whatever the data). Several devices run
     it each on its own slots and share of the queue, with no communication: the same
@@ -823,7 +840,7 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
     same bits as on one device. (A ``shard_map`` over the devices was partitioned by XLA:
     one of the solver's shared-model products took another layout, and the last bits of
     some runs differed from one device's.)"""
-    return jax.jit(_segment(loop, cfg.per_device, source_fn))
+    return jax.jit(_segment(loop, cfg, source_fn))
 
 
 def segment_program(loop: Loop, cfg: EngineConfig, source_fn):

@@ -628,7 +628,8 @@ def run_study(
     scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
     for _, point_ids in groups.items():
         group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
-        if not len(group_runs) or (deadline is not None and time.perf_counter() > deadline):
+        late = deadline is not None and time.perf_counter() > deadline
+        if not len(group_runs) or (late and engines):  # (the first group flies a segment)
             continue
         static = point_cfg[point_ids[0]][0]
         loop = _loop_for(spec, scenario, static)
