@@ -797,6 +797,8 @@ def cmd_study(args) -> int:
         table=os.path.join(args.out, "runs"),
         engine=timing["engine"],
         outside_device_share=timing["outside_device_share"],
+        outside_device_share_flying=timing["outside_device_share_flying"],
+        compile_s=timing["compile_s"],
     )
     if args.plots:
         from rvdjax.study.figures import study_figures
@@ -811,7 +813,11 @@ def cmd_study(args) -> int:
             f"({timing['runs_per_s']:.2f} runs/s), peak memory {timing['peak_memory_mb']:.0f} MB; "
             f"table: {s['table']}"
         )
-        print(f"  device busy {1 - timing['outside_device_share']:.0%} of the wall time")
+        print(
+            f"  device busy {1 - timing['outside_device_share']:.0%} of the wall time "
+            f"({1 - timing['outside_device_share_flying']:.0%} without the "
+            f"{timing['compile_s']:.1f} s of compiles)"
+        )
         for text in timing["engine"]:
             print(f"  engine: {text}")
     return 0

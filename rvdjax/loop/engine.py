@@ -933,7 +933,8 @@ def _resolve(loop, config, source: Source, params, sp, n_runs):
 
 class _Clock:
     """When each dispatched segment finished on the device (a watcher thread waits on it),
-    for the device's busy time."""
+    for the device's busy time: from the dispatch's return (after any compile: host work) to
+    the segment's end."""
 
     def __init__(self):
         self.pool = ThreadPoolExecutor(max_workers=1)
@@ -1004,7 +1005,8 @@ def run_stream(
     Returns:
         {"run": (n,) positions and "metrics" (with ``keep``), "done": runs finished,
         "ticks", "seconds" (wall time), "device_busy_s" (the device's time running segments),
-        "host_s" (the host's own work: collection and ``on_results``), "segments", "config"}.
+        "compile_s" (the first dispatch: the compile, unless cached), "host_s" (the host's own
+        work: collection and ``on_results``), "segments", "config"}.
     """
     if loop.config.settings.backend != "rvdjax":
         raise ValueError("the batch engine runs the rvdjax solver; use fly() for Clarabel")
@@ -1044,6 +1046,7 @@ def run_stream(
     host = 0.0
     segments = 0
     clock = _Clock()
+    timing = {"compile_s": 0.0}
     t0 = time.perf_counter()
 
     def dispatch(engs, block, upcoming):
@@ -1054,7 +1057,10 @@ def run_stream(
             segment(e, data[d], *args, params_d[d], sp_d[d], ticks, jnp.int32(d), jnp.int32(D))
             for d, e in enumerate(engs)
         ]
-        clock.dispatched(t, [e.ticks for e in out])
+        returned = time.perf_counter()
+        if not clock.pending:
+            timing["compile_s"] = returned - t  # the first dispatch compiles the program
+        clock.dispatched(returned, [e.ticks for e in out])
         return out
 
     engs = dispatch(engs, block, upcoming)
@@ -1111,6 +1117,7 @@ def run_stream(
         "ticks": max(int(e.ticks) for e in engs),
         "seconds": time.perf_counter() - t0,
         "device_busy_s": clock.busy,
+        "compile_s": timing["compile_s"],
         "host_s": host,
         "segments": segments,
         "config": cfg,

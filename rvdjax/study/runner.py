@@ -580,9 +580,10 @@ def run_study(
     :func:`~rvdjax.loop.engine.auto_config`) come first.
 
     The figures: runs flown and skipped, wall ``seconds``, ``runs_per_s``, peak memory, the
-    device's busy time (``device_busy_s``) and the share of wall time it was not busy
-    (``outside_device_share``: input drawing, collection and writing not hidden behind the
-    device's work, and compiles), and ``engine``: each group's engine settings.
+    device's busy time (``device_busy_s``), the compiles' (``compile_s``), the share of wall
+    time the device was not busy (``outside_device_share``: input drawing, collection and
+    writing not hidden behind the device's work, and compiles; ``..._flying``: without the
+    compiles), and ``engine``: each group's engine settings.
     """
     scenario = study_scenario(spec, out)
     spec.validate(dataclasses.replace(scenario, name=spec.scenario))
@@ -622,7 +623,7 @@ def run_study(
     t0 = time.perf_counter()
     deadline = None if max_seconds is None else t0 + max_seconds
     flown = 0
-    busy = host = 0.0
+    busy = host = compile_s = 0.0
     engines = []
     nominal_params, _ = _build(spec, scenario)
     scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
@@ -677,6 +678,7 @@ def run_study(
         flown += res["done"]
         busy += res["device_busy_s"]
         host += res["host_s"]
+        compile_s += res["compile_s"]
     writer.close()
     if bar is not None:
         bar.close()
@@ -689,8 +691,12 @@ def run_study(
         "runs_per_s": flown / wall if wall > 0 else float("nan"),
         "peak_memory_mb": peak_rss_mb(),
         "device_busy_s": busy,
+        "compile_s": compile_s,
         "host_s": host,
         "outside_device_share": 1.0 - busy / wall if wall > 0 else float("nan"),
+        "outside_device_share_flying": (
+            1.0 - busy / (wall - compile_s) if wall > compile_s else float("nan")
+        ),
         "engine": engines,
     }
 
