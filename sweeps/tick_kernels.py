@@ -8,11 +8,13 @@ A *kernel* is an instruction of the optimised HLO that does work on its own: a f
 custom call, a copy, a (dynamic-update-)slice, a scatter or gather, a sort, a reduction, ...
 (everything but parameters, constants, tuples, bitcasts and the control flow itself). The tick
 is the body of the segment's outer ``while`` (over ticks); the counts are static (each
-computation counted once): the tick's own kernels, the refresh's (advance, refill, prepare and
-the solver's start, in the ``cond``/``while`` they run in) and the solver iterations' (whose
-inner loops run once per iteration). XLA's ``cost_analysis()`` of the program (flops and
-bytes, each loop body counted once) is printed beside them. Works on the engine of any commit
-that has ``rvdjax.loop.engine._segment`` (the before/after counts of the history page).
+computation counted once, whatever its trip count): the solver iterations' (the loop of
+``iterations`` trips and what it runs) and the rest (assignment, the refresh: advance,
+refill, prepare and the solver's start; the ring). The solver's inner loops (stages) are
+compiled whole on a CPU, one task per loop, not one per kernel. XLA's ``cost_analysis()`` of
+the program (flops and bytes, each loop body counted once) is printed beside them. Works on
+the engine of any commit that has ``rvdjax.loop.engine._segment`` (the before/after counts
+of the history page).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
+import os
 import re
 from collections import Counter
 
@@ -81,9 +84,19 @@ def _called(attrs: str, key: str) -> list[str]:
     return [c.strip().lstrip("%") for c in m.group(1).split(",") if c.strip()]
 
 
-def kernels(comps: dict, name: str, seen=None) -> Counter:
+SCOPES = ("iterations", "refresh", "ring")
+
+
+def scope(attrs: str) -> str:
+    """The engine's named scope of an instruction (its metadata's op_name), or "other"."""
+    m = re.search(r'op_name="([^"]*)"', attrs)
+    name = m.group(1) if m else ""
+    return next((s for s in SCOPES if f"/{s}/" in f"/{name}/"), "other")
+
+
+def kernels(comps: dict, name: str, seen=None, by=None) -> Counter:
     """Kernels of computation ``name`` and of the computations its control flow runs (not
-    the fused ones: a fusion is one kernel)."""
+    the fused ones: a fusion is one kernel), by opcode (or by ``by(attrs)``)."""
     seen = set() if seen is None else seen
     if name in seen or name not in comps:
         return Counter()
@@ -93,16 +106,16 @@ def kernels(comps: dict, name: str, seen=None) -> Counter:
         if op == "while":
             for key in ("condition", "body"):
                 for c in _called(attrs, key):
-                    out += kernels(comps, c, seen)
+                    out += kernels(comps, c, seen, by)
         elif op == "conditional":
             for key in ("branch_computations", "true_computation", "false_computation"):
                 for c in _called(attrs, key):
-                    out += kernels(comps, c, seen)
+                    out += kernels(comps, c, seen, by)
         elif op == "call":
             for c in _called(attrs, "to_apply"):
-                out += kernels(comps, c, seen)
+                out += kernels(comps, c, seen, by)
         elif op not in FREE:
-            out[op] += 1
+            out[op if by is None else by(attrs)] += 1
     return out
 
 
@@ -119,9 +132,9 @@ def tick_body(comps: dict, entry: str) -> str:
     raise ValueError("no while loop in the segment program")
 
 
-def inner_loops(comps: dict, body: str) -> list[tuple[str, Counter]]:
-    """The while loops reachable from ``body`` (not through another while), with their
-    kernels."""
+def loops_with_trips(comps: dict, body: str, trips: int) -> list[str]:
+    """Bodies of the while loops reachable from ``body`` whose known trip count is ``trips``
+    (the solver iterations of a tick: ``fori_loop(0, iterations)``)."""
     out, stack, seen = [], [body], set()
     while stack:
         name = stack.pop()
@@ -129,16 +142,20 @@ def inner_loops(comps: dict, body: str) -> list[tuple[str, Counter]]:
             continue
         seen.add(name)
         for op, attrs in comps.get(name, []):
+            called = (
+                _called(attrs, "to_apply")
+                + _called(attrs, "branch_computations")
+                + _called(attrs, "true_computation")
+                + _called(attrs, "false_computation")
+            )
             if op == "while":
                 b = _called(attrs, "body")[0]
-                out.append((b, kernels(comps, b)))
+                if f'"known_trip_count":{{"n":"{trips}"}}' in attrs:
+                    out.append(b)
+                else:
+                    stack.append(b)
             elif op in ("call", "conditional"):
-                stack += (
-                    _called(attrs, "to_apply")
-                    + _called(attrs, "branch_computations")
-                    + _called(attrs, "true_computation")
-                    + _called(attrs, "false_computation")
-                )
+                stack += called
     return out
 
 
@@ -167,18 +184,21 @@ def program(scenario: str, slots: int, chunk: int, refresh: str, platform: str |
     return compiled.as_text(), cost
 
 
-def count(text: str) -> dict:
+def count(text: str, iterations: int = 3) -> dict:
+    """Kernels of a tick: in all, in the solver iterations (the loops of ``iterations``
+    trips) and the rest (assignment, refresh: advance, refill, prepare, start; ring)."""
     comps, entry = parse(text)
     body = tick_body(comps, entry)
     total = kernels(comps, body)
-    loops = inner_loops(comps, body)
-    in_loops = sum((c for _, c in loops), Counter())
+    solver = Counter()
+    for b in loops_with_trips(comps, body, iterations):
+        solver += kernels(comps, b)
     return {
         "tick_total": sum(total.values()),
-        "tick_outside_inner_loops": sum(total.values()) - sum(in_loops.values()),
-        "inner_loops": len(loops),
-        "inner_loop_kernels": sorted((sum(c.values()) for _, c in loops), reverse=True),
+        "solver_iterations": sum(solver.values()),
+        "refresh_and_rest": sum(total.values()) - sum(solver.values()),
         "fusions": total["fusion"],
+        "by_scope": dict(kernels(comps, body, by=scope)),
         "by_opcode": dict(total.most_common(12)),
     }
 
@@ -191,20 +211,31 @@ def main(argv=None) -> None:
     ap.add_argument("--refresh", default="masked,compacted")
     ap.add_argument("--platform", default=None)
     ap.add_argument("--json")
+    ap.add_argument("--dump", metavar="DIR", help="write each program's optimised HLO there")
+    ap.add_argument("--count", metavar="FILE", nargs="+", help="only count these HLO dumps")
     args = ap.parse_args(argv)
+    if args.count:
+        for path in args.count:
+            with open(path) as f:
+                print(os.path.basename(path), json.dumps(count(f.read())))
+        return
     rows = []
     modes = args.refresh.split(",") if hasattr(E, "segment_program") else ["before"]
     for name in args.scenarios.split(","):
         for mode in modes:
             text, cost = program(name, args.slots, args.chunk, mode, args.platform)
+            if args.dump:
+                os.makedirs(args.dump, exist_ok=True)
+                with open(os.path.join(args.dump, f"{name}-{mode}.hlo.txt"), "w") as f:
+                    f.write(text)
             row = {"scenario": name, "refresh": mode, **count(text)}
             row["flops"] = float(cost.get("flops", float("nan")))
             row["bytes_accessed"] = float(cost.get("bytes accessed", float("nan")))
             rows.append(row)
             print(
-                f"{name:<16}{mode:<10} kernels in a tick {row['tick_total']:>5} "
-                f"(outside the inner loops {row['tick_outside_inner_loops']:>4}, "
-                f"{row['inner_loops']} inner loops), fusions {row['fusions']:>5}, "
+                f"{name:<16}{mode:<10} kernels in a tick {row['tick_total']:>5}: solver "
+                f"iterations {row['solver_iterations']:>4}, refresh and the rest "
+                f"{row['refresh_and_rest']:>4} (fusions {row['fusions']:>5}), "
                 f"XLA cost {row['flops'] / 1e6:.2f} Mflop / "
                 f"{row['bytes_accessed'] / 2**20:.1f} MiB",
                 flush=True,

@@ -515,6 +515,7 @@ class _Ctx(NamedTuple):
         return fam.model(self.shared_params, self.loop.config.family)
 
 
+@jax.named_scope("refresh")
 def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs_at):
     """The refresh of a group of slots (one vmap per phase): the end of the step whose solve
     finished, a new run for an assigned free slot, the next solve's start. Returns
@@ -575,6 +576,7 @@ def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs
     return slots, ended, result
 
 
+@jax.named_scope("iterations")
 def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
     loop = ctx.loop
     settings = loop.config.settings
@@ -678,10 +680,18 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
             solved = jax.vmap(lambda s: s.live & finished(s.solve, loop.config.settings))(slots)
             todo = solved | assign
 
+            @jax.named_scope("ring")
             def write(ring, ring_done, ended, run, res):
                 wpos = jnp.where(ended, run % R, R)
                 ring = jax.tree.map(lambda r, v: r.at[wpos].set(v, mode="drop"), ring, res)
                 return ring, ring_done.at[wpos].set(True, mode="drop")
+
+            def iterate_if_live(sl):
+                if n_chunks == 1:
+                    return _iterate_chunk(ctx, cfg, sl)
+                return lax.cond(
+                    jnp.any(sl.live), lambda s: _iterate_chunk(ctx, cfg, s), lambda s: s, sl
+                )
 
             def refresh(sl, sv, asg, sq, ring, ring_done):
                 new, ended, res = _refresh_group(ctx, source, sl, sv, asg, sq, inputs_at)
@@ -689,6 +699,9 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
                 return new, ring, ring_done
 
             if cfg.refresh == "masked":
+                # chunk by chunk: the refresh (skipped for a chunk with no slot to refresh)
+                # and the solver iterations (skipped for a chunk with no run in flight), one
+                # slice of the chunk's slots for both
 
                 def one_chunk(c, carry):
                     slots, ring, ring_done = carry
@@ -704,11 +717,15 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
                     sl, ring, ring_done = lax.cond(
                         jnp.any(td), work, lambda a: a, (sl, ring, ring_done)
                     )
+                    sl = iterate_if_live(sl)
                     return _unslice(slots, c * C, sl), ring, ring_done
 
-                slots, ring, ring_done = lax.fori_loop(
-                    0, n_chunks, one_chunk, (slots, eng.ring, eng.ring_done)
-                )
+                if n_chunks == 1:
+                    slots, ring, ring_done = one_chunk(0, (slots, eng.ring, eng.ring_done))
+                else:
+                    slots, ring, ring_done = lax.fori_loop(
+                        0, n_chunks, one_chunk, (slots, eng.ring, eng.ring_done)
+                    )
             else:
                 if cfg.assign == "lane":
                     # lane-preserving groups: group g holds, in lane l, the g-th slot of lane
@@ -756,19 +773,15 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
                     (jnp.asarray(0, n_groups.dtype), slots, eng.ring, eng.ring_done),
                 )
 
-            # solver iterations, chunk by chunk (a chunk with no run in flight is skipped)
-            if n_chunks == 1:
-                slots = _iterate_chunk(ctx, cfg, slots)
-            else:
+                # solver iterations, chunk by chunk (a chunk with no run in flight is skipped)
+                if n_chunks == 1:
+                    slots = _iterate_chunk(ctx, cfg, slots)
+                else:
 
-                def iterate_chunk(c, slots):
-                    sl = _slice(slots, c * C, C)
-                    sl = lax.cond(
-                        jnp.any(sl.live), lambda s: _iterate_chunk(ctx, cfg, s), lambda s: s, sl
-                    )
-                    return _unslice(slots, c * C, sl)
+                    def iterate_chunk(c, slots):
+                        return _unslice(slots, c * C, iterate_if_live(_slice(slots, c * C, C)))
 
-                slots = lax.fori_loop(0, n_chunks, iterate_chunk, slots)
+                    slots = lax.fori_loop(0, n_chunks, iterate_chunk, slots)
             return EngineState(
                 slots=slots,
                 next_seq=next_seq.astype(jnp.int32),
