@@ -13,6 +13,8 @@ reports what it measured), each a function that ``sweeps/gpu_benchmark.py`` also
   2 %), the engine's other settings chosen for the device
   (:func:`rvdjax.loop.engine.auto_config`); compile time apart; the rate over the runs
   finished while the queue kept every slot busy when the budget cut the queue short;
+* ``refresh``: ``thesis-vbar`` at 32 768 slots with the other refresh than the device's
+  choice (masked on a GPU), against its ``throughput`` row;
 * ``ch5``: paper 003 Ch. 5 (``rvdjax study robustness thesis-vbar --initial-conditions 100
   --realisations 60 --initial paper003 --nav-filter --time-limit-s 12000 --n-steps 2600``):
   its flying time (compiled beforehand by a first segment), successes and docked runs;
@@ -56,7 +58,14 @@ SCENARIOS = ("thesis-vbar", "fastmpc-3d", "poseidyn-lqmpc")
 SLOTS = (4096, 32768)
 STUDY_RUNS = 1_000_000
 # shares of the budget (the parts run in this order; time a part leaves goes to the next)
-SHARES = {"throughput": 0.42, "ch5": 0.15, "study": 0.2, "cpu": 0.15, "bits": 0.08}
+SHARES = {
+    "throughput": 0.38,
+    "refresh": 0.08,
+    "ch5": 0.14,
+    "study": 0.18,
+    "cpu": 0.14,
+    "bits": 0.08,
+}
 
 SMOKE = dict(slots=(32,), n_steps=40, ch5=(4, 3), study_runs=1_000_000)
 
@@ -91,9 +100,12 @@ def _platform(smoke: bool) -> str:
 # ------------------------------------------------------------------------------ throughput
 
 
-def throughput(scenario: str, slots: int, budget_s: float, smoke: bool = False) -> dict:
+def throughput(
+    scenario: str, slots: int, budget_s: float, smoke: bool = False, refresh: str | None = None
+) -> dict:
     """Maneuvers/s of ``scenario`` through ``slots`` slots on the default device: a queue of
-    3 x slots runs (x0 perturbed by 2 %), cut at ``budget_s`` (compile included)."""
+    3 x slots runs (x0 perturbed by 2 %), cut at ``budget_s`` (compile included); ``refresh``
+    overrides the engine's choice."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import arrays_source, auto_config, compile_engine
 
@@ -104,7 +116,7 @@ def throughput(scenario: str, slots: int, budget_s: float, smoke: bool = False) 
     sp = sc.solver_params()
     n = 3 * slots
     source = arrays_source(perturbed_states(x0, n))
-    cfg = auto_config(slots=slots)
+    cfg = auto_config(slots=slots, refresh=refresh)
     t0 = time.perf_counter()
     compile_engine(loop, source, params, sp, cfg)
     compile_s = time.perf_counter() - t0
@@ -113,7 +125,7 @@ def throughput(scenario: str, slots: int, budget_s: float, smoke: bool = False) 
     out = _run_until(loop, source, n, params, sp, cfg, deadline, marks)
     rate_all = out["done"] / out["seconds"] if out["seconds"] > 0 else float("nan")
     return dict(
-        part="throughput",
+        part="throughput" if refresh is None else "refresh",
         scenario=scenario,
         slots=cfg.n_slots,
         device=str(jax.devices(cfg.platform)[0].device_kind),
@@ -154,7 +166,7 @@ def _steady_rate(marks) -> float:
     """Runs per second over the second half of a cut-short run (the slots full, the first
     runs' fill-up behind)."""
     if len(marks) < 2:
-        return float("nan")
+        return marks[-1][1] / marks[-1][0] if marks and marks[-1][0] > 0 else float("nan")
     t = np.asarray([m[0] for m in marks])
     d = np.asarray([m[1] for m in marks], float)
     half = np.searchsorted(t, t[-1] / 2)
@@ -306,11 +318,12 @@ def format_table(rows: list[dict]) -> str:
     gpu = next((r for r in rows if r.get("part") == "study"), None)
     for r in rows:
         p = r.get("part")
-        if p == "throughput":
+        if p in ("throughput", "refresh"):
             cut = "" if r["complete"] else f" (cut at {r['runs']} of {r['queued']})"
+            how = r["engine"].split(", ")[3] if p == "refresh" else ""
             out.append(
                 f"{r['scenario']:<16} {r['slots']:>6} slots: {r['maneuvers_per_s']:>9.0f} "
-                f"maneuvers/s{cut}, compile {r['compile_s']:.1f} s"
+                f"maneuvers/s{cut}, compile {r['compile_s']:.1f} s {how}".rstrip()
             )
         elif p == "ch5":
             done = "" if r["complete"] else f" (cut: {r['runs']} of {r['of']} runs)"
@@ -378,6 +391,10 @@ def main(argv=None) -> int:
                 for scenario in SCENARIOS:
                     for slots in sizes:
                         rec.add(**throughput(scenario, slots, each, args.smoke))
+            elif name == "refresh":  # the other refresh than the device's choice
+                slots = (SMOKE["slots"] if args.smoke else SLOTS)[-1]
+                other = "masked" if platform != "cpu" else "compacted"
+                rec.add(**throughput("thesis-vbar", slots, allowed, args.smoke, other))
             elif name == "ch5":
                 rec.add(**ch5(allowed, args.smoke, platform))
             elif name == "study":

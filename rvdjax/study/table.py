@@ -19,7 +19,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-__all__ = ["PartWriter", "read_table", "done_runs", "write_config", "read_config"]
+__all__ = [
+    "PartWriter",
+    "read_table",
+    "table_columns",
+    "done_runs",
+    "write_config",
+    "read_config",
+]
 
 RUNS_DIR = "runs"
 CONFIG = "config.json"
@@ -64,14 +71,25 @@ def done_runs(out: Path) -> np.ndarray:
     return runs
 
 
-def read_table(out: Path):
-    """The study's table as a pandas DataFrame sorted by run index."""
+def table_columns(out: Path) -> list[str]:
+    """The table's column names (none before the first part is written)."""
+    parts = _parts(out)
+    return pq.read_schema(parts[0]).names if parts else []
+
+
+def read_table(out: Path, columns=None, runs=None):
+    """The study's table as a pandas DataFrame sorted by run index: every column, or
+    ``columns`` (with "run"); every run, or those in ``runs``."""
     import pandas as pd
 
     parts = _parts(out)
     if not parts:
         raise ValueError(f"no results in {out} (no {RUNS_DIR}/part-*.parquet)")
-    df = pd.concat([pq.read_table(p).to_pandas() for p in parts], ignore_index=True)
+    if columns is not None:
+        columns = list(dict.fromkeys(["run", *columns]))
+    filters = None if runs is None else [("run", "in", [int(r) for r in runs])]
+    frames = [pq.read_table(p, columns=columns, filters=filters).to_pandas() for p in parts]
+    df = pd.concat(frames, ignore_index=True)
     return df.sort_values("run", kind="stable").reset_index(drop=True)
 
 
