@@ -10,8 +10,7 @@ device flies the next segment. ``resume=True`` flies only the runs not on disk.
 
 A run's bits depend on its inputs and on the engine's lane it flies in (on a CPU; see
 :mod:`rvdjax.loop.engine`). Both are functions of the run index alone. The inputs are drawn
-one run at a time (``lax.map``: scalar code, which XLA neither vectorises nor splits over
-threads; a ``vmap`` gave other last bits to some runs with 4 host devices than with one), in
+on the CPU one run at a time (``lax.map``: scalar code, which XLA does not vectorise), in
 calls of ``ALIGN`` runs aligned on the run index (run r is always entry r mod ``ALIGN`` of the
 same program). With ``assign="lane"`` run r flies in lane r mod chunk. So a study's table has
 the same bits whatever its slots, devices and processes, and however often it was killed and
@@ -178,7 +177,10 @@ def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
         raise ValueError(f"run indices must be in [0, {spec.n_runs - 1}]")
     ranges = np.unique(runs // ALIGN)
     full = (ranges[:, None] * ALIGN + np.arange(ALIGN)).reshape(-1)
-    rs = _aligned_inputs(spec, scenario, np.minimum(full, spec.n_runs - 1))
+    # on the CPU whatever the engine's device: a loop of scalar steps is fast there (a GPU
+    # would launch kernels per run), and the draws do not depend on the device
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
+        rs = _aligned_inputs(spec, scenario, np.minimum(full, spec.n_runs - 1))
     pick = np.searchsorted(ranges, runs // ALIGN) * ALIGN + runs % ALIGN
     return RunSet(
         runs,
@@ -463,7 +465,7 @@ class _GroupQueue:
         self.info[start] = _BlockInfo(ids, rs, index)
         self.remaining[start] = int(valid.sum())
         x0 = jnp.asarray(rs.x0[index])
-        keys = rs.keys[jnp.asarray(index)]
+        keys = rs.keys[index]
         if rs.physical is not None:
             built = _stack([_build(spec, scenario, **ph, x0=scenario.x0)[0] for ph in rs.physical])
             params = jax.tree.map(lambda a: jnp.asarray(a[index]), built)
