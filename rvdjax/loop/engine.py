@@ -346,10 +346,13 @@ def auto_config(
     per_device = values["slots"]
     if n_runs is not None:
         need = max(1, math.ceil(n_runs / devices))
+        chunk = overrides.get("chunk", values.get("chunk", 1))
         cap = max(256, 1 << (need - 1).bit_length()) if platform != "cpu" else need
+        if values["assign"] == "lane":
+            cap = chunk * math.ceil(need / chunk)
         if cap < per_device:
             per_device = cap
-            notes.append(f"{n_runs} runs fill {per_device} slots a device")
+            notes.append(f"{n_runs} runs need {per_device} slots a device")
     values["slots"] = per_device * devices
     if platform != "cpu":
         values["chunk"] = per_device  # one chunk: every slot of a device in one kernel
@@ -1047,6 +1050,7 @@ def run_stream(
     devices = _devices(cfg)
     D = len(devices)
     put = lambda tree: [jax.device_put(tree, dev) for dev in devices]  # noqa: E731
+    t_setup = time.perf_counter()
     params_d, sp_d = put(params), put(sp)
     data = put(block.data)
     engs = _initial_state(loop, cfg, Source(source_fn, block.data), params, sp)
@@ -1061,18 +1065,18 @@ def run_stream(
     clock = _Clock()
     timing = {"compile_s": 0.0}
     t0 = time.perf_counter()
+    on_cpu = devices[0].platform == "cpu"
 
     def dispatch(engs, block, upcoming):
         limit = jnp.asarray(_block_limit(cfg, block, lane_counts, n_runs))
         args = (jnp.asarray(block.start, jnp.int32), limit, jnp.asarray(upcoming is not None))
-        t = time.perf_counter()
         out = [
             segment(e, data[d], *args, params_d[d], sp_d[d], ticks, jnp.int32(d), jnp.int32(D))
             for d, e in enumerate(engs)
         ]
         returned = time.perf_counter()
-        if not clock.pending:
-            timing["compile_s"] = returned - t  # the first dispatch compiles the program
+        if not clock.pending:  # the set-up and the first dispatch compile the programs
+            timing["compile_s"] = returned - t_setup
         clock.dispatched(returned, [e.ticks for e in out])
         return out
 
@@ -1084,9 +1088,11 @@ def run_stream(
             th = time.perf_counter()
             found = [np.flatnonzero(r) for r in ring_done]
             gathered = [
-                _gather(_bucket(len(pos)))(e.ring, e.ring_run, _pad(pos, _bucket(len(pos))))
-                if len(pos)
-                else None
+                None
+                if not len(pos)
+                else (e.ring, e.ring_run, pos)  # NumPy reads a CPU device's arrays in place
+                if on_cpu
+                else _gather(_bucket(len(pos)))(e.ring, e.ring_run, _pad(pos, _bucket(len(pos))))
                 for e, pos in zip(engs, found, strict=True)
             ]
             n_done = done + sum(len(p) for p in found)
@@ -1108,10 +1114,12 @@ def run_stream(
             for d, (pos, g) in enumerate(zip(found, gathered, strict=True)):
                 if g is None:
                     continue
-                res, seq = jax.tree.map(np.asarray, g)
-                n = len(pos)
-                res = jax.tree.map(lambda a, n=n: a[:n], res)
-                positions = _positions(cfg, d, D, seq[:n])
+                if on_cpu:
+                    res, seq = jax.tree.map(lambda a, pos=pos: np.asarray(a)[pos], g[:2])
+                else:
+                    n = len(pos)
+                    res, seq = jax.tree.map(lambda a, n=n: np.asarray(a)[:n], g)
+                positions = _positions(cfg, d, D, seq)
                 if keep:
                     collected_idx.append(positions)
                     collected.append(res)
