@@ -174,15 +174,15 @@ def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
     assert out["segments"] > 3 and 0 < out["device_busy_s"] <= out["seconds"]
     for a, b in zip(_bits(out["metrics"]), _bits(reference), strict=True):
         np.testing.assert_array_equal(a, b)
-    # the lanes, segment by segment
-    cfg = EngineConfig(slots=8, chunk=CHUNK, ticks_per_segment=5)
-    source = arrays_source(X0S, keys)
+    # the lanes, segment by segment (the program of test_same_bits_whatever_the_batching)
+    cfg = EngineConfig(slots=12, chunk=CHUNK, iterations=2, ticks_per_segment=7)
+    source = arrays_source(X0S)
     eng = E._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
     seg = E._build(LOOP, cfg, source.fn)
     limit = jnp.asarray(E._block_limit(cfg, Block(None, 0, len(X0S)), [3, 3, 3, 3], len(X0S)))
     one, zero = jnp.int32(1), jnp.int32(0)
     seen = set()
-    for _ in range(120):
+    for _ in range(30):
         eng = seg(eng, source.data, zero, limit, jnp.asarray(False), PARAMS, SP, one, zero, one)
         run, live = np.asarray(eng.slots.run), np.asarray(eng.slots.live)
         slot = np.flatnonzero(live)
@@ -198,7 +198,7 @@ def test_a_deadline_stops_the_engine_between_segments():
         [Block(arrays_source(X0S).data, 0, len(X0S))],
         len(X0S),
         params=PARAMS,
-        config=EngineConfig(slots=4, chunk=CHUNK, ticks_per_segment=2),
+        config=EngineConfig(slots=4, chunk=CHUNK, iterations=2, ticks_per_segment=8),
         deadline=0.0,
         keep=False,
     )

@@ -844,7 +844,8 @@ def _devices(cfg: EngineConfig) -> list:
 
 
 def _build(loop: Loop, cfg: EngineConfig, source_fn):
-    return _build_one(loop, cfg.per_device, source_fn)
+    # the ticks per segment are an argument of the program, not part of it
+    return _build_one(loop, dataclasses.replace(cfg.per_device, ticks_per_segment=1), source_fn)
 
 
 @functools.lru_cache(maxsize=64)
