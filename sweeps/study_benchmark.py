@@ -170,6 +170,8 @@ def memory(args) -> list[dict]:
                 "seconds": s["seconds"],
                 "runs_per_s": s["runs_per_s"],
                 "outside_device_share": s["outside_device_share"],
+                "compile_s": s["compile_s"],
+                "outside_device_share_flying": s["outside_device_share_flying"],
                 "peak_memory_mb": s["peak_memory_mb"],
                 "engine": s["engine"][0],
             }
