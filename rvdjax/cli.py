@@ -707,11 +707,15 @@ def _study_spec(args):
 
 
 def _distributed(args) -> tuple[int, int]:
-    """(process index, process count): jax.distributed when --coordinator is given."""
+    """(process index, process count): jax.distributed when --coordinator is given; with
+    ``--coordinator auto`` JAX reads the cluster's environment (Slurm's srun, Open MPI, ...)."""
     if not args.coordinator:
         return 0, 1
     import jax
 
+    if args.coordinator == "auto":
+        jax.distributed.initialize(initialization_timeout=120)
+        return jax.process_index(), jax.process_count()
     if args.num_processes is None or args.process_id is None:
         raise ValueError("--coordinator needs --num-processes and --process-id")
     jax.distributed.initialize(
@@ -798,6 +802,10 @@ def cmd_study(args) -> int:
         peak_memory_mb=timing["peak_memory_mb"],
         processes=count,
         table=os.path.join(args.out, "runs"),
+        engine=timing["engine"],
+        outside_device_share=timing["outside_device_share"],
+        outside_device_share_flying=timing["outside_device_share_flying"],
+        compile_s=timing["compile_s"],
     )
     if args.plots:
         from rvdjax.study.figures import study_figures
@@ -812,6 +820,13 @@ def cmd_study(args) -> int:
             f"({timing['runs_per_s']:.2f} runs/s), peak memory {timing['peak_memory_mb']:.0f} MB; "
             f"table: {s['table']}"
         )
+        print(
+            f"  device busy {1 - timing['outside_device_share']:.0%} of the wall time "
+            f"({1 - timing['outside_device_share_flying']:.0%} without the "
+            f"{timing['compile_s']:.1f} s of compiles)"
+        )
+        for text in timing["engine"]:
+            print(f"  engine: {text}")
     return 0
 
 
@@ -1111,9 +1126,13 @@ def main(argv=None) -> int:
             "--time-limit-s", type=float, help="a run not docked by then fails (e.g. 12000)"
         )
         q.add_argument("--n-steps", type=int, help="MPC steps at most (default: the scenario's)")
-        q.add_argument("--slots", type=int, default=256, help="runs in flight (default 256)")
-        q.add_argument("--chunk", type=int, default=32, help="slots per vmapped chunk")
-        q.add_argument("--iterations", type=int, default=3, help="solver iterations per tick")
+        q.add_argument("--slots", type=int, help="runs in flight (default: chosen for the device)")
+        q.add_argument(
+            "--chunk", type=int, help="slots per vmapped chunk (default: chosen for the device)"
+        )
+        q.add_argument(
+            "--iterations", type=int, help="solver iterations per tick (default: for the device)"
+        )
         q.add_argument("--out", required=True, metavar="DIR", help="study directory")
         q.add_argument("--resume", action="store_true", help="continue the study in DIR")
         q.add_argument("--plots", metavar="DIR", help="write the study's figures to DIR")
@@ -1122,7 +1141,8 @@ def main(argv=None) -> int:
         q.add_argument(
             "--coordinator",
             metavar="HOST:PORT",
-            help="jax.distributed coordinator: this process flies its share of the runs",
+            help="jax.distributed coordinator: this process flies its share of the runs "
+            "(auto: from the cluster's environment, e.g. under Slurm's srun)",
         )
         q.add_argument(
             "--devices",
@@ -1131,7 +1151,9 @@ def main(argv=None) -> int:
             help="shard the slots over N devices (CPU: N host devices, one per core)",
         )
         q.add_argument(
-            "--flush-rows", type=int, default=256, help="runs per Parquet part (default 256)"
+            "--flush-rows",
+            type=int,
+            help="runs per Parquet part (default 256, or 1/64 of a large study)",
         )
         q.add_argument("--num-processes", type=int)
         q.add_argument("--process-id", type=int)

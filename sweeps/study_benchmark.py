@@ -5,6 +5,8 @@ of a study against its number of runs.
     python sweeps/study_benchmark.py throughput [--scenario thesis-vbar] [--batch-runs 256]
         [--slots 64] [--single-runs 8] [--json FILE]
     python sweeps/study_benchmark.py memory [--runs 1000,100000] [--json FILE]
+    python sweeps/study_benchmark.py refresh [--scenarios thesis-vbar,poseidyn-lqmpc,fastmpc-3d]
+        [--slots 64] [--batch-runs 128] [--repeats 2] [--json FILE]
 
 Throughput: the same initial conditions (paper 003 Sec. 4.1 for three-phase scenarios, the
 scenario's x0 perturbed otherwise), one core (XLA single threaded), compile excluded. The
@@ -17,7 +19,11 @@ first, by one untimed run). Maneuvers differ in length (0.15-2.5 km), so the rat
 per maneuver and per MPC step flown. The Python loop's rows also give its milliseconds per
 step and, on the first step's QP of the same runs, the assembly and the host solve alone:
 the solve alone bounds what any engine speed can make of the ratio.
-Memory: `rvdjax study montecarlo` in a fresh process per size (peak RSS of that process).
+Memory: `rvdjax study montecarlo` in a fresh process per size (peak RSS of that process, the
+rate, and the share of wall time the device was not busy).
+Refresh: the engine's two refreshes of the slots whose solve finished, the masked one (by
+chunk, the other slots masked) and the compacted one (only those slots, gathered by lane),
+on the same runs, alternated ``--repeats`` times in one process (one core, compile excluded).
 """
 
 from __future__ import annotations
@@ -147,9 +153,11 @@ def memory(args) -> list[dict]:
     for n in args.runs:
         out = f"/tmp/rvdjax-memory-study-{n}"
         subprocess.run(["rm", "-rf", out], check=True)
+        initial = ["--initial", args.initial] if args.initial != "nominal" else []
+        vary = ["--vary", "x0=*normal(1,0.02)"] if args.initial == "nominal" else []
         cmd = [
             sys.executable, "-m", "rvdjax.cli", "study", "montecarlo", args.mem_scenario,
-            "--runs", str(n), "--n-steps", str(args.mem_steps), "--vary", "x0=*normal(1,0.02)",
+            "--runs", str(n), "--n-steps", str(args.mem_steps), *vary, *initial,
             "--out", out, "--json", "--quiet",
         ]  # fmt: skip
         r = subprocess.run(cmd, capture_output=True, text=True, check=True)
@@ -159,17 +167,68 @@ def memory(args) -> list[dict]:
                 "runs": n,
                 "scenario": args.mem_scenario,
                 "n_steps": args.mem_steps,
+                "seconds": s["seconds"],
                 "runs_per_s": s["runs_per_s"],
+                "outside_device_share": s["outside_device_share"],
+                "compile_s": s["compile_s"],
+                "outside_device_share_flying": s["outside_device_share_flying"],
                 "peak_memory_mb": s["peak_memory_mb"],
+                "engine": s["engine"][0],
             }
         )
         print(rows[-1], file=sys.stderr)
     return rows
 
 
+def refresh(args) -> list[dict]:
+    from rvdjax.bench import perturbed_states
+    from rvdjax.loop.engine import EngineConfig, arrays_source, compile_engine, run_batch
+    from rvdjax.scenarios import get_scenario
+
+    rows = []
+    for name in args.scenarios.split(","):
+        sc = get_scenario(name)
+        params, x0 = sc.build()
+        loop = sc.loop()
+        sp = sc.solver_params()
+        source = arrays_source(perturbed_states(x0, args.batch_runs))
+        configs = {
+            mode: EngineConfig(slots=args.slots, chunk=32, refresh=mode)
+            for mode in ("masked", "compacted")
+        }
+        for cfg in configs.values():
+            compile_engine(loop, source, params, sp, cfg)
+        rates = {mode: [] for mode in configs}
+        bits = None
+        for _ in range(args.repeats):
+            for mode, cfg in configs.items():
+                out = run_batch(loop, source, args.batch_runs, params, sp, cfg)
+                rates[mode].append(args.batch_runs / out["seconds"])
+                dv = np.asarray(out["metrics"].delta_v_m_s)
+                bits = dv if bits is None else bits
+                assert np.array_equal(dv, bits), "the refreshes flew different bits"
+        for mode, r in rates.items():
+            rows.append(
+                {
+                    "scenario": name,
+                    "refresh": mode,
+                    "slots": args.slots,
+                    "runs": args.batch_runs,
+                    "maneuvers_per_s": float(np.median(r)),
+                    "all": " / ".join(f"{v:.1f}" for v in r),
+                    "vs_masked": float(np.median(r) / np.median(rates["masked"])),
+                }
+            )
+            print(rows[-1], file=sys.stderr)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("what", choices=("throughput", "memory"))
+    ap.add_argument("what", choices=("throughput", "memory", "refresh"))
+    ap.add_argument("--scenarios", default="thesis-vbar,poseidyn-lqmpc,fastmpc-3d")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--initial", default="nominal", choices=("nominal", "paper003"))
     ap.add_argument("--scenario", default="thesis-vbar")
     ap.add_argument("--batch-runs", type=int, default=256)
     ap.add_argument("--slots", type=int, default=64)
@@ -182,7 +241,7 @@ def main() -> None:
     ap.add_argument("--mem-steps", type=int, default=5)
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args()
-    rows = throughput(args) if args.what == "throughput" else memory(args)
+    rows = {"throughput": throughput, "memory": memory, "refresh": refresh}[args.what](args)
     keys = list(dict.fromkeys(k for r in rows for k in r))
     print(" | ".join(keys))
     for r in rows:

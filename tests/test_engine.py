@@ -1,5 +1,6 @@
 """The batch engine: slots fed by a queue of runs, results independent of how they were
-batched, no NaN escaping a batch."""
+batched (slots, refresh, blocks of the queue), runs kept in their lane, no NaN escaping a
+batch, settings chosen for the device, a segment program that lowers for a GPU."""
 
 from __future__ import annotations
 
@@ -11,7 +12,18 @@ from flights import stack
 
 from rvdjax.bench import perturbed_states
 from rvdjax.loop import RunStatus, fly
-from rvdjax.loop.engine import EngineConfig, arrays_source, fly_batch, run_batch
+from rvdjax.loop import engine as E
+from rvdjax.loop.engine import (
+    Block,
+    EngineConfig,
+    accelerator_slots,
+    arrays_source,
+    auto_config,
+    export_segment,
+    fly_batch,
+    run_batch,
+    run_stream,
+)
 from rvdjax.scenarios import SCENARIOS
 
 SC = SCENARIOS["fastmpc-3d-free"]
@@ -19,6 +31,7 @@ PARAMS, X0 = SC.build()
 LOOP = SC.loop(n_steps=25)  # short runs; about a third dock within the step budget
 X0S = perturbed_states(X0, 12, rel=0.3).at[3].set(jnp.asarray(X0) * 0.002)  # run 3: close by
 CHUNK = 4
+SP = SC.solver_params()
 FLY = jax.jit(lambda p, x: fly(LOOP, p, x)[1])  # one single-maneuver program for the file
 
 
@@ -111,7 +124,116 @@ def test_no_nan_escapes_a_batch(reference):
 def test_engine_rejects_bad_use():
     with pytest.raises(ValueError, match="slots"):
         EngineConfig(slots=0)
+    with pytest.raises(ValueError, match="refresh"):
+        EngineConfig(refresh="sometimes")
     with pytest.raises(ValueError, match="Clarabel"):
         fly_batch(LOOP.replace(settings=SC.settings().__class__(backend="clarabel")), PARAMS, X0S)
     with pytest.raises(ValueError, match="params"):
         run_batch(LOOP, arrays_source(X0S), 3)
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        EngineConfig(slots=12, chunk=CHUNK, refresh="compacted"),
+        EngineConfig(slots=6, chunk=6, refresh="compacted", group=3, assign="any"),
+    ],
+    ids=["compacted-lanes", "compacted-any-slot"],
+)
+def test_the_compacted_refresh_flies_the_same_runs(reference, config):
+    """Refreshing only the slots that need it (gathered into groups) flies the same runs: with
+    lanes (each slot refreshed in its own lane) the same bits as the masked refresh, with runs
+    in any slot the same steps and statuses and figures to rounding."""
+    m = fly_batch(LOOP, PARAMS, X0S, config=config)
+    if config.assign == "lane":
+        for a, b in zip(_bits(m), _bits(reference), strict=True):
+            np.testing.assert_array_equal(a, b)
+    else:
+        np.testing.assert_array_equal(m.steps, reference.steps)
+        np.testing.assert_array_equal(m.status_counts, reference.status_counts)
+        np.testing.assert_allclose(m.delta_v_m_s, reference.delta_v_m_s, rtol=1e-9)
+
+
+def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
+    """A queue given in three blocks of inputs flies the same bits as one array; every slot's
+    run is in the slot's lane (run r in lane r mod chunk: on a vectorising CPU a run's last
+    bits depend on its lane, docs/history.md) while the blocks are swapped."""
+    keys = jax.random.split(jax.random.key(0), len(X0S))
+    blocks = [
+        Block((X0S[lo : lo + 4], keys[lo : lo + 4], None, None), lo, lo + 4)
+        for lo in range(0, len(X0S), 4)
+    ]
+    out = run_stream(
+        LOOP,
+        E._pick_arrays,
+        blocks,
+        len(X0S),
+        params=PARAMS,
+        config=EngineConfig(slots=8, chunk=CHUNK, ticks_per_segment=5),
+    )
+    assert out["segments"] > 3 and 0 < out["device_busy_s"] <= out["seconds"]
+    for a, b in zip(_bits(out["metrics"]), _bits(reference), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # the lanes, segment by segment (the program of test_same_bits_whatever_the_batching)
+    cfg = EngineConfig(slots=12, chunk=CHUNK, iterations=2, ticks_per_segment=7)
+    source = arrays_source(X0S)
+    eng = E._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
+    seg = E._build(LOOP, cfg, source.fn)
+    limit = jnp.asarray(E._block_limit(cfg, Block(None, 0, len(X0S)), [3, 3, 3, 3], len(X0S)))
+    one, zero = jnp.int32(1), jnp.int32(0)
+    seen = set()
+    for _ in range(30):
+        eng = seg(eng, source.data, zero, limit, jnp.asarray(False), PARAMS, SP, one, zero, one)
+        run, live = np.asarray(eng.slots.run), np.asarray(eng.slots.live)
+        slot = np.flatnonzero(live)
+        assert np.all(run[slot] % CHUNK == slot % CHUNK)
+        seen |= set(run[slot].tolist())
+    assert seen == set(range(len(X0S)))
+
+
+def test_a_deadline_stops_the_engine_between_segments():
+    out = run_stream(
+        LOOP,
+        E._pick_arrays,
+        [Block(arrays_source(X0S).data, 0, len(X0S))],
+        len(X0S),
+        params=PARAMS,
+        config=EngineConfig(slots=4, chunk=CHUNK, iterations=2, ticks_per_segment=8),
+        deadline=0.0,
+        keep=False,
+    )
+    assert out["segments"] == 1 and out["done"] < len(X0S) and "metrics" not in out
+
+
+def test_engine_settings_are_chosen_for_the_device():
+    """On the CPU the measured defaults and what the user set; an accelerator's slots from
+    its memory and the slot state's size."""
+    cfg = auto_config(platform="cpu")
+    assert (cfg.slots, cfg.chunk, cfg.iterations, cfg.refresh, cfg.assign) == (
+        256,
+        32,
+        3,
+        "masked",
+        "lane",
+    )
+    assert "CPU defaults" in cfg.chosen and "256 slots" in cfg.describe()
+    two = auto_config(platform="cpu", devices=2, n_runs=100, iterations=4, slots=None)
+    # 50 runs a device, in whole chunks of 32 (the lanes keep their width)
+    assert (two.slots, two.iterations, two.devices, two.per_device.chunk_size) == (128, 4, 2, 32)
+    assert auto_config(platform="cpu", slots=8).n_slots == 32
+    assert "iterations=4" in two.chosen and "100 runs" in two.chosen
+    # 80 GiB, 100 KiB a slot x 8 for temporaries: 52 428 fit, a power of two
+    assert accelerator_slots(80 * 2**30, 100 * 2**10) == 32768
+    assert accelerator_slots(2**30, 10 * 2**20) == 256  # never fewer than 256
+    assert accelerator_slots(None, 1000) == 16384
+    assert E.slot_bytes(LOOP, arrays_source(X0S), PARAMS) > 10_000
+    with pytest.raises(ValueError, match="unknown engine setting"):
+        auto_config(platform="cpu", slotz=3)
+
+
+def test_the_segment_program_lowers_for_a_gpu():
+    """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
+    lowering error would show here), with the accelerator settings (one chunk, compacted)."""
+    exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
+    assert exported.platforms == ("cuda",)
+    assert "stablehlo.while" in exported.mlir_module()

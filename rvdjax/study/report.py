@@ -8,7 +8,7 @@ import numpy as np
 
 from rvdjax.study import stats
 from rvdjax.study.spec import StudySpec
-from rvdjax.study.table import read_config, read_table
+from rvdjax.study.table import read_config, read_table, table_columns
 
 __all__ = ["summarize", "format_summary", "replay_command"]
 
@@ -71,7 +71,10 @@ def summarize(out, confidence: float = 0.9, reliability: float = 0.9973, worst: 
     if config is None:
         raise ValueError(f"{out}: no config.json (not a study directory)")
     spec = StudySpec.from_dict(config["spec"])
-    df = read_table(out)
+    # the columns the statistics need (a 10^6-run study's strings stay on disk)
+    names = table_columns(out)
+    wanted = ["point", "docked", "max_violation_m", "effort", "delta_v_m_s", "time_to_dock_s"]
+    df = read_table(out, columns=wanted + [c for c in names if c.startswith("margin_")])
     from rvdjax.study.runner import effort_metric
     from rvdjax.study.spec import study_scenario
 
@@ -95,7 +98,8 @@ def summarize(out, confidence: float = 0.9, reliability: float = 0.9973, worst: 
     bad = df[~ok]
     good = df[ok].sort_values("effort", ascending=False)
     pick = [*bad["run"].tolist(), *good["run"].tolist()][:worst]
-    rows = df.set_index("run").loc[pick]
+    rows = read_table(out, columns=["point", "status", "failure", "effort", "time_to_dock_s"],
+                      runs=pick).set_index("run").loc[pick]  # fmt: skip
     summary["worst_runs"] = [
         {
             "run": int(r),

@@ -1,10 +1,20 @@
 """Fly a study through the batch engine and write its table as it goes.
 
 The runs of a study are grouped by their static configuration (a horizon is an array shape:
-each distinct value compiles the closed loop once; everything else is traced), handed to the
-engine in blocks of at most ``spec.block`` runs (the host memory of a study is set by the
-block and the slots, not by the number of runs), and written to Parquet parts as the engine
-finishes them (:mod:`rvdjax.study.table`). ``resume=True`` flies only the runs not on disk.
+each distinct value compiles the closed loop once; everything else is traced). A group's runs
+form one queue of the engine (:func:`rvdjax.loop.engine.run_stream`), whose inputs are
+computed in blocks (the host keeps the inputs of the blocks still flying: its memory is set
+by the block and the slots, not by the number of runs); the engine's results come back as
+columns and are written to Parquet parts as they come (:mod:`rvdjax.study.table`), while the
+device flies the next segment. ``resume=True`` flies only the runs not on disk.
+
+A run's bits depend on its inputs and on the engine's lane it flies in (on a CPU; see
+:mod:`rvdjax.loop.engine`). Both are functions of the run index alone. The inputs are drawn
+on the CPU one run at a time (``lax.map``: scalar code, which XLA does not vectorise), in
+calls of ``ALIGN`` runs aligned on the run index (run r is always entry r mod ``ALIGN`` of the
+same program). With ``assign="lane"`` run r flies in lane r mod chunk. So a study's table has
+the same bits whatever its slots, devices and processes, and however often it was killed and
+resumed.
 """
 
 from __future__ import annotations
@@ -12,17 +22,29 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import resource
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pyarrow as pa
+from jax import lax
 
 from rvdjax.loop import RunStatus
-from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
+from rvdjax.loop.engine import (
+    Block,
+    RunInputs,
+    arrays_source,
+    auto_config,
+    run_stream,
+    slot_bytes,
+)
 from rvdjax.solver import Status
 from rvdjax.study import samplers
 from rvdjax.study.spec import ParamRef, StudySpec, resolve, study_scenario
@@ -31,6 +53,7 @@ from rvdjax.study.table import PartWriter, done_runs, read_config, write_config
 __all__ = ["run_study", "RunSet", "run_inputs", "replay_inputs", "effort_metric", "peak_rss_mb"]
 
 _EFFORT_KEYS = ("delta_v_m_s", "effort_l1_N_s", "total_impulse_N_s")
+ALIGN = 1024  # runs per call of the input samplers (module docstring)
 
 
 def peak_rss_mb() -> float:
@@ -68,7 +91,7 @@ def _ic_sampler(kind: str, seed: int):
         def one(ic, n):
             return samplers.paper003_initial_state(samplers.initial_key(seed, ic), n)
 
-        return jax.jit(jax.vmap(one, in_axes=(0, None)))
+        return jax.jit(lambda ics, n: lax.map(lambda ic: one(ic, n), ics))
     raise ValueError(kind)
 
 
@@ -141,11 +164,44 @@ def _vary_drawer(spec_vary: tuple, seed: int):
             for j, (d, nom) in enumerate(zip(dists, nominals, strict=True))
         ]
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0)))
+    return jax.jit(lambda ic, rep, nominals: lax.map(lambda a: one(*a), (ic, rep, nominals)))
 
 
 def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
-    """The exact inputs of ``runs`` (run indices): initial states, keys, drawn values."""
+    """The exact inputs of ``runs`` (run indices): initial states, keys, drawn values.
+
+    They are drawn for the whole ``ALIGN``-run ranges that hold ``runs``, each range one call
+    of the same program (module docstring), then picked."""
+    runs = np.asarray(runs, dtype=np.int64)
+    if len(runs) and (runs.min() < 0 or runs.max() >= spec.n_runs):
+        raise ValueError(f"run indices must be in [0, {spec.n_runs - 1}]")
+    ranges = np.unique(runs // ALIGN)
+    full = (ranges[:, None] * ALIGN + np.arange(ALIGN)).reshape(-1)
+    # on the CPU whatever the engine's device: a loop of scalar steps is fast there (a GPU
+    # would launch kernels per run), and the draws do not depend on the device
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
+        rs = _aligned_inputs(spec, scenario, np.minimum(full, spec.n_runs - 1))
+    pick = np.searchsorted(ranges, runs // ALIGN) * ALIGN + runs % ALIGN
+    return RunSet(
+        runs,
+        rs.point[pick],
+        rs.ic[pick],
+        rs.replicate[pick],
+        rs.x0[pick],
+        rs.keys[pick],
+        {k: v[pick] for k, v in rs.drawn.items()},
+        None if rs.physical is None else [rs.physical[i] for i in pick],
+    )
+
+
+def _by_range(fn, *args):
+    """``fn`` over arrays with a leading axis of whole ``ALIGN`` ranges, one call per range."""
+    n = len(args[0])
+    out = [fn(*(a[lo : lo + ALIGN] for a in args)) for lo in range(0, n, ALIGN)]
+    return jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *out)
+
+
+def _aligned_inputs(spec: StudySpec, scenario, runs) -> RunSet:
     runs = np.asarray(runs, dtype=np.int64)
     point, ic, rep = spec.decompose(runs)
     points = spec.points
@@ -155,7 +211,8 @@ def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
         x0 = np.broadcast_to(np.asarray(scenario.x0, float), (len(runs), nx)).copy()
     else:
         n = _mean_motion(scenario, scenario.physical)
-        x0 = np.asarray(_ic_sampler(spec.initial, spec.seed)(jnp.asarray(ic), n))
+        sampler = _ic_sampler(spec.initial, spec.seed)
+        x0 = _by_range(lambda i: sampler(jnp.asarray(i), n), ic)
     point_phys = []
     for p in points:
         _, phys, x0_over = _point_overrides(spec, scenario, p)
@@ -182,9 +239,11 @@ def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
                     ]
                 )
                 nom = base if ref.index is None else base.reshape(len(runs), -1)[:, ref.index]
-            nominals.append(jnp.asarray(nom, float))
-        values = _vary_drawer(spec.vary, spec.seed)(jnp.asarray(ic), jnp.asarray(rep), nominals)
-        values = [np.asarray(v) for v in values]
+            nominals.append(np.asarray(nom, float))
+        drawer = _vary_drawer(spec.vary, spec.seed)
+        values = _by_range(
+            lambda i, j, *nom: drawer(jnp.asarray(i), jnp.asarray(j), list(nom)), ic, rep, *nominals
+        )
         for (ref, name), v in zip(refs, values, strict=True):
             drawn[name] = v
             if ref.kind == "x0":
@@ -205,7 +264,7 @@ def run_inputs(spec: StudySpec, scenario, runs) -> RunSet:
                 physical.append(d)
     keys = jax.vmap(samplers.disturbance_key, in_axes=(None, 0, 0))(
         spec.seed, jnp.asarray(ic), jnp.asarray(rep)
-    )
+    )  # integer arithmetic: exact in any batch
     return RunSet(runs, point, ic, rep, x0, keys, drawn, physical)
 
 
@@ -221,79 +280,89 @@ def _apply_value(ref: ParamRef, nominal, value):
 # ---------------------------------------------------------------------------------- rows
 
 
-def _rows(spec, scenario, params_of_point, rs: RunSet, sel, metrics, effort) -> list[dict]:
-    """One tidy row per run of ``sel`` (positions in ``rs``) from engine metrics."""
-    m = metrics
-    rows = []
-    ts = None
-    for k in range(len(sel)):
-        i = sel[k]
-        p = int(rs.point[i])
-        point = spec.points[p]
-        row = {
-            "study": spec.kind,
-            "scenario": spec.scenario,
-            "point": p,
-            "run": int(rs.run[i]),
-            "ic": int(rs.ic[i]),
-            "replicate": int(rs.replicate[i]),
-            "seed": int(spec.seed),
-        }
-        for name, v in point.values.items():
-            row[name] = float(v)
-        for name, v in rs.drawn.items():
-            v = np.asarray(v[i])
-            if v.ndim == 0:
-                row[name] = float(v)
-            else:
-                for j, e in enumerate(v.reshape(-1)):
-                    row[f"{name}[{j}]"] = float(e)
-        for j, e in enumerate(rs.x0[i]):
-            row[f"x0_{j}"] = float(e)
-        status = int(m.status[k])
-        docked = bool(m.docked[k])
-        row["status"] = RunStatus.name(status)
-        row["docked"] = docked
-        row["steps"] = int(m.steps[k])
-        for f in (
-            "time_to_dock_s",
-            "total_impulse_N_s",
-            "effort_l1_N_s",
-            "delta_v_m_s",
-            "delta_v_l1_m_s",
-            "torque_l1_N_m_s",
-            "max_violation_m",
-            "mean_iterations",
-            "thruster_impulse_N_s",
-            "propellant_kg",
-        ):
-            row[f] = float(getattr(m, f)[k])
-        row["valve_openings"] = int(m.valve_openings[k])
-        row["pulses_dropped"] = int(m.pulses_dropped[k])
-        row["effort"] = row[effort]
-        params = params_of_point(p)
-        ts = getattr(params, "ts", None)
-        for ph, (dv, t) in enumerate(zip(m.phase_delta_v_m_s[k], m.phase_time_s[k], strict=True)):
-            row[f"phase{ph}_delta_v_m_s"] = float(dv)
-            row[f"phase{ph}_time_s"] = float(t)
-            if ts is not None and np.ndim(ts) == 1:
-                row[f"phase{ph}_intervals"] = int(np.ceil(float(t) / float(ts[ph]) - 1e-9))
-        for name, v in m.margins_m.items():
-            row[f"margin_{name}_m"] = float(v[k])
-        for s, c in enumerate(m.status_counts[k]):
-            row[f"solves_{Status.name(s)}"] = int(c)
-        row["failure"] = _failure(status, row, spec)
-        rows.append(row)
-    return rows
+_FLOAT_METRICS = (
+    "time_to_dock_s",
+    "total_impulse_N_s",
+    "effort_l1_N_s",
+    "delta_v_m_s",
+    "delta_v_l1_m_s",
+    "torque_l1_N_m_s",
+    "max_violation_m",
+    "mean_iterations",
+    "thruster_impulse_N_s",
+    "propellant_kg",
+)
 
 
-def _failure(status: int, row: dict, spec: StudySpec) -> str:
-    if status == RunStatus.DOCKED:
-        return "" if row["max_violation_m"] <= 1e-6 else "docked with a constraint violation"
-    if status == RunStatus.FAILED:
-        return "non-finite truth state"
-    limit = f"{spec.time_limit_s:g} s" if spec.time_limit_s is not None else f"{row['steps']} steps"
-    return f"not docked within {limit}"
+def _strings(n: int, value) -> pa.Array:
+    return pa.array(np.full(n, value, dtype=object), pa.string())
+
+
+def _table(spec, runs, point_values, point_ts, x0, drawn, m, effort) -> pa.Table:
+    """One tidy row per run, as columns (no per-run Python object): ``runs`` (n,) run
+    indices, ``x0`` (n, nx) and ``drawn`` {name: (n, ...)} their inputs, ``m`` their engine
+    metrics; ``point_values`` {name: (points,)} the sweep values, ``point_ts`` (points, P) each
+    point's per-phase sample times (None: not per phase)."""
+    n = len(runs)
+    point, ic, rep = spec.decompose(runs)
+    cols: dict[str, Any] = {
+        "study": _strings(n, spec.kind),
+        "scenario": _strings(n, spec.scenario),
+        "point": point.astype(np.int64),
+        "run": runs.astype(np.int64),
+        "ic": ic.astype(np.int64),
+        "replicate": rep.astype(np.int64),
+        "seed": np.full(n, spec.seed, np.int64),
+    }
+    for name, values in point_values.items():
+        cols[name] = values[point].astype(np.float64)
+    for name, v in drawn.items():
+        v = np.asarray(v, np.float64).reshape(n, -1)
+        if np.ndim(drawn[name]) == 1:
+            cols[name] = v[:, 0]
+        else:
+            for j in range(v.shape[1]):
+                cols[f"{name}[{j}]"] = v[:, j]
+    for j in range(x0.shape[1]):
+        cols[f"x0_{j}"] = np.asarray(x0[:, j], np.float64)
+    status = np.asarray(m.status)
+    cols["status"] = pa.array(np.asarray(RunStatus.names, dtype=object)[status], pa.string())
+    cols["docked"] = np.asarray(m.docked, bool)
+    cols["steps"] = np.asarray(m.steps, np.int64)
+    for f in _FLOAT_METRICS:
+        cols[f] = np.asarray(getattr(m, f), np.float64)
+    cols["valve_openings"] = np.asarray(m.valve_openings, np.int64)
+    cols["pulses_dropped"] = np.asarray(m.pulses_dropped, np.int64)
+    cols["effort"] = cols[effort]
+    dv, t = np.asarray(m.phase_delta_v_m_s, np.float64), np.asarray(m.phase_time_s, np.float64)
+    for ph in range(dv.shape[1]):
+        cols[f"phase{ph}_delta_v_m_s"] = dv[:, ph]
+        cols[f"phase{ph}_time_s"] = t[:, ph]
+        if point_ts is not None:
+            cols[f"phase{ph}_intervals"] = np.ceil(t[:, ph] / point_ts[point, ph] - 1e-9).astype(
+                np.int64
+            )
+    for name, v in m.margins_m.items():
+        cols[f"margin_{name}_m"] = np.asarray(v, np.float64)
+    counts = np.asarray(m.status_counts, np.int64)
+    for k in range(counts.shape[1]):
+        cols[f"solves_{Status.name(k)}"] = counts[:, k]
+    cols["failure"] = pa.array(_failures(spec, status, cols), pa.string())
+    return pa.table(cols)
+
+
+def _failures(spec: StudySpec, status, cols) -> np.ndarray:
+    """Why each run failed ("" for a success)."""
+    out = np.full(len(status), "", dtype=object)
+    violated = (status == RunStatus.DOCKED) & (cols["max_violation_m"] > 1e-6)
+    out[violated] = "docked with a constraint violation"
+    out[status == RunStatus.FAILED] = "non-finite truth state"
+    timeout = np.flatnonzero(status == RunStatus.TIMEOUT)
+    if spec.time_limit_s is not None:
+        out[timeout] = f"not docked within {spec.time_limit_s:g} s"
+    else:
+        out[timeout] = [f"not docked within {k} steps" for k in cols["steps"][timeout]]
+    return out
 
 
 # ---------------------------------------------------------------------------------- study
@@ -318,21 +387,150 @@ def _loop_for(spec: StudySpec, scenario, static: dict):
     return loop
 
 
-def _pad(trees, n: int):
-    """Pad every leading axis to ``n`` with copies of entry 0 (never flown: the queue's length
-    is the number of real runs)."""
-
-    def pad(a):
-        if a is None or a.shape[0] == n:
-            return a
-        reps = jnp.repeat(a[:1], n - a.shape[0], axis=0)
-        return jnp.concatenate([jnp.asarray(a), reps], axis=0)
-
-    return jax.tree.map(pad, trees, is_leaf=lambda x: x is None)
-
-
 def _stack(trees):
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *trees)
+
+
+def _pick_run(data, i):
+    """Queue entry i of a block: (x0s, keys, per-run parameters or None)."""
+    x0s, keys, params = data
+    return RunInputs(
+        x0=x0s[i],
+        key=keys[i],
+        params=None if params is None else jax.tree.map(lambda a: a[i], params),
+        solver=None,
+    )
+
+
+def _pick_point(data, i):
+    """Queue entry i of a block whose runs share their sweep point's parameters: (x0s, keys,
+    point index of each entry, the points' parameters stacked)."""
+    x0s, keys, points, point_params = data
+    return RunInputs(
+        x0=x0s[i],
+        key=keys[i],
+        params=jax.tree.map(lambda a: a[points[i]], point_params),
+        solver=None,
+    )
+
+
+class _BlockInfo(NamedTuple):
+    runs: np.ndarray  # (block,) run index of each queue entry (-1: none)
+    rs: RunSet  # the inputs of the block's runs
+    index: np.ndarray  # (block,) entry -> position in rs
+
+
+class _GroupQueue:
+    """The engine's queue of one group of a study: which run sits at which queue position
+    (with lanes, run r in lane r mod chunk), its inputs block by block, and the table rows of
+    the results."""
+
+    def __init__(self, spec, scenario, runs, cfg, point_ids, params_of_point, per_point):
+        self.spec, self.scenario, self.cfg = spec, scenario, cfg
+        self.point_ids = list(point_ids)
+        self.params_of_point = params_of_point
+        # per-run parameters (a physical value drawn per run), the point's (the group's points
+        # differ in physical values) or shared
+        self.per_run = any(resolve(scenario, n).kind == "physical" for n, _ in spec.vary)
+        self.per_point = per_point and not self.per_run
+        if cfg.assign == "lane":
+            C = cfg.chunk_size
+            lane = runs % C
+            counts = np.bincount(lane, minlength=C)
+            order = np.lexsort((runs, lane))
+            first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            rank = np.arange(len(runs)) - first[lane[order]]
+            table = np.full((int(counts.max()), C), -1, np.int64)
+            table[rank, lane[order]] = runs[order]
+            self.positions = table.reshape(-1)
+            self.lane_counts = counts
+            unit = C
+        else:
+            self.positions = np.asarray(runs, np.int64)
+            self.lane_counts = None
+            unit = 1
+        want = max(spec.block, 8 * cfg.per_device.n_slots * cfg.devices)
+        self.block = unit * math.ceil(want / unit)
+        self.info: dict[int, _BlockInfo] = {}
+        self.remaining: dict[int, int] = {}
+
+    def _inputs(self, start: int):
+        """The engine's data for the block starting at queue position ``start``."""
+        spec, scenario = self.spec, self.scenario
+        ids = self.positions[start : start + self.block]
+        ids = np.concatenate([ids, np.full(self.block - len(ids), -1, np.int64)])
+        valid = ids >= 0
+        rs = run_inputs(spec, scenario, ids[valid])
+        index = np.where(valid, np.cumsum(valid) - 1, 0)
+        self.info[start] = _BlockInfo(ids, rs, index)
+        self.remaining[start] = int(valid.sum())
+        x0 = jnp.asarray(rs.x0[index])
+        keys = rs.keys[index]
+        if rs.physical is not None:
+            built = _stack([_build(spec, scenario, **ph, x0=scenario.x0)[0] for ph in rs.physical])
+            params = jax.tree.map(lambda a: jnp.asarray(a[index]), built)
+            return (x0, keys, params)
+        if self.per_point:
+            local = {p: k for k, p in enumerate(self.point_ids)}
+            points = jnp.asarray([local[int(p)] for p in rs.point[index]], jnp.int32)
+            stacked = _stack([self.params_of_point(p) for p in self.point_ids])
+            return (x0, keys, points, stacked)
+        return (x0, keys, None)
+
+    @property
+    def source_fn(self):
+        return _pick_point if self.per_point else _pick_run
+
+    @property
+    def shared(self):
+        """The parameters every run shares (None: per run or per point)."""
+        if self.per_run or self.per_point:
+            return None
+        return self.params_of_point(int(self.point_ids[0]))
+
+    def blocks(self):
+        for start in range(0, len(self.positions), self.block):
+            yield Block(self._inputs(start), start, min(start + self.block, len(self.positions)))
+
+    def table(self, positions, metrics, effort, point_values, point_ts) -> pa.Table:
+        """The rows of the results at queue ``positions``."""
+        starts = positions // self.block * self.block
+        parts = []
+        for start in np.unique(starts):
+            sel = np.flatnonzero(starts == start)
+            info = self.info[start]
+            local = positions[sel] - start
+            runs = info.runs[local]
+            assert np.all(runs >= 0), "the engine flew a queue position that holds no run"
+            k = info.index[local]
+            m = jax.tree.map(lambda a, sel=sel: a[sel], metrics)
+            drawn = {name: v[k] for name, v in info.rs.drawn.items()}
+            parts.append(
+                _table(self.spec, runs, point_values, point_ts, info.rs.x0[k], drawn, m, effort)
+            )
+            self.remaining[start] -= len(sel)
+            if self.remaining[start] == 0:  # every run of the block is written
+                del self.info[start], self.remaining[start]
+        return pa.concat_tables(parts) if len(parts) > 1 else parts[0]
+
+
+def _prefetch(items):
+    """Iterate ``items`` computing the next one in a background thread (the next block's
+    inputs are drawn while the engine flies the current one)."""
+    it = iter(items)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        fut = pool.submit(next, it, None)
+        while True:
+            item = fut.result()
+            if item is None:
+                return
+            fut = pool.submit(next, it, None)
+            yield item
+
+
+def _auto_flush(n_runs: int) -> int:
+    """Rows per part file: 256, or 1/64 of the study for large ones (at most 65536)."""
+    return int(min(65536, max(256, n_runs // 64)))
 
 
 def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
@@ -364,17 +562,30 @@ def run_study(
     process_index: int = 0,
     process_count: int = 1,
     devices: int = 1,
-    flush_rows: int = 256,
+    flush_rows: int | None = None,
     prepare: bool = True,
+    max_seconds: float | None = None,
+    engine: dict | None = None,
 ) -> dict:
     """Fly ``spec`` and write its table to ``out``; returns timing figures.
 
     Runs already in ``out`` are skipped when ``resume``; with ``process_count`` > 1 this
     process flies every ``process_count``-th remaining run and writes its own parts;
     ``devices`` shards the engine's slots over that many local devices; a part file is
-    written every ``flush_rows`` finished runs (or 20 s). ``prepare``: process 0 checks
-    ``out`` and writes the configuration first (False: the caller did, e.g. before a barrier
-    of several processes).
+    written every ``flush_rows`` finished runs (None: 256, or 1/64 of a large study) or 20 s.
+    ``prepare``: process 0 checks ``out`` and writes the configuration first (False: the
+    caller did, e.g. before a barrier of several processes). ``max_seconds``: stop starting
+    engine segments after that long (the runs in flight are dropped, the table keeps every
+    finished run: resume to complete it). ``engine``: further
+    :class:`~rvdjax.loop.engine.EngineConfig` settings (e.g. ``platform``, ``refresh``); the
+    spec's ``slots``, ``chunk`` and ``iterations`` (None: chosen for the device by
+    :func:`~rvdjax.loop.engine.auto_config`) come first.
+
+    The figures: runs flown and skipped, wall ``seconds``, ``runs_per_s``, peak memory, the
+    device's busy time (``device_busy_s``), the compiles' (``compile_s``), the share of wall
+    time the device was not busy (``outside_device_share``: input drawing, collection and
+    writing not hidden behind the device's work, and compiles; ``..._flying``: without the
+    compiles), and ``engine``: each group's engine settings.
     """
     scenario = study_scenario(spec, out)
     spec.validate(dataclasses.replace(scenario, name=spec.scenario))
@@ -386,6 +597,7 @@ def run_study(
     done = done_runs(out) if resume else np.zeros(0, np.int64)
     todo = np.setdiff1d(all_runs, done)
     todo = todo[process_index::process_count]
+    flush_rows = _auto_flush(spec.n_runs) if flush_rows is None else flush_rows
     writer = PartWriter(out, process=process_index, flush_rows=flush_rows)
     # group the points by static configuration
     groups: dict[tuple, list] = {}
@@ -394,6 +606,10 @@ def run_study(
         static, phys, _ = _point_overrides(spec, scenario, p)
         point_cfg[p.index] = (static, phys)
         groups.setdefault(_group_key(static), []).append(p.index)
+    point_values = {
+        name: np.asarray([p.values[name] for p in spec.points], np.float64)
+        for name in (spec.points[0].values if spec.points else {})
+    }
 
     bar = None
     if progress is True:
@@ -407,10 +623,17 @@ def run_study(
             smoothing=0.1,
         )
     t0 = time.perf_counter()
+    deadline = None if max_seconds is None else t0 + max_seconds
     flown = 0
+    busy = host = compile_s = 0.0
+    engines = []
     nominal_params, _ = _build(spec, scenario)
     scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
     for _, point_ids in groups.items():
+        group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
+        late = deadline is not None and time.perf_counter() > deadline
+        if not len(group_runs) or (late and engines):  # (the first group flies a segment)
+            continue
         static = point_cfg[point_ids[0]][0]
         loop = _loop_for(spec, scenario, static)
         sp = scenario.solver_params(spec.mode)
@@ -422,54 +645,42 @@ def run_study(
                 params_cache[p] = _build(spec, scenario, **phys)[0] if phys else nominal_params
             return params_cache[p]
 
-        group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
-        distinct_phys = len({repr(sorted(point_cfg[p][1].items())) for p in point_ids}) > 1
-        # every block of the group has the same array shapes (the last one padded): the
-        # engine's program depends on them, and a new shape would compile it again
-        bucket = min(spec.block, 1 << max(0, int(len(group_runs) - 1).bit_length()))
-        for lo in range(0, len(group_runs), spec.block):
-            block = group_runs[lo : lo + spec.block]
-            rs = run_inputs(spec, scenario, block)
-            if rs.physical is not None:
-                per_run = _stack(
-                    [_build(spec, scenario, **phys, x0=scenario.x0)[0] for phys in rs.physical]
-                )
-                shared = None
-            elif distinct_phys:
-                per_run = _stack([params_of_point(int(p)) for p in rs.point])
-                shared = None
-            else:
-                per_run = None
-                shared = params_of_point(int(point_ids[0]))
-            source = arrays_source(*_pad((jnp.asarray(rs.x0), rs.keys, per_run), bucket))
-            unit = spec.chunk * devices
-            slots = min(spec.slots, max(unit, int(np.ceil(len(block) / unit)) * unit))
-            slots = max(slots, unit)
-            cfg = EngineConfig(
-                slots=slots, chunk=spec.chunk, iterations=spec.iterations, devices=devices
-            )
-            base = flown
+        per_point = len({repr(sorted(point_cfg[p][1].items())) for p in point_ids}) > 1
+        point_ts = _point_sample_times(spec, params_of_point)
+        cfg = _engine_config(
+            spec, scenario, loop, sp, group_runs, devices, engine, params_of_point(point_ids[0])
+        )
+        queue = _GroupQueue(spec, scenario, group_runs, cfg, point_ids, params_of_point, per_point)
+        engines.append(cfg.describe())
+        base = flown
 
-            def on_results(idx, metrics, rs=rs):
-                writer.add(_rows(spec, scenario, params_of_point, rs, idx, metrics, effort))
+        def on_results(positions, metrics, queue=queue, point_ts=point_ts):
+            writer.add(queue.table(positions, metrics, effort, point_values, point_ts))
 
-            def on_progress(done_block, n, base=base):
-                if bar is not None:
-                    bar.update(base + done_block - bar.n)
-                elif callable(progress):
-                    progress(base + done_block, len(todo))
+        def on_progress(done_group, n, base=base):
+            if bar is not None:
+                bar.update(base + done_group - bar.n)
+            elif callable(progress):
+                progress(base + done_group, len(todo))
 
-            run_batch(
-                loop,
-                source,
-                len(block),
-                params=shared,
-                solver_params=sp,
-                config=cfg,
-                on_results=on_results,
-                progress=on_progress,
-            )
-            flown += len(block)
+        res = run_stream(
+            loop,
+            queue.source_fn,
+            _prefetch(queue.blocks()),
+            len(group_runs),
+            params=queue.shared,
+            solver_params=sp,
+            config=cfg,
+            on_results=on_results,
+            progress=on_progress,
+            keep=False,
+            deadline=deadline,
+            lane_counts=queue.lane_counts,
+        )
+        flown += res["done"]
+        busy += res["device_busy_s"]
+        host += res["host_s"]
+        compile_s += res["compile_s"]
     writer.close()
     if bar is not None:
         bar.close()
@@ -477,10 +688,40 @@ def run_study(
     return {
         "runs_flown": int(flown),
         "runs_skipped": int(len(done)),
+        "runs_left": int(len(todo) - flown),
         "seconds": wall,
         "runs_per_s": flown / wall if wall > 0 else float("nan"),
         "peak_memory_mb": peak_rss_mb(),
+        "device_busy_s": busy,
+        "compile_s": compile_s,
+        "host_s": host,
+        "outside_device_share": 1.0 - busy / wall if wall > 0 else float("nan"),
+        "outside_device_share_flying": (
+            1.0 - busy / (wall - compile_s) if wall > compile_s else float("nan")
+        ),
+        "engine": engines,
     }
+
+
+def _point_sample_times(spec, params_of_point):
+    """(points, phases) per-phase sample times of every point, or None (not per phase)."""
+    ts = [getattr(params_of_point(p.index), "ts", None) for p in spec.points]
+    if all(t is not None and np.ndim(t) == 1 for t in ts):
+        return np.stack([np.asarray(t, np.float64) for t in ts])
+    return None
+
+
+def _engine_config(spec, scenario, loop, sp, runs, devices, engine, params):
+    """The engine's settings for a group of runs: the spec's and ``engine``'s, the rest
+    chosen for the device (:func:`~rvdjax.loop.engine.auto_config`)."""
+    overrides = dict(engine or {})
+    overrides.update(slots=spec.slots, chunk=spec.chunk, iterations=spec.iterations)
+
+    def size():
+        probe = run_inputs(spec, scenario, runs[:1])
+        return slot_bytes(loop, arrays_source(probe.x0, probe.keys), params, sp)
+
+    return auto_config(devices=devices, n_runs=len(runs), slot_bytes=size, **overrides)
 
 
 def replay_inputs(out, run: int):

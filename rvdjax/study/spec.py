@@ -155,8 +155,10 @@ class StudySpec:
         fdir: the allocation knows a fault from its onset (False: it goes unnoticed).
         time_limit_s: a run not docked by then ends (TIMEOUT); None: the scenario's step cap.
         n_steps: MPC steps at most (None: the scenario's).
-        slots, chunk, iterations: the batch engine.
-        block: runs handed to the engine at once (bounds the host memory of a study).
+        slots, chunk, iterations: the batch engine (None: chosen for the device,
+            :func:`rvdjax.loop.engine.auto_config`).
+        block: runs whose inputs are drawn at once (at least 8 x the slots; bounds the host
+            memory of a study).
     """
 
     kind: str
@@ -176,9 +178,9 @@ class StudySpec:
     fdir: bool = True
     time_limit_s: float | None = None
     n_steps: int | None = None
-    slots: int = 256
-    chunk: int = 32
-    iterations: int = 3
+    slots: int | None = None
+    chunk: int | None = None
+    iterations: int | None = None
     block: int = 8192
 
     def __post_init__(self):
@@ -186,6 +188,8 @@ class StudySpec:
             raise ValueError(f"kind must be montecarlo, sweep or robustness, got {self.kind!r}")
         for name in ("n_initial", "replicates", "slots", "chunk", "iterations", "block"):
             v = getattr(self, name)
+            if v is None and name in ("slots", "chunk", "iterations"):
+                continue
             if not (isinstance(v, (int, np.integer)) and v >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if self.initial not in INITIAL_SAMPLERS:

@@ -19,7 +19,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-__all__ = ["PartWriter", "read_table", "done_runs", "write_config", "read_config"]
+__all__ = [
+    "PartWriter",
+    "read_table",
+    "table_columns",
+    "done_runs",
+    "write_config",
+    "read_config",
+]
 
 RUNS_DIR = "runs"
 CONFIG = "config.json"
@@ -54,25 +61,42 @@ def _parts(out: Path) -> list[Path]:
 
 
 def done_runs(out: Path) -> np.ndarray:
-    """Run indices already written (sorted)."""
+    """Run indices already written (sorted). A run written twice (never, by construction:
+    parts are atomic and a resume flies only runs not on disk) raises."""
     idx = [pq.read_table(p, columns=["run"]).column("run").to_numpy() for p in _parts(out)]
-    return np.sort(np.concatenate(idx)) if idx else np.zeros(0, np.int64)
+    runs = np.sort(np.concatenate(idx)) if idx else np.zeros(0, np.int64)
+    twice = runs[1:][runs[1:] == runs[:-1]]
+    if len(twice):
+        raise ValueError(f"{out}: run {int(twice[0])} is written twice ({len(twice)} duplicates)")
+    return runs
 
 
-def read_table(out: Path):
-    """The study's table as a pandas DataFrame sorted by run index."""
+def table_columns(out: Path) -> list[str]:
+    """The table's column names (none before the first part is written)."""
+    parts = _parts(out)
+    return pq.read_schema(parts[0]).names if parts else []
+
+
+def read_table(out: Path, columns=None, runs=None):
+    """The study's table as a pandas DataFrame sorted by run index: every column, or
+    ``columns`` (with "run"); every run, or those in ``runs``."""
     import pandas as pd
 
     parts = _parts(out)
     if not parts:
         raise ValueError(f"no results in {out} (no {RUNS_DIR}/part-*.parquet)")
-    df = pd.concat([pq.read_table(p).to_pandas() for p in parts], ignore_index=True)
+    if columns is not None:
+        columns = list(dict.fromkeys(["run", *columns]))
+    filters = None if runs is None else [("run", "in", [int(r) for r in runs])]
+    frames = [pq.read_table(p, columns=columns, filters=filters).to_pandas() for p in parts]
+    df = pd.concat(frames, ignore_index=True)
     return df.sort_values("run", kind="stable").reset_index(drop=True)
 
 
 class PartWriter:
-    """Buffers rows and writes a part file when ``flush_rows`` rows or ``flush_s`` seconds have
-    accumulated (and on :meth:`close`)."""
+    """Buffers columnar batches of rows (``pyarrow.Table`` s) and writes a part file when
+    ``flush_rows`` rows or ``flush_s`` seconds have accumulated (and on :meth:`close`); a batch
+    is written whole (a part may hold more than ``flush_rows`` rows)."""
 
     def __init__(self, out: Path, process: int = 0, flush_rows: int = 256, flush_s: float = 20):
         self.dir = Path(out) / RUNS_DIR
@@ -80,29 +104,35 @@ class PartWriter:
         self.process = process
         self.flush_rows = flush_rows
         self.flush_s = flush_s
-        self.rows: list[dict] = []
+        self.batches: list[pa.Table] = []
+        self.pending = 0
         self.last = time.monotonic()
         existing = [p.stem.split("-")[-1] for p in self.dir.glob(f"part-P{process:03d}-*.parquet")]
         self.seq = 1 + max((int(s) for s in existing), default=-1)
         self.written = 0
 
-    def add(self, rows: list[dict]) -> None:
-        self.rows.extend(rows)
-        if len(self.rows) >= self.flush_rows or time.monotonic() - self.last >= self.flush_s:
+    def add(self, batch: pa.Table) -> None:
+        """Add a batch of rows (list of dicts are accepted too)."""
+        if not isinstance(batch, pa.Table):
+            batch = pa.Table.from_pylist(batch)
+        if batch.num_rows:
+            self.batches.append(batch)
+            self.pending += batch.num_rows
+        if self.pending >= self.flush_rows or time.monotonic() - self.last >= self.flush_s:
             self.flush()
 
     def flush(self) -> None:
         self.last = time.monotonic()
-        if not self.rows:
+        if not self.batches:
             return
-        table = pa.Table.from_pylist(self.rows)
+        table = pa.concat_tables(self.batches)
         sink = pa.BufferOutputStream()
         pq.write_table(table, sink)
         path = self.dir / f"part-P{self.process:03d}-{self.seq:06d}.parquet"
         _atomic_write_bytes(path, sink.getvalue().to_pybytes())
         self.seq += 1
-        self.written += len(self.rows)
-        self.rows = []
+        self.written += table.num_rows
+        self.batches, self.pending = [], 0
 
     def close(self) -> None:
         self.flush()
