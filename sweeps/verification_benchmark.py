@@ -38,7 +38,7 @@ def _problem(requirement: str):
 def _store(out: Path, name: str, pb):
     d = out / name
     d.mkdir(parents=True, exist_ok=True)
-    return EvalStore(d, pb.effort_key)
+    return EvalStore(d, pb.effort_key, {"problem": pb.definition()})
 
 
 def cmd_worst(args) -> dict:

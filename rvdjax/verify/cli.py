@@ -36,6 +36,11 @@ def add_parser(sub, scenario_help: str) -> None:
         )
         q.add_argument("--out", required=True, metavar="DIR", help="verification directory")
         q.add_argument("--resume", action="store_true", help="continue the verification in DIR")
+        q.add_argument(
+            "--allow-code-change",
+            action="store_true",
+            help="resume or reuse evaluations flown by another code version (rows marked)",
+        )
         q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
         q.add_argument("--disturbed", action="store_true", help="noisy loop (paper 003 Ch. 5)")
         q.add_argument("--nav-filter", action="store_true", help="with --disturbed: a filter")
@@ -93,9 +98,12 @@ def _problem_spec(args):
     )
 
 
-def _prepare(out: Path, config: dict, resume: bool) -> None:
+def _prepare(out: Path, config: dict, resume: bool, pb, allow_code_change: bool):
+    """The directory's :class:`~rvdjax.verify.store.EvalStore`, after checking that ``out``
+    is new, or (``resume``) holds this verification flown by this code version
+    (:mod:`rvdjax.provenance`: one line naming what differs)."""
     from rvdjax.outputs import check_dir
-    from rvdjax.verify.store import CONFIG, write_json
+    from rvdjax.verify.store import CONFIG, EvalStore, write_json
 
     check_dir(str(out), "--out")
     config = json.loads(json.dumps(config))  # as read back (tuples become lists)
@@ -106,12 +114,12 @@ def _prepare(out: Path, config: dict, resume: bool) -> None:
                 f"--out {out} already holds a verification; pass --resume to continue it or "
                 "choose another directory"
             )
-        if json.loads(path.read_text()) != config:
-            raise ValueError(f"--out {out} holds a different verification (config.json differs)")
     elif out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} exists and is not a verification directory")
-    out.mkdir(parents=True, exist_ok=True)
+    definition = {"problem": pb.definition(), "verification": config}
+    store = EvalStore(out, pb.effort_key, definition, allow_code_change)
     write_json(path, config)
+    return store
 
 
 def cmd_verify(args) -> int:
@@ -151,11 +159,11 @@ def cmd_verify(args) -> int:
         "spec": {**dataclasses.asdict(pspec), "truth": "linear"},
         "method": dataclasses.asdict(kspec),
     }
-    _prepare(out, config, args.resume)
+    store = _prepare(out, config, args.resume, pb, args.allow_code_change)
     if args.verify_command == "worst":
-        summary = _worst(pb, kspec, out, args)
+        summary = _worst(pb, kspec, out, args, store)
     else:
-        summary = _probability(pb, kspec, out, args)
+        summary = _probability(pb, kspec, out, args, store)
     if args.json:
         print(json.dumps(summary, indent=2))
     return 0
@@ -165,11 +173,10 @@ def _replay(out: Path, scenario: str, run) -> str:
     return f"rvdjax run {scenario} --study {out} --run {int(run)}"
 
 
-def _worst(pb, kspec, out: Path, args) -> dict:
-    from rvdjax.verify.store import EvalStore, read_evals, write_json
+def _worst(pb, kspec, out: Path, args, store) -> dict:
+    from rvdjax.verify.store import read_evals, write_json
     from rvdjax.verify.worst import search
 
-    store = EvalStore(out, pb.effort_key)
     traces = search(pb, kspec, store, progress=not args.quiet)
     methods = {m: tr.summary() for m, tr in traces.items()}
     worst_m = min(traces, key=lambda m: float(np.min(traces[m].worst_margin)))
@@ -198,6 +205,7 @@ def _worst(pb, kspec, out: Path, args) -> dict:
             f"search region: {kspec.region} of radius {kspec.radius:g} in xi; random draws xi "
             "from the dispersion itself (N(0, I) in the region)",
         ],
+        "provenance": store.provenance_summary(),
     }
     write_json(out / "summary.json", summary)
     if args.plots:
@@ -243,13 +251,28 @@ def _print_worst(s: dict) -> None:
     print("  assumptions:")
     for a in s["assumptions"]:
         print(f"    - {a}")
+    _print_provenance(s["provenance"])
 
 
-def _probability(pb, kspec, out: Path, args) -> dict:
+def _print_provenance(block) -> None:
+    from rvdjax.provenance import format_provenance
+
+    if not block:
+        return
+    print("  provenance:")
+    for line in format_provenance(block, block.get("rows_used")):
+        print(f"    - {line}")
+    if block.get("rows_code_changed"):
+        print(
+            f"    - {block['rows_code_changed']} of the evaluations used were flown by another "
+            "code version (--allow-code-change)"
+        )
+
+
+def _probability(pb, kspec, out: Path, args, store) -> dict:
     from rvdjax.verify.probability import estimate
-    from rvdjax.verify.store import EvalStore, read_evals, write_json
+    from rvdjax.verify.store import read_evals, write_json
 
-    store = EvalStore(out, pb.effort_key)
     res = estimate(pb, kspec, store, progress=not args.quiet)
     summary = {
         "scenario": pb.scenario.name,
@@ -258,6 +281,7 @@ def _probability(pb, kspec, out: Path, args) -> dict:
         "dim": pb.dim,
         **{k: v for k, v in res.items() if k not in ("history",)},
         "assumptions": pb.notes(),
+        "provenance": store.provenance_summary(),
     }
     write_json(out / "summary.json", {**summary, "history": res.get("history")})
     if args.plots:
@@ -282,6 +306,7 @@ def _probability(pb, kspec, out: Path, args) -> dict:
         print("  assumptions:")
         for a in summary["assumptions"]:
             print(f"    - {a}")
+        _print_provenance(summary["provenance"])
     return summary
 
 

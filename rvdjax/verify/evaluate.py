@@ -128,6 +128,31 @@ class Problem:
     def dim(self) -> int:
         return self.dispersion.dim
 
+    def definition(self) -> dict:
+        """Everything that defines this problem's runs, for provenance
+        (:mod:`rvdjax.provenance`): the spec (less the engine's slots, chunk and remat, which
+        do not change a run), the scenario's values, the parameters and initial state built
+        from them, the loop configuration, the solver parameters, the parsed requirement and
+        dispersion and the smooth margin's temperature."""
+        from rvdjax import provenance
+
+        spec = {
+            k: v
+            for k, v in dataclasses.asdict(self.spec).items()
+            if k not in ("slots", "chunk", "remat")
+        }
+        return provenance.describe(
+            spec=spec,
+            scenario=provenance.scenario_values(self.scenario),
+            params=self.params,
+            x0=self.x0,
+            loop=self.loop.config,
+            solver=self.sp,
+            requirement=self.requirement,
+            dispersion={"label": self.dispersion.label(), "names": self.dispersion.names()},
+            tau=self.tau,
+        )
+
     def notes(self) -> list[str]:
         """What the output states next to the figures (assumptions and settings)."""
         req = self.requirement
