@@ -77,7 +77,13 @@ def add_parser(sub, scenario_help: str) -> None:
     common(q)
     q.add_argument("--method", required=True, help="subset, is or mc")
     q.add_argument("--budget", type=int, required=True, help="closed-loop runs at most")
-    q.add_argument("--level-size", type=int, help="subset simulation: runs per level")
+    q.add_argument("--level-size", type=int, help="subset simulation: runs per level and replicate")
+    q.add_argument(
+        "--replicates",
+        type=int,
+        default=4,
+        help="subset simulation: independent replicates; their spread gives the CoV",
+    )
 
 
 def _problem_spec(args):
@@ -150,7 +156,11 @@ def cmd_verify(args) -> int:
         from rvdjax.verify.probability import ProbabilitySpec
 
         kspec = ProbabilitySpec(
-            method=args.method, budget=args.budget, level_size=args.level_size, seed=args.seed
+            method=args.method,
+            budget=args.budget,
+            level_size=args.level_size,
+            replicates=args.replicates,
+            seed=args.seed,
         )
     # everything above and the problem's set-up are host-side checks: nothing compiled yet
     pb = problem_for(pspec)
