@@ -50,6 +50,8 @@ __all__ = [
     "stamp",
     "row_marks",
     "format_provenance",
+    "summary",
+    "summary_lines",
     "SMALL_ARRAY",
 ]
 
@@ -122,19 +124,21 @@ def _static_environment() -> dict:
     }
 
 
-def _device() -> str:
+def _devices() -> tuple[str, int]:
     import jax
 
     devs = jax.devices()
-    kinds = sorted({f"{d.platform}:{d.device_kind}" for d in devs})
-    return f"{len(devs)} x {', '.join(kinds)}"
+    return ", ".join(sorted({f"{d.platform}:{d.device_kind}" for d in devs})), len(devs)
 
 
 def environment(device: str | None = None) -> dict:
     """The running code and machine (module docstring). ``device``: what the results were
     computed on, when not JAX's default devices (e.g. ``--device cpu`` on a GPU machine).
-    The git fields are None outside a git checkout."""
-    return {**_static_environment(), "device": device or _device()}
+    ``device`` names the kind (platform:kind), ``device_count`` how many JAX sees (not part
+    of an environment's identity: a study sharded over devices flies the same bits). The git
+    fields are None outside a git checkout."""
+    kind, count = _devices()
+    return {**_static_environment(), "device": device or kind, "device_count": count}
 
 
 def code_identity(env: dict) -> dict:
@@ -153,7 +157,8 @@ def _env_id(env: dict) -> str:
 def canonical(obj, small: int = SMALL_ARRAY):
     """``obj`` as plain JSON data, the same for equal values: dataclasses, NamedTuples and
     dicts become dicts (sorted keys), sequences lists, arrays their values (at most ``small``
-    entries) or ``{"shape", "dtype", "sha256"}`` (the hash of their values' text), floats
+    entries) or ``{"shape", "dtype", "sha256"}`` (the hash of their values to :data:`DIGITS`
+    digits relative to the largest), floats
     to :data:`DIGITS` significant digits (non-finite ones as strings), enums by name,
     functions by qualified name; anything else by its ``repr``."""
     if obj is None or isinstance(obj, (bool, str)):
@@ -192,7 +197,12 @@ def canonical(obj, small: int = SMALL_ARRAY):
         if a.size <= small:
             return canonical(a.tolist(), small)
         if a.dtype.kind in "fc":
-            text = ",".join(f"{v:.{DIGITS}g}" for v in a.astype(np.float64).ravel())
+            # DIGITS digits relative to the largest entry (an entry that is 0 on one machine
+            # and 1e-17 on another is the same value)
+            w = a.astype(np.float64).ravel()
+            scale = float(np.max(np.abs(w[np.isfinite(w)]), initial=0.0)) or 1.0
+            q = np.where(np.isfinite(w), np.round(w / scale, DIGITS) + 0.0, w)
+            text = f"{scale:.{DIGITS}g}:" + ",".join(repr(float(v)) for v in q)
         else:
             text = ",".join(str(int(v)) for v in a.ravel())
         return {
@@ -205,8 +215,9 @@ def canonical(obj, small: int = SMALL_ARRAY):
     return repr(obj)
 
 
-# a scenario's fields that do not change a run (words for the reader)
-SCENARIO_WORDS = ("description", "published", "assumptions", "source")
+# a scenario's fields that do not change a run (words for the reader; the name is the
+# caller's, e.g. a study's spec, and a scenario file's copy has its own path)
+SCENARIO_WORDS = ("name", "description", "published", "assumptions", "source")
 
 
 def scenario_values(scenario) -> dict:
@@ -353,6 +364,7 @@ def format_provenance(block: dict, rows: dict | None = None) -> list[str]:
             line = (
                 f"rvdjax {env['rvdjax']} (source {env['source_sha256'][:10]}, {git}), "
                 f"jax {env['jax']} / jaxlib {env['jaxlib']}, {env['device']}"
+                f" ({env.get('device_count', '?')} devices)"
             )
         tag = " [first]" if eid == block["first"] else " [code changed]"
         if eid != block["first"] and code_identity(env) == code_identity(
@@ -361,4 +373,38 @@ def format_provenance(block: dict, rows: dict | None = None) -> list[str]:
             tag = ""
         n = "" if rows is None else f": {rows.get(eid, 0)} rows"
         out.append(f"{eid}{tag} {line}{n}")
+    return out
+
+
+def summary(block: dict | None, table=None) -> dict | None:
+    """A stored block with the rows of ``table`` (a DataFrame with the ``provenance`` and
+    ``code_changed`` columns) counted by environment; rows written before provenance was
+    recorded count as ``unrecorded``. None when nothing was recorded."""
+    if block is None:
+        block = {}
+    out = dict(block)
+    if table is not None:
+        if "provenance" in table:
+            ids = table["provenance"].fillna("unrecorded").astype(str)
+        else:
+            ids = np.full(len(table), "unrecorded")
+        out["rows_used"] = {
+            str(k): int(v) for k, v in zip(*np.unique(ids, return_counts=True), strict=True)
+        }
+        changed = table["code_changed"].fillna(True) if "code_changed" in table else ids != ""
+        out["rows_code_changed"] = int(np.sum(np.asarray(changed, bool)))
+    return out or None
+
+
+def summary_lines(block: dict | None) -> list[str]:
+    """Printable lines of :func:`summary`'s result (or of a stored block)."""
+    if not block or "definition_sha256" not in block:
+        n = (block or {}).get("rows_used", {}).get("unrecorded")
+        return [f"none recorded{'' if n is None else f' ({n} rows)'}: written by an older rvdjax"]
+    out = format_provenance(block, block.get("rows_used"))
+    if block.get("rows_code_changed"):
+        out.append(
+            f"{block['rows_code_changed']} rows were flown by another code version than the "
+            "first (--allow-code-change; column code_changed)"
+        )
     return out

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvdjax import provenance
 from rvdjax.loop import RunStatus
 from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
 from rvdjax.solver import Status
@@ -335,8 +336,12 @@ def _stack(trees):
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *trees)
 
 
-def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
-    """Check ``out`` against the study and write its configuration."""
+def prepare_out(
+    spec: StudySpec, out: Path, resume: bool, allow_code_change: bool = False, scenario=None
+) -> None:
+    """Check ``out`` against the study (its spec, then its provenance: the same run
+    definition and code version, :mod:`rvdjax.provenance`) and write its configuration.
+    ``scenario``: the study's scenario record (None: read from the spec)."""
     out = Path(out)
     existing = read_config(out)
     config = {"spec": json.loads(spec.to_json()), "version": 1}
@@ -347,12 +352,25 @@ def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
                 "another directory"
             )
         if existing.get("spec") != config["spec"]:
+            diff = "; ".join(provenance.differences(existing.get("spec"), config["spec"]))
             raise ValueError(
-                f"--out {out} holds a different study (its config.json differs); --resume "
-                "continues only the same study"
+                f"--out {out} holds a different study ({diff}); --resume continues only the "
+                "same study"
             )
     elif out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} exists and is not a study directory; choose another")
+    sc = study_scenario(spec, out) if scenario is None else scenario
+    config["provenance"] = provenance.stamp(  # provenance hook (rvdjax.provenance)
+        None if existing is None else existing.get("provenance", {}),
+        provenance.describe(
+            spec=config["spec"],
+            scenario=provenance.scenario_values(sc),
+            params=_build(spec, sc)[0],
+            solver=sc.solver_params(spec.mode),
+        ),
+        allow_code_change=allow_code_change,
+        where=f"--out {out}",
+    )
     write_config(out, config)
 
 
@@ -366,6 +384,7 @@ def run_study(
     devices: int = 1,
     flush_rows: int = 256,
     prepare: bool = True,
+    allow_code_change: bool = False,
 ) -> dict:
     """Fly ``spec`` and write its table to ``out``; returns timing figures.
 
@@ -374,13 +393,15 @@ def run_study(
     ``devices`` shards the engine's slots over that many local devices; a part file is
     written every ``flush_rows`` finished runs (or 20 s). ``prepare``: process 0 checks
     ``out`` and writes the configuration first (False: the caller did, e.g. before a barrier
-    of several processes).
+    of several processes). ``allow_code_change``: resume a study flown by another code
+    version (its new rows are marked, :mod:`rvdjax.provenance`).
     """
     scenario = study_scenario(spec, out)
     spec.validate(dataclasses.replace(scenario, name=spec.scenario))
     out = Path(out)
     if prepare and process_index == 0:
-        prepare_out(spec, out, resume)
+        prepare_out(spec, out, resume, allow_code_change, scenario)
+    marks = provenance.row_marks(read_config(out)["provenance"])  # provenance hook
     effort = effort_metric(scenario)
     all_runs = np.arange(spec.n_runs, dtype=np.int64)
     done = done_runs(out) if resume else np.zeros(0, np.int64)
@@ -451,7 +472,8 @@ def run_study(
             base = flown
 
             def on_results(idx, metrics, rs=rs):
-                writer.add(_rows(spec, scenario, params_of_point, rs, idx, metrics, effort))
+                rows = _rows(spec, scenario, params_of_point, rs, idx, metrics, effort)
+                writer.add([{**r, **marks} for r in rows])
 
             def on_progress(done_block, n, base=base):
                 if bar is not None:

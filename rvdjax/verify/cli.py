@@ -265,18 +265,11 @@ def _print_worst(s: dict) -> None:
 
 
 def _print_provenance(block) -> None:
-    from rvdjax.provenance import format_provenance
+    from rvdjax.provenance import summary_lines
 
-    if not block:
-        return
     print("  provenance:")
-    for line in format_provenance(block, block.get("rows_used")):
+    for line in summary_lines(block):
         print(f"    - {line}")
-    if block.get("rows_code_changed"):
-        print(
-            f"    - {block['rows_code_changed']} of the evaluations used were flown by another "
-            "code version (--allow-code-change)"
-        )
 
 
 def _probability(pb, kspec, out: Path, args, store) -> dict:
