@@ -1,22 +1,27 @@
 """The verification's benchmarks on paper 003's thesis-vbar under its initial-condition
-distribution (``--dispersion paper003``): worst-case search against the baselines, the
-failure probability by subset simulation and importance sampling against a large crude Monte
-Carlo, a rarer event, and OpenTURNS on the same limit-state function.
+distribution (``--dispersion paper003``): a 1e5-run crude Monte Carlo reference, the coverage
+of subset simulation's and importance sampling's intervals over independent seeds, the
+worst-case search against the baselines, the gradient check at the worst case, and
+OpenTURNS on the same limit-state function.
 
+    python sweeps/verification_benchmark.py reference --out DIR [--runs 100000]
+    python sweeps/verification_benchmark.py coverage --out DIR --method subset --depth 10 \
+        [--seeds 20] [--budget 1280] [--level-size 100]
+    python sweeps/verification_benchmark.py table --out DIR
     python sweeps/verification_benchmark.py worst --out DIR [--requirement keep-out]
-    python sweeps/verification_benchmark.py probability --out DIR [--mc 20000]
-    python sweeps/verification_benchmark.py rare --out DIR --depth 20 --loose 2
     python sweeps/verification_benchmark.py openturns --out DIR [--level-size 1000]
     python sweeps/verification_benchmark.py gradcheck --out DIR
 
-Every part writes its evaluations under DIR (resumable: run the same command again) and
-prints a table; ``--json`` prints the figures. The keep-out margins of the Monte Carlo are the
-clearances, so one Monte Carlo gives P(breach deeper than X) for every X.
+Every part writes its evaluations under DIR with their provenance (resumable: run the same
+command again; another code version needs ``--allow-code-change``) and prints a table;
+``--json`` prints the figures. The keep-out margins of the reference are the clearances, so
+one Monte Carlo gives P(breach deeper than X) for every X.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,7 +30,7 @@ import numpy as np
 
 from rvdjax.verify.evaluate import ProblemSpec, problem_for
 from rvdjax.verify.probability import ProbabilitySpec, clopper_pearson, estimate
-from rvdjax.verify.store import EvalStore, read_evals
+from rvdjax.verify.store import PROVENANCE, EvalStore, read_evals, write_json
 from rvdjax.verify.worst import SearchSpec, search
 
 SCENARIO, DISPERSION = "thesis-vbar", "paper003"
@@ -35,10 +40,188 @@ def _problem(requirement: str):
     return problem_for(ProblemSpec(SCENARIO, requirement, DISPERSION))
 
 
-def _store(out: Path, name: str, pb):
+ALLOW = {"code_change": False}  # --allow-code-change
+
+
+def _store(out: Path, name: str, pb, **extra):
+    """The evaluations of one part, with their provenance: the problem's definition and
+    whatever else (``extra``) the part's batches depend on."""
     d = out / name
     d.mkdir(parents=True, exist_ok=True)
-    return EvalStore(d, pb.effort_key, {"problem": pb.definition()})
+    definition = {"problem": pb.definition(), **extra}
+    return EvalStore(d, pb.effort_key, definition, allow_code_change=ALLOW["code_change"])
+
+
+def _tag(depth: float) -> str:
+    return f"{depth:g}m"
+
+
+# ----------------------------------------------------------------------------- reference
+
+
+def _reference(out: Path, depth: float) -> dict:
+    """P(breach deeper than ``depth``) from the reference's clearances (the verification
+    directory ``out/reference``: ``rvdjax verify probability ... --method mc``)."""
+    ref = out / "reference"
+    g = read_evals(ref)["margin"].to_numpy(float)
+    k, n = int(np.sum(g < -depth)), len(g)
+    prov = json.loads((ref / PROVENANCE).read_text())
+    return {
+        "p": k / n,
+        "failures": k,
+        "runs": n,
+        "ci95": list(clopper_pearson(k, n)),
+        "cov": float(np.sqrt((1 - k / n) / k)) if k else None,
+        "provenance": prov,
+    }
+
+
+def cmd_reference(args) -> dict:
+    """Fly (or continue) the reference: crude Monte Carlo of ``--runs`` runs, then print
+    P(breach deeper than X) for X = 0, 10, 30 m with Clopper-Pearson intervals."""
+    from rvdjax.cli import main as cli
+
+    out = Path(args.out)
+    argv = [
+        "verify", "probability", SCENARIO, "--requirement", "keep-out", "--dispersion",
+        DISPERSION, "--method", "mc", "--budget", str(args.runs), "--seed", str(args.seed),
+        "--out", str(out / "reference"), "--quiet",
+    ]  # fmt: skip
+    if (out / "reference" / "config.json").exists():
+        argv.append("--resume")
+    if ALLOW["code_change"]:
+        argv.append("--allow-code-change")
+    if cli(argv) != 0:
+        raise SystemExit(2)
+    res = {}
+    for depth in (0.0, 10.0, 30.0):
+        r = _reference(out, depth)
+        res[_tag(depth)] = {k: v for k, v in r.items() if k != "provenance"}
+        lo, hi = r["ci95"]
+        print(f"  breach > {depth:g} m: {r['failures']} of {r['runs']}, p = {r['p']:.4g} "
+              f"[{lo:.3g}, {hi:.3g}]")  # fmt: skip
+    return {"reference": res}
+
+
+# ----------------------------------------------------------------------------- coverage
+
+
+def cmd_coverage(args) -> dict:
+    """``--seeds`` independent estimates of P(breach deeper than ``--depth``) by one method,
+    each with ``--budget`` runs. Subset simulation flies the seeds side by side: one estimate
+    of seeds x replicates independent replicates (each with its own level 0 and stream),
+    grouped into the seeds' estimates afterwards. Importance sampling flies seed after seed.
+    Writes ``coverage-METHOD-DEPTH.json``."""
+    from rvdjax.verify.subset import combine
+
+    out = Path(args.out)
+    req = "keep-out" if args.depth == 0 else f"keep-out>={-args.depth:g}"
+    pb = _problem(req)
+    name = f"coverage-{args.method}-{_tag(args.depth)}"
+    t0 = time.perf_counter()
+    estimates = []
+    if args.method == "subset":
+        R = args.replicates
+        spec = ProbabilitySpec(
+            "subset",
+            args.budget * args.seeds,
+            level_size=args.level_size,
+            replicates=R * args.seeds,
+            seed=args.seed,
+        )
+        store = _store(out, name, pb, method=dataclasses.asdict(spec))
+        res = estimate(pb, spec, store)
+        wall = time.perf_counter() - t0
+        reps = res["replicates"]
+        for s in range(args.seeds):
+            e = combine(reps[s * R : (s + 1) * R])
+            e["wall_s"] = wall / args.seeds  # side by side: the wall time shared out
+            estimates.append(e)
+    else:
+        for s in range(args.seeds):
+            spec = ProbabilitySpec(args.method, args.budget, seed=args.seed + s)
+            store = _store(out, f"{name}/seed-{s}", pb, method=dataclasses.asdict(spec))
+            r = estimate(pb, spec, store, progress=False)
+            r.pop("history", None)
+            estimates.append(r)
+            print(f"  seed {s}: p = {r['p']:.4g} [{r['ci95'][0]:.3g}, {r['ci95'][1]:.3g}], "
+                  f"{r['runs']} runs, {r['wall_s']:.0f} s")  # fmt: skip
+        wall = time.perf_counter() - t0
+    doc = {
+        "method": args.method,
+        "depth_m": args.depth,
+        "requirement": req,
+        "seeds": args.seeds,
+        "budget": args.budget,
+        "level_size": args.level_size,
+        "replicates": args.replicates if args.method == "subset" else None,
+        "wall_s": wall,
+        "estimates": [
+            {
+                k: v
+                for k, v in e.items()
+                if k in ("p", "cov", "ci95", "runs", "wall_s", "cov_au_beck", "converged")
+            }  # fmt: skip
+            for e in estimates
+        ],
+        "provenance": store.provenance_summary(),
+    }
+    write_json(out / f"{name}.json", doc)
+    return {"coverage": _coverage_row(out, doc)}
+
+
+def _coverage_row(out: Path, doc: dict) -> dict:
+    p = np.array([e["p"] for e in doc["estimates"]])
+    row = {
+        "method": doc["method"],
+        "threshold": f">= {-doc['depth_m'] + 0.0:g} m",
+        "seeds": doc["seeds"],
+        "runs": float(np.mean([e["runs"] for e in doc["estimates"]])),
+        "wall_s": float(np.mean([e["wall_s"] for e in doc["estimates"]])),
+        "mean_p": float(p.mean()),
+        "sd_p": float(p.std(ddof=1)),
+        "mean_cov": float(np.mean([e["cov"] or np.nan for e in doc["estimates"]])),
+    }
+    row["empirical_cov"] = row["sd_p"] / row["mean_p"] if row["mean_p"] > 0 else None
+    if row["empirical_cov"]:  # CoV^2 ~ 1 / n
+        row["runs_for_cov_0.3"] = row["runs"] * (row["empirical_cov"] / 0.3) ** 2
+    if (out / "reference" / PROVENANCE).exists():
+        ref = _reference(out, doc["depth_m"])
+        cover = [e["ci95"][0] <= ref["p"] <= e["ci95"][1] for e in doc["estimates"]]
+        row.update(
+            reference_p=ref["p"],
+            coverage=float(np.mean(cover)),
+            mean_over_reference=row["mean_p"] / ref["p"],
+            mc_runs_for_cov_0_3=(1 - ref["p"]) / (ref["p"] * 0.09),
+        )
+    return row
+
+
+def cmd_table(args) -> dict:
+    """The coverage table of every ``coverage-*.json`` in DIR, against the reference."""
+    out = Path(args.out)
+    docs = [json.loads(p.read_text()) for p in sorted(out.glob("coverage-*-*m.json"))]
+    rows = [_coverage_row(out, d) for d in docs]
+    cols = [
+        ("method", "method", "{:<8}"),
+        ("threshold", "threshold", "{:>12}"),
+        ("seeds", "seeds", "{:>6}"),
+        ("coverage", "coverage", "{:>9.2f}"),
+        ("mean_over_reference", "mean/ref", "{:>9.2f}"),
+        ("runs", "runs", "{:>7.0f}"),
+        ("wall_s", "wall s", "{:>8.0f}"),
+        ("empirical_cov", "CoV", "{:>6.2f}"),
+        ("runs_for_cov_0.3", "CoV 0.3 needs", "{:>14.0f}"),
+        ("mc_runs_for_cov_0_3", "MC needs", "{:>9.0f}"),
+    ]
+    print("  " + "".join(f"{h:>{len(f.format(0)) if 'f' in f else 8}}" for _, h, f in cols))
+    for r in rows:
+        cells = []
+        for key, _, f in cols:
+            v = r.get(key)
+            cells.append(f.format(float("nan") if v is None and "f" in f else v))
+        print("  " + "".join(cells))
+    return {"table": rows}
 
 
 def cmd_worst(args) -> dict:
@@ -73,71 +256,6 @@ def cmd_worst(args) -> dict:
             f"(a gradient costs {g['gradient_cost']:.2f} forward evaluations)"
         )
     return {"worst": rows}
-
-
-def _mc_margins(out: Path) -> np.ndarray:
-    df = read_evals(out / "mc")
-    return df["margin"].to_numpy(float)
-
-
-def cmd_probability(args) -> dict:
-    out = Path(args.out)
-    pb = _problem("keep-out")
-    res = {}
-    budgets = {"mc": args.mc, "subset": args.subset, "is": args.is_budget}
-    for method in args.methods.split(","):
-        budget, name = budgets[method], method
-        t0 = time.perf_counter()
-        r = estimate(pb, ProbabilitySpec(method, budget, seed=args.seed), _store(out, name, pb))
-        r["wall_s"] = time.perf_counter() - t0
-        r.pop("history", None)
-        res[method] = r
-    if "mc" not in res:  # read the Monte Carlo already flown
-        g = _mc_margins(out)
-        k = int(np.sum(g < 0))
-        res = {"mc": {"p": k / len(g), "ci95": clopper_pearson(k, len(g)), "runs": len(g),
-                      "cov": float(np.sqrt((1 - k / len(g)) / k))}, **res}  # fmt: skip
-    lo, hi = res["mc"]["ci95"]
-    print(f"P(keep-out breach) on {SCENARIO} under {DISPERSION}:")
-    print(
-        f"  {'method':<8}{'p':>10}{'CoV':>7}{'95 % interval':>24}{'runs':>7}{'CoV 0.3 needs':>14}"
-    )
-    for m, r in res.items():
-        cov = "-" if r["cov"] is None else f"{r['cov']:.3f}"
-        inside = "" if m == "mc" else ("  in MC's interval" if lo <= r["p"] <= hi else "  OUTSIDE")
-        print(
-            f"  {m:<8}{r['p']:>10.3e}{cov:>7}  [{r['ci95'][0]:.2e}, {r['ci95'][1]:.2e}]"
-            f"{r['runs']:>7}{r.get('runs_for_cov_0.3', '-'):>14}{inside}"
-        )
-    return {"probability": res}
-
-
-def cmd_rare(args) -> dict:
-    out = Path(args.out)
-    g = _mc_margins(out)
-    res = {}
-    for depth, budget in ((args.loose, args.budget), (args.depth, args.budget)):
-        req = f"keep-out>={-depth:g}"
-        pb = _problem(req)
-        t0 = time.perf_counter()
-        r = estimate(
-            pb,
-            ProbabilitySpec("subset", budget, level_size=args.level_size, seed=args.seed),
-            _store(out, f"rare-{depth:g}", pb),
-        )
-        r["wall_s"] = time.perf_counter() - t0
-        k = int(np.sum(g < -depth))
-        r["mc"] = {"p": k / len(g), "ci95": clopper_pearson(k, len(g)), "runs": len(g)}
-        if r["cov"]:
-            r["mc_runs_for_cov"] = float((1 - r["p"]) / (r["p"] * r["cov"] ** 2))
-        res[req] = r
-        print(
-            f"  {req}: subset p = {r['p']:.3e} (CoV {r['cov']}, [{r['ci95'][0]:.2e}, "
-            f"{r['ci95'][1]:.2e}]) in {r['runs']} runs, {r['wall_s']:.0f} s; crude MC of "
-            f"{len(g)}: {k} failures, p = {k / len(g):.2e} [{r['mc']['ci95'][0]:.1e}, "
-            f"{r['mc']['ci95'][1]:.1e}]; MC for this CoV: {r.get('mc_runs_for_cov', 0):.3g} runs"
-        )
-    return {"rare": res}
 
 
 def cmd_openturns(args) -> dict:
@@ -221,39 +339,45 @@ def cmd_gradcheck(args) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
+    ref = sub.add_parser("reference")
+    ref.add_argument("--runs", type=int, default=100_000)
+    cov = sub.add_parser("coverage")
+    cov.add_argument("--method", choices=("subset", "is"), required=True)
+    cov.add_argument("--depth", type=float, default=0.0, help="breach depth [m] (0: any)")
+    cov.add_argument("--seeds", type=int, default=20)
+    cov.add_argument("--budget", type=int, required=True, help="runs per estimate")
+    cov.add_argument("--level-size", type=int, help="subset: runs per level and replicate")
+    cov.add_argument("--replicates", type=int, default=4, help="subset: replicates per estimate")
+    tab = sub.add_parser("table")
     w = sub.add_parser("worst")
     w.add_argument("--requirement", default="keep-out")
     w.add_argument("--methods", default="gradient,random,lhs,cma-es")
     w.add_argument("--budget", type=int, default=200)
     w.add_argument("--repeats", type=int, default=20)
     w.add_argument("--lr", type=float, default=2.0)
-    p = sub.add_parser("probability")
-    p.add_argument("--mc", type=int, default=20000)
-    p.add_argument("--subset", type=int, default=3000)
-    p.add_argument("--is-budget", type=int, default=3000)
-    p.add_argument("--methods", default="mc,subset,is")
-    r = sub.add_parser("rare")
-    r.add_argument("--depth", type=float, required=True, help="breach depth of the rare event [m]")
-    r.add_argument("--loose", type=float, required=True, help="a depth MC resolves [m]")
-    r.add_argument("--budget", type=int, default=8000)
-    r.add_argument("--level-size", type=int, default=1000)
     gc = sub.add_parser("gradcheck")
     o = sub.add_parser("openturns")
     o.add_argument("--level-size", type=int, default=1000)
     o.add_argument("--form-calls", type=int, default=200)
-    for q in (w, p, r, o, gc):
+    for q in (ref, cov, tab, w, o, gc):
         q.add_argument("--out", required=True)
         q.add_argument("--seed", type=int, default=0)
         q.add_argument("--json", action="store_true")
+        q.add_argument("--allow-code-change", action="store_true")
     args = ap.parse_args(argv)
+    ALLOW["code_change"] = args.allow_code_change
     res = {
+        "reference": cmd_reference,
+        "coverage": cmd_coverage,
+        "table": cmd_table,
         "worst": cmd_worst,
-        "probability": cmd_probability,
-        "rare": cmd_rare,
         "gradcheck": cmd_gradcheck,
-    }.get(args.cmd, cmd_openturns)(args)
-    path = Path(args.out) / f"{args.cmd}.json"
-    path.write_text(json.dumps(res, indent=2, default=float))
+        "openturns": cmd_openturns,
+    }[args.cmd](args)
+    name = args.cmd
+    if args.cmd == "coverage":
+        name = f"coverage-{args.method}-{_tag(args.depth)}-row"
+    write_json(Path(args.out) / f"{name}.json", json.loads(json.dumps(res, default=float)))
     if args.json:
         print(json.dumps(res, indent=2, default=float))
 
