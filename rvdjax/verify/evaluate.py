@@ -48,6 +48,9 @@ class ProblemSpec:
         slots, chunk: the batch engine.
         remat: ``jax.checkpoint`` the step in the gradient's forward pass (memory bounded by
             the loop state, about one more forward pass of compute).
+        solver_tol, max_iter: the solver's tolerance and iteration cap (None: the
+            scenario's), e.g. 1e-12 and 300 to check gradients against central differences
+            of a converged solver.
     """
 
     scenario: str
@@ -64,6 +67,8 @@ class ProblemSpec:
     slots: int = 64
     chunk: int = 32
     remat: bool = False
+    solver_tol: float | None = None
+    max_iter: int | None = None
 
     def __post_init__(self):
         if self.mode not in ("accurate", "paper", "barrier"):
@@ -76,6 +81,10 @@ class ProblemSpec:
             raise ValueError(f"--time-limit-s must be > 0 s, got {self.time_limit_s}")
         if self.temperature is not None and not (0 < self.temperature < float("inf")):
             raise ValueError(f"--temperature must be > 0, got {self.temperature}")
+        if self.solver_tol is not None and not (0 < self.solver_tol < 1):
+            raise ValueError(f"solver_tol must be in (0, 1), got {self.solver_tol}")
+        if self.max_iter is not None and not self.max_iter >= 1:
+            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
 
 
 class Problem:
@@ -101,6 +110,11 @@ class Problem:
             time_limit_s=spec.time_limit_s,
             thrusters=spec.thrusters,
         )
+        if spec.max_iter is not None:
+            settings = dataclasses.replace(loop.config.settings, max_iter=int(spec.max_iter))
+            loop = dataclasses.replace(
+                loop, config=dataclasses.replace(loop.config, settings=settings)
+            )
         sc.check(params, x0, loop)
         self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
         fam = sc.family_
@@ -119,6 +133,8 @@ class Problem:
             else float(TEMPERATURE_FRACTION * max(np.linalg.norm(pos), 1e-3))
         )
         self.sp = sc.solver_params(spec.mode)
+        if spec.solver_tol is not None:
+            self.sp = self.sp._replace(tol=float(spec.solver_tol))
         self.key = jax.random.key(spec.seed)
         self._costs: dict = {}
 
@@ -232,39 +248,46 @@ class Problem:
         disp, lay = self.dispersion, self.scenario.family_.layout
         x0n, params = jnp.asarray(self.x0), self.params
 
-        def one(xi, key):
+        def one(xi, probe, key):
             x0, p = disp.apply(xi, x0n, params, lay)
-            infos, m = fly(loop, p, x0, key, sp, remat=remat)
+            infos, m = fly(loop, p, x0, key, sp._replace(derivative_probe=probe), remat=remat)
             smooth = req.smooth(loop, p, infos, m, ek, tau)
             return smooth, (req.exact(m, ek), m)
 
-        vg = jax.value_and_grad(one, has_aux=True)
+        vg = jax.value_and_grad(one, argnums=(0, 1), has_aux=True)
 
         def batch(xis, keys):
-            (s, (e, m)), g = jax.vmap(vg)(xis, keys)
+            probes = jnp.zeros(xis.shape[0], xis.dtype)
+            (s, (e, m)), (g, zeroed) = jax.vmap(vg)(xis, probes, keys)
             ok = jnp.isfinite(s) & jnp.all(jnp.isfinite(g), axis=-1)
             # no NaN leaves a batch: a non-finite run keeps its exact margin, zero gradient
-            return jnp.where(ok, s, e), jnp.where(ok[:, None], g, 0.0), e, m
+            # (counted: "nonfinite"); "zeroed": the back-solves the solver zeroed in the run
+            return jnp.where(ok, s, e), jnp.where(ok[:, None], g, 0.0), e, m, ~ok, zeroed
 
         return jax.jit(batch)
 
     def gradient(self, xis) -> dict:
         """Smooth margins, their gradients and the exact margins of a batch of xi.
 
-        Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics}."""
+        Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics,
+        "nonfinite": (B,) runs whose smooth margin or gradient was not finite (their
+        gradient is zero, their smooth margin the exact one), "zeroed": (B,) back-solves the
+        solver zeroed inside each run (``SolverParams.derivative_probe``)}."""
         xis = np.asarray(xis, float).reshape(-1, self.dim)
         n = xis.shape[0]
         # batch shapes in multiples of 8 (each compiles once; padding is computed, so keep it
         # small: the gradient's measured cost includes it)
         bucket = 8 * int(np.ceil(n / 8))
         pad = np.concatenate([xis, np.repeat(xis[:1], bucket - n, axis=0)])
-        s, g, e, m = self._vg(jnp.asarray(pad), self.keys(bucket))
+        s, g, e, m, bad, zeroed = self._vg(jnp.asarray(pad), self.keys(bucket))
         m = jax.tree.map(lambda a: np.asarray(a)[:n], m)
         return {
             "smooth": np.asarray(s)[:n],
             "grad": np.asarray(g)[:n],
             "margin": np.asarray(e)[:n],
             "metrics": m,
+            "nonfinite": np.asarray(bad)[:n],
+            "zeroed": np.rint(np.asarray(zeroed)[:n]).astype(int),
         }
 
     def gradient_cost(self, n_grad: int = 8, n_fwd: int = 64, seed: int = 12345) -> float:

@@ -54,6 +54,9 @@ def _rows(
             "smooth": float(res["smooth"][i]) if "smooth" in res else None,
             "grad": [float(v) for v in res["grad"][i]] if "grad" in res else None,
         }
+        if "zeroed" in res:  # gradient evaluations: what was zeroed, counted
+            row["zeroed_backsolves"] = int(res["zeroed"][i])
+            row["nonfinite_gradient"] = bool(res["nonfinite"][i])
         if m is not None:
             row.update(
                 docked=bool(m.docked[i]),
@@ -118,6 +121,14 @@ class EvalStore:
                         "grad": (
                             np.stack(g["grad"].to_numpy()) if g["grad"].notna().all() else None
                         ),
+                        **(
+                            {
+                                "zeroed": g["zeroed_backsolves"].to_numpy(int),
+                                "nonfinite": g["nonfinite_gradient"].to_numpy(bool),
+                            }
+                            if "zeroed_backsolves" in g and g["zeroed_backsolves"].notna().all()
+                            else {}
+                        ),
                     }
                     self.next_run = max(self.next_run, int(g["run"].max()) + 1)
 
@@ -141,6 +152,9 @@ class EvalStore:
                 out["smooth"] = b["smooth"]
             if b["grad"] is not None:
                 out["grad"] = b["grad"]
+            for k in ("zeroed", "nonfinite"):
+                if k in b:
+                    out[k] = b[k]
             return out
         res = fn(xis)
         first = self.next_run
@@ -165,6 +179,7 @@ class EvalStore:
             "margin": np.asarray(res["margin"], float),
             "smooth": np.asarray(res.get("smooth", np.full(len(xis), np.nan)), float),
             "grad": res.get("grad"),
+            **{k: np.asarray(res[k]) for k in ("zeroed", "nonfinite") if k in res},
         }
         return out
 
