@@ -8,7 +8,9 @@ OpenTURNS on the same limit-state function.
     python sweeps/verification_benchmark.py coverage --out DIR --method subset --depth 10 \
         [--seeds 20] [--budget 1280] [--level-size 100]
     python sweeps/verification_benchmark.py table --out DIR
-    python sweeps/verification_benchmark.py worst --out DIR [--requirement keep-out]
+    python sweeps/verification_benchmark.py worst --out DIR --requirement keep-out>=-10
+    python sweeps/verification_benchmark.py worst --out DIR --scenario poseidyn-lqmpc \
+        --dispersion nav --disturbed --n-steps 60 --requirement keep-out>=0.09 --random-p P
     python sweeps/verification_benchmark.py openturns --out DIR [--level-size 1000]
     python sweeps/verification_benchmark.py gradcheck --out DIR
 
@@ -226,38 +228,91 @@ def cmd_table(args) -> dict:
     return {"table": rows}
 
 
+def _random_median(p: float) -> float:
+    """Random sampling's median draws to the first failure (geometric distribution)."""
+    return float(np.ceil(np.log(0.5) / np.log1p(-p)))
+
+
 def cmd_worst(args) -> dict:
-    pb = _problem(args.requirement)
+    """Worst-case search: every method, ``--repeats`` seeded repeats of ``--budget`` forward
+    evaluations. Random sampling's median evaluations to the first failure come from
+    ``--random-p`` (a probability measured elsewhere) or, for thesis-vbar's keep-out under
+    paper003, from the reference; the budget is then set to a tenth of it unless given."""
+    spec_p = ProblemSpec(
+        args.scenario,
+        args.requirement,
+        args.dispersion,
+        disturbed=args.disturbed,
+        n_steps=args.n_steps,
+        temperature=args.temperature,
+    )
+    pb = problem_for(spec_p)
+    p_random, source = args.random_p, "--random-p"
+    req = pb.requirement
+    if p_random is None and (args.scenario, args.dispersion) == (SCENARIO, DISPERSION):
+        if len(req.parts) == 1 and req.parts[0].name == "keep-out":
+            if (Path(args.out) / "reference" / PROVENANCE).exists():
+                p_random = _reference(Path(args.out), -req.parts[0].threshold)["p"]
+                source = "the reference"
+    median = _random_median(p_random) if p_random else None
+    budget = args.budget or (int(median // 10) if median else None)
+    if budget is None:
+        raise SystemExit("--budget is needed (no failure probability to derive it from)")
     spec = SearchSpec(
         methods=tuple(args.methods.split(",")),
-        budget=args.budget,
+        budget=budget,
         repeats=args.repeats,
-        lr=args.lr,
+        starts=args.starts,
+        step=args.step,
+        ladder=args.ladder,
+        popsize=args.popsize,
         seed=args.seed,
     )
-    tag = args.requirement.replace(">=", "_ge_").replace("<=", "_le_")
-    traces = search(pb, spec, _store(Path(args.out), f"worst-{tag}", pb))
+    tag = args.name or f"worst-{args.requirement.replace('>=', '_ge_').replace('<=', '_le_')}"
+    store = _store(Path(args.out), tag, pb, search=dataclasses.asdict(spec))
+    traces = search(pb, spec, store)
     rows = {m: t.summary() for m, t in traces.items()}
+    for r in rows.values():
+        r.pop("failure_points", None)
     print(
-        f"worst case: {SCENARIO} {args.requirement} under {DISPERSION}, {spec.repeats} repeats, "
-        f"budget {spec.budget} forward evaluations each"
+        f"worst case: {args.scenario} {pb.requirement.label()} under {pb.dispersion.label()} "
+        f"({pb.dim} coordinates), {spec.repeats} repeats, budget {spec.budget} forward "
+        f"evaluations each; smooth margin tau = {pb.tau:.4g}"
     )
-    print(f"  {'method':<10}{'falsified':>10}{'median':>9}{'mean':>9}{'worst':>10}{'wall s':>8}")
-    for m, r in rows.items():
+    if median:
+        print(
+            f"  random sampling's median to the first failure: {median:.0f} evaluations "
+            f"(p = {p_random:.4g} from {source}); a tenth: {median / 10:.1f}"
+        )
+    print(f"  {'method':<14}{'falsified':>10}{'median':>9}{'mean':>9}{'max':>8}{'worst':>10}"
+          f"{'wall s':>8}")  # fmt: skip
+    for m, t in traces.items():
+        r = rows[m]
+        found = [f for f in t.first if f is not None]
+        r["max_evaluations"] = float(max(found)) if found else None
         med = "-" if r["median_evaluations"] is None else f"{r['median_evaluations']:.1f}"
         mean = "-" if r["mean_evaluations"] is None else f"{r['mean_evaluations']:.1f}"
-        print(
-            f"  {m:<10}{r['falsification_rate']:>10.0%}{med:>9}{mean:>9}"
-            f"{r['worst_margin']:>10.3g}{r['wall_s']:>8.0f}"
-        )
-    g, rnd = rows.get("gradient"), rows.get("random")
-    if g and rnd and g["median_evaluations"] and rnd["median_evaluations"]:
-        print(
-            f"  gradient / random median evaluations: "
-            f"{g['median_evaluations'] / rnd['median_evaluations']:.2f} "
-            f"(a gradient costs {g['gradient_cost']:.2f} forward evaluations)"
-        )
-    return {"worst": rows}
+        mx = "-" if r["max_evaluations"] is None else f"{r['max_evaluations']:.1f}"
+        print(f"  {m:<14}{r['falsification_rate']:>10.0%}{med:>9}{mean:>9}{mx:>8}"
+              f"{r['worst_margin']:>10.4g}{r['wall_s']:>8.0f}")  # fmt: skip
+        if "gradient_cost" in r:
+            print(
+                f"  {'':<14}a gradient costs {r['gradient_cost']:.2f} forward evaluations (the "
+                f"same runs flown forward by the same vmap; "
+                f"{r.get('gradient_cost_vs_engine', float('nan')):.2f} x the engine's wall time "
+                f"per run); zeroed back-solves {r['zeroed_backsolves']}, non-finite gradients "
+                f"{r['nonfinite_gradients']}"
+            )
+    return {
+        "worst": rows,
+        "random_median": median,
+        "random_p": p_random,
+        "random_p_source": source,
+        "budget": budget,
+        "tau": pb.tau,
+        "dim": pb.dim,
+        "provenance": store.provenance_summary(),
+    }
 
 
 def cmd_openturns(args) -> dict:
@@ -414,11 +469,21 @@ def main(argv=None):
     cov.add_argument("--replicates", type=int, default=4, help="subset: replicates per estimate")
     tab = sub.add_parser("table")
     w = sub.add_parser("worst")
+    w.add_argument("--scenario", default=SCENARIO)
+    w.add_argument("--dispersion", default=DISPERSION)
+    w.add_argument("--disturbed", action="store_true")
+    w.add_argument("--n-steps", type=int)
     w.add_argument("--requirement", default="keep-out")
-    w.add_argument("--methods", default="gradient,random,lhs,cma-es")
-    w.add_argument("--budget", type=int, default=200)
+    w.add_argument("--temperature", type=float)
+    w.add_argument("--methods", default="gradient,random,cma-es")
+    w.add_argument("--budget", type=int, help="default: a tenth of random's median")
+    w.add_argument("--random-p", type=float, help="P(failure) for random's median")
     w.add_argument("--repeats", type=int, default=20)
-    w.add_argument("--lr", type=float, default=2.0)
+    w.add_argument("--starts", type=int, default=2)
+    w.add_argument("--step", type=float, default=1.0)
+    w.add_argument("--ladder", type=int, default=4)
+    w.add_argument("--popsize", type=int, default=8)
+    w.add_argument("--name", help="the part's directory under --out")
     gc = sub.add_parser("gradcheck")
     gc.add_argument("--near", type=int, default=5, help="points near the worst one")
     o = sub.add_parser("openturns")
@@ -442,6 +507,9 @@ def main(argv=None):
     name = args.cmd
     if args.cmd == "coverage":
         name = f"coverage-{args.method}-{_tag(args.depth)}-row"
+    if args.cmd == "worst":
+        name = args.name or "worst-" + args.requirement.replace(">=", "_ge_").replace("<=", "_le_")
+        name += "-summary"
     write_json(Path(args.out) / f"{name}.json", json.loads(json.dumps(res, default=float)))
     if args.json:
         print(json.dumps(res, indent=2, default=float))

@@ -69,8 +69,11 @@ def add_parser(sub, scenario_help: str) -> None:
     )
     q.add_argument("--region", choices=("ball", "box"), default="ball")
     q.add_argument("--radius", type=float, default=5.0, help="k of the region [sigma]")
-    q.add_argument("--starts", type=int, default=1, help="gradient starts per repeat")
-    q.add_argument("--lr", type=float, default=2.0, help="Adam's step on xi [sigma]")
+    q.add_argument("--starts", type=int, default=2, help="gradient starts per repeat")
+    q.add_argument(
+        "--step", type=float, default=1.0, help="line-search base step [sigma] (ladder x0.5..)"
+    )
+    q.add_argument("--ladder", type=int, default=4, help="line-search steps per iteration")
     q.add_argument("--popsize", type=int, default=8, help="CMA-ES population")
 
     q = vsub.add_parser("probability", help="estimate the failure probability")
@@ -147,7 +150,8 @@ def cmd_verify(args) -> int:
             region=args.region,
             radius=args.radius,
             starts=args.starts,
-            lr=args.lr,
+            step=args.step,
+            ladder=args.ladder,
             popsize=args.popsize,
             seed=args.seed,
         )
@@ -255,7 +259,14 @@ def _print_worst(s: dict) -> None:
             f"{v['worst_margin']:>14.4g}{v['wall_s']:>10.1f}"
         )
         if "gradient_cost" in v:
-            print(f"  {'':<14}a gradient evaluation costs {v['gradient_cost']:.2f} forward ones")
+            line = f"a gradient evaluation costs {v['gradient_cost']:.2f} forward ones"
+            if "gradient_cost_vs_engine" in v:
+                line += f" ({v['gradient_cost_vs_engine']:.2f} x the engine's wall time per run)"
+            print(f"  {'':<14}{line}")
+            print(
+                f"  {'':<14}zeroed back-solves {v['zeroed_backsolves']}, non-finite gradients "
+                f"{v['nonfinite_gradients']}"
+            )
     w = s["worst"]
     print(f"  worst: margin {w['margin']:.4g} {s['unit']} ({w['method']}) -> {w['replay']}")
     print("  assumptions:")

@@ -184,8 +184,8 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
         methods=("design-point",),
         budget=max(1, dp_budget // starts),
         repeats=starts,
+        starts=1,
         seed=spec.seed,
-        lr=1.0,
     )
     tr = search(pb, sspec, store, progress=False)["design-point"]
     dp = tr.extra.get("design_point")
