@@ -6,8 +6,10 @@
   2015) as ``replicates`` independent runs side by side; the CoV is the replicates' empirical
   standard error (:mod:`rvdjax.verify.subset`, which says why).
 * ``is``: importance sampling centred on the failure points of a design-point search
-  (:mod:`rvdjax.verify.worst`'s ``design-point``, 8 starts, its runs counted in the budget):
-  each start's smallest-norm failing point c_j is a centre, and xi is drawn from the defensive
+  (:mod:`rvdjax.verify.worst`'s ``design-point``, 8 starts from a stream of the estimate's
+  own, its runs counted in the budget): each start's smallest-norm failing point c_j is a
+  centre (a start that found none gives its lowest-margin point), and xi is drawn from the
+  defensive
   mixture q = a N(0, I) + (1 - a) / J sum_j N(c_j, I) with a = 0.2 (Hesterberg 1995; a
   failure region of several parts, e.g. one per approach side, is covered by the centres, and
   the N(0, I) share bounds the weights). Weight phi(xi) / q(xi) = 1 / (a + (1 - a) / J sum_j
@@ -180,30 +182,25 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
     t0 = time.perf_counter()
     dp_budget = max(1, int(IS_DESIGN_FRACTION * spec.budget))
     starts = 8
+    seed = int(np.random.default_rng(_stream(pb, spec, 31)).integers(2**31))
     sspec = SearchSpec(
         methods=("design-point",),
         budget=max(1, dp_budget // starts),
         repeats=starts,
         starts=1,
-        seed=spec.seed,
+        seed=seed,
     )
     tr = search(pb, sspec, store, progress=False)["design-point"]
     dp = tr.extra.get("design_point")
-    centres = np.asarray(tr.extra.get("failure_points") or [], float).reshape(-1, pb.dim)
+    # a centre per start: its smallest-norm failing point, else its lowest-margin point (the
+    # estimate is unbiased for any centres: the N(0, I) share keeps the support whole)
+    centres = np.asarray(tr.worst_xi, float).copy()
+    fails = tr.extra.get("failure_starts") or []
+    for r, x in zip(fails, tr.extra.get("failure_points") or [], strict=True):
+        centres[r] = x
     dp_runs = int(np.ceil(sum(float(e[-1]) for e in tr.evals)))
     if bar is not None:
         bar.update(dp_runs)
-    if dp is None:
-        return _result(
-            "is",
-            float("nan"),
-            float("inf"),
-            (float("nan"), float("nan")),
-            dp_runs,
-            time.perf_counter() - t0,
-            note="the design-point search found no failure: no centre for importance sampling",
-        )
-    c = np.asarray(dp, float)
     J = len(centres)
     rng = np.random.default_rng(_stream(pb, spec, 30))
     n = max(1, spec.budget - dp_runs)
@@ -235,9 +232,10 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
         (max(0.0, p - 1.96 * sd), p + 1.96 * sd),
         dp_runs + len(t),
         time.perf_counter() - t0,
-        design_point=[float(v) for v in c],
-        design_point_norm=float(np.linalg.norm(c)),
+        design_point=None if dp is None else [float(v) for v in dp],
+        design_point_norm=None if dp is None else float(np.linalg.norm(dp)),
         centres=int(J),
+        centres_failing=len(fails),
         design_point_runs=dp_runs,
         fixed_runs=dp_runs,
         history=history,
