@@ -344,5 +344,7 @@ def combine(replicates: list[dict]) -> dict:
         "cov_au_beck": (
             float(np.sqrt(np.mean(np.square(ab)) / R)) if all(c is not None for c in ab) else None
         ),
+        # every replicate ended at a population with >= p0 N failures (else its budget
+        # ended the levels: its last fraction, below p0, is still counted)
         "converged": bool(all(r["converged"] for r in replicates)),
     }
