@@ -8,6 +8,7 @@ OpenTURNS on the same limit-state function.
     python sweeps/verification_benchmark.py coverage --out DIR --method subset --depth 10 \
         [--seeds 20] [--budget 1280] [--level-size 100]
     python sweeps/verification_benchmark.py table --out DIR
+    python sweeps/verification_benchmark.py figures --out DIR
     python sweeps/verification_benchmark.py worst --out DIR --requirement keep-out>=-10
     python sweeps/verification_benchmark.py worst --out DIR --scenario poseidyn-lqmpc \
         --dispersion nav --disturbed --n-steps 60 --requirement keep-out>=0.09 --random-p P
@@ -201,6 +202,53 @@ def _coverage_row(out: Path, doc: dict) -> dict:
     return row
 
 
+def cmd_figures(args) -> dict:
+    """The reference's breaches over the initial range and bearing, and the coverage of
+    every ``coverage-*.json`` in DIR (PNG files in DIR)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.stats import norm
+
+    from rvdjax.verify import figures
+    from rvdjax.verify.dispersions import P003_R
+
+    out = Path(args.out)
+    df = read_evals(out / "reference")
+    xi = np.stack(df["xi"].to_numpy())
+    g = df["margin"].to_numpy(float)
+    r0 = P003_R[0] + (P003_R[1] - P003_R[0]) * norm.cdf(xi[:, 0])
+    bearing = np.degrees(2 * np.pi * norm.cdf(xi[:, 1]))
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for lo, hi, color, label in ((-10, 0, "0.6", "0 to 10 m"), (-20, -10, "C1", "10 to 20 m"),
+                                 (-np.inf, -20, "C3", "deeper than 20 m")):  # fmt: skip
+        sel = (g < hi) & (g >= lo)
+        ax.scatter(bearing[sel], r0[sel], s=6, color=color, label=f"breach {label} ({sel.sum()})")
+    ax.set_xlabel("initial bearing in the orbital plane [deg]")
+    ax.set_ylabel("initial range [m]")
+    ax.set_title(f"thesis-vbar under paper003: keep-out breaches in {len(g)} runs", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths = [out / "reference-breaches.png"]
+    fig.savefig(paths[0], dpi=110)
+    plt.close(fig)
+    cases = []
+    for p in sorted(out.glob("coverage-*-*m.json")):
+        doc = json.loads(p.read_text())
+        ref = _reference(out, doc["depth_m"])
+        label = f"{doc['method']}, breach > {doc['depth_m']:g} m"
+        cases.append({"label": label, "estimates": doc["estimates"], "reference": ref})
+    if cases:
+        paths.append(out / "coverage.png")
+        figures.coverage_intervals(
+            paths[-1], cases, "95 % intervals of seeded estimates against the reference"
+        )
+    for path in paths:
+        print(f"  wrote {path}")
+    return {"figures": [str(p) for p in paths]}
+
+
 def cmd_table(args) -> dict:
     """The coverage table of every ``coverage-*.json`` in DIR, against the reference."""
     out = Path(args.out)
@@ -271,6 +319,15 @@ def cmd_worst(args) -> dict:
     tag = args.name or f"worst-{args.requirement.replace('>=', '_ge_').replace('<=', '_le_')}"
     store = _store(Path(args.out), tag, pb, search=dataclasses.asdict(spec))
     traces = search(pb, spec, store)
+    from rvdjax.verify import figures
+
+    figures.margin_curves(
+        Path(args.out) / f"{tag}.png",
+        traces,
+        pb.requirement.unit,
+        f"{args.scenario}: {pb.requirement.label()} under {pb.dispersion.label()} "
+        f"({pb.dim} coordinates)",
+    )
     rows = {m: t.summary() for m, t in traces.items()}
     for r in rows.values():
         r.pop("failure_points", None)
@@ -468,6 +525,7 @@ def main(argv=None):
     cov.add_argument("--level-size", type=int, help="subset: runs per level and replicate")
     cov.add_argument("--replicates", type=int, default=4, help="subset: replicates per estimate")
     tab = sub.add_parser("table")
+    fg = sub.add_parser("figures")
     w = sub.add_parser("worst")
     w.add_argument("--scenario", default=SCENARIO)
     w.add_argument("--dispersion", default=DISPERSION)
@@ -489,7 +547,7 @@ def main(argv=None):
     o = sub.add_parser("openturns")
     o.add_argument("--level-size", type=int, default=1000)
     o.add_argument("--form-calls", type=int, default=200)
-    for q in (ref, cov, tab, w, o, gc):
+    for q in (ref, cov, tab, fg, w, o, gc):
         q.add_argument("--out", required=True)
         q.add_argument("--seed", type=int, default=0)
         q.add_argument("--json", action="store_true")
@@ -500,6 +558,7 @@ def main(argv=None):
         "reference": cmd_reference,
         "coverage": cmd_coverage,
         "table": cmd_table,
+        "figures": cmd_figures,
         "worst": cmd_worst,
         "gradcheck": cmd_gradcheck,
         "openturns": cmd_openturns,
