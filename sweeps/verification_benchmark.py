@@ -539,7 +539,7 @@ def main(argv=None):
     w.add_argument("--repeats", type=int, default=20)
     w.add_argument("--starts", type=int, default=2)
     w.add_argument("--step", type=float, default=1.0)
-    w.add_argument("--ladder", type=int, default=3)
+    w.add_argument("--ladder", type=int, default=4)
     w.add_argument("--popsize", type=int, default=8)
     w.add_argument("--name", help="the part's directory under --out")
     gc = sub.add_parser("gradcheck")

@@ -70,10 +70,10 @@ def add_parser(sub, scenario_help: str) -> None:
     q.add_argument("--region", choices=("ball", "box"), default="ball")
     q.add_argument("--radius", type=float, default=5.0, help="k of the region [sigma]")
     q.add_argument("--starts", type=int, default=2, help="gradient starts per repeat")
-    q.add_argument("--step", type=float, default=1.0, help="trust step [sigma]")
     q.add_argument(
-        "--ladder", type=int, default=3, help="multiples (0.5, 1, 2, ..) of the HL-RF step"
+        "--step", type=float, default=1.0, help="line-search base step [sigma] (x0.5, 1, 2..)"
     )
+    q.add_argument("--ladder", type=int, default=4, help="line-search steps per iteration")
     q.add_argument("--popsize", type=int, default=8, help="CMA-ES population")
 
     q = vsub.add_parser("probability", help="estimate the failure probability")

@@ -5,13 +5,12 @@ Methods (every repeat is seeded; the repeats of a method fly as one batch):
 
 * ``gradient``: ``starts`` points per repeat (drawn from N(0, I)), all repeats' starts in
   one gradient batch. At each start the smooth margin's gradient gives a direction d (unit,
-  in standard deviations) and, with the exact margin m, the HL-RF step a = 1.05 m / |g|
-  (where the linear model of m with the smooth slope |g| crosses below zero). One forward
-  batch then judges, by the exact margin, the points xi + a d for a line-search ladder of
-  multiples (0.5, 1, 2) of the HL-RF step and one trust step of ``step`` sigma (doubled after
-  a success, halved after a failed search). The start moves to its best candidate when that
-  improves its exact margin. An iteration costs ``starts`` x (gradient cost + ladder + 1)
-  forward evaluations per repeat.
+  in standard deviations); one forward batch then judges, by the exact margin, the points
+  xi + a d for a line-search ladder a = step x (0.5, 1, 2, 4) (scaled per start: doubled
+  after a success, halved after a failed search) and the HL-RF point, where the linear model
+  of the exact margin m with the smooth slope |g| crosses below zero (a = 1.05 m / |g|). The
+  start moves to its best candidate when that improves its exact margin. An iteration costs
+  ``starts`` x (gradient cost + ladder + 1) forward evaluations per repeat.
 * ``design-point``: the most probable failure point (FORM's design point) by improved HL-RF
   iterations (Zhang & Der Kiureghian 1995) on the same linearisation (the exact margin's
   value, the smooth margin's gradient), with a batched line search on the merit
@@ -57,9 +56,9 @@ class SearchSpec:
         repeats: seeded repeats of every method.
         region: "ball" or "box"; radius: its k (in standard deviations).
         starts: gradient starts per repeat.
-        step: the trust step [sigma] judged beside the ladder (doubled after a success,
-            halved after a failed search, at most 4 x).
-        ladder: multiples (0.5, 1, 2, ...) of the HL-RF step judged per start and iteration.
+        step: the line search's base step [sigma]: the ladder is step x (0.5, 1, 2, ...),
+            scaled per start (doubled after a success, halved after a failed search).
+        ladder: line-search steps per start and iteration (plus the HL-RF point).
         popsize: CMA-ES population.
         seed: the first repeat's seed (repeat r uses seed + r).
         gradient_cost: forward evaluations a gradient evaluation counts for (None: measured
@@ -73,7 +72,7 @@ class SearchSpec:
     radius: float = 5.0
     starts: int = 2
     step: float = 1.0
-    ladder: int = 3
+    ladder: int = 4
     popsize: int = 8
     seed: int = 0
     gradient_cost: float | None = None
@@ -281,7 +280,7 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
             for r in range(R)
         ]
     ).reshape(R * K, d)
-    ladder = 2.0 ** np.arange(-1, L - 1)  # multiples of the HL-RF step: 0.5, 1, 2, ...
+    ladder = spec.step * 2.0 ** np.arange(-1, L - 1)  # e.g. 0.5, 1, 2, 4 sigma
     trust = np.ones(R * K)  # per start: the ladder's scale (halved after a failed search)
     tr = _Tracker(R, d)
     best_norm = np.full(R, np.inf)
@@ -309,11 +308,12 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
         counts["random_directions"] += int(np.sum(~ok))
         slope = np.where(ok, gnorm, 1.0)
         if method == "gradient":
-            # along the smooth margin's descent direction: the HL-RF step (the exact margin m
-            # over the smooth slope |g|: where the linear model crosses below 0) times a
-            # ladder (0.5, 1, 2, ...), and one step of ``step`` sigma (scaled per start)
+            # along the smooth margin's descent direction: a ladder of steps in sigma (scaled
+            # per start) and the HL-RF point, where the linear model of the exact margin m
+            # with the smooth slope |g| crosses below 0
+            steps = ladder[None, :] * trust[:, None]
             hl = np.clip((m + 0.05 * np.abs(m) + 1e-12) / slope, 0.0, 2 * spec.radius)
-            steps = np.concatenate([hl[:, None] * ladder[None, :], (spec.step * trust)[:, None]], 1)
+            steps = np.concatenate([steps, hl[:, None]], axis=1)  # (S, L + 1)
             cand = xi[:, None, :] + steps[:, :, None] * dirn[:, None, :]
         else:
             # iHL-RF (Zhang & Der Kiureghian 1995): the HL-RF point of the linearisation
