@@ -33,11 +33,14 @@
 
 # %%
 import os
+import tempfile
 
 import matplotlib.pyplot as plt
 import numpy as np
 
+from rvdjax.provenance import ProvenanceError, format_provenance
 from rvdjax.verify import ProbabilitySpec, ProblemSpec, SearchSpec, estimate, problem_for, search
+from rvdjax.verify.store import EvalStore
 
 BUDGET = int(os.environ.get("RVDJAX_VERIFY_BUDGET", "6"))
 REPEATS = int(os.environ.get("RVDJAX_VERIFY_REPEATS", "2"))
@@ -93,3 +96,22 @@ spec = ProbabilitySpec("subset", max(200, 20 * BUDGET), level_size=50, replicate
 res = estimate(pb, spec, None, False)
 print(f"p = {res['p']:.3g}, CoV {res['cov']}, 95 % interval {np.round(res['ci95'], 5)}, "
       f"{res['runs']} runs")  # fmt: skip
+
+# %% [markdown]
+# ## Provenance
+#
+# A verification directory records which code, on which machine, flew which runs: the
+# package's source hash, git commit, jax/jaxlib versions and device, and a hash of everything
+# that defines a run (scenario values, parameters, loop, solver, requirement, dispersion).
+# Reusing its evaluations for another definition stops with one line naming what differs.
+
+# %%
+directory = tempfile.mkdtemp()
+store = EvalStore(directory, pb.effort_key, {"problem": pb.definition()})
+for line in format_provenance(store.block):
+    print(line)
+other = problem_for(ProblemSpec("poseidyn-lqmpc", "keep-out>=0.2", "x0:0.05,0.005", n_steps=60))
+try:
+    EvalStore(directory, other.effort_key, {"problem": other.definition()})
+except ProvenanceError as err:
+    print(err)
