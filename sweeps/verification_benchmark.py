@@ -314,8 +314,9 @@ def cmd_worst(args) -> dict:
         step=args.step,
         ladder=args.ladder,
         popsize=args.popsize,
+        radius=args.radius,
         seed=args.seed,
-    )
+    ).resolved(pb.dim)
     tag = args.name or f"worst-{args.requirement.replace('>=', '_ge_').replace('<=', '_le_')}"
     store = _store(Path(args.out), tag, pb, search=dataclasses.asdict(spec))
     traces = search(pb, spec, store)
@@ -334,7 +335,8 @@ def cmd_worst(args) -> dict:
     print(
         f"worst case: {args.scenario} {pb.requirement.label()} under {pb.dispersion.label()} "
         f"({pb.dim} coordinates), {spec.repeats} repeats, budget {spec.budget} forward "
-        f"evaluations each; smooth margin tau = {pb.tau:.4g}"
+        f"evaluations each; smooth margin tau = {pb.tau:.4g}; search ball radius "
+        f"{spec.radius:.3g}"
     )
     if median:
         print(
@@ -366,6 +368,7 @@ def cmd_worst(args) -> dict:
         "random_p": p_random,
         "random_p_source": source,
         "budget": budget,
+        "radius": spec.radius,
         "tau": pb.tau,
         "dim": pb.dim,
         "provenance": store.provenance_summary(),
@@ -541,6 +544,7 @@ def main(argv=None):
     w.add_argument("--step", type=float, default=1.0)
     w.add_argument("--ladder", type=int, default=4)
     w.add_argument("--popsize", type=int, default=8)
+    w.add_argument("--radius", type=float, help="the search ball [sigma] (default: chi2)")
     w.add_argument("--name", help="the part's directory under --out")
     gc = sub.add_parser("gradcheck")
     gc.add_argument("--near", type=int, default=5, help="points near the worst one")

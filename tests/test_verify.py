@@ -187,6 +187,17 @@ def test_searches_on_a_linear_limit_state():
     assert s["gradient"]["worst_margin"] < s["random"]["worst_margin"]
 
 
+def test_search_region_holds_the_dispersion_in_high_dimension():
+    """The default ball holds all but 1e-6 of N(0, I): 6.0 sigma in 5-D, 18.9 in 240-D (a
+    ball of 5 holds none of a 240-D dispersion, whose draws lie near 15.5), and random
+    sampling there draws without rejecting forever."""
+    assert SearchSpec().resolved(5).radius == pytest.approx(5.99, abs=0.01)
+    assert SearchSpec().resolved(240).radius == pytest.approx(18.94, abs=0.01)
+    pb = Linear(3.0, dim=240)
+    tr = search(pb, SearchSpec(methods=("random",), budget=20, repeats=2), progress=False)
+    assert np.all(np.linalg.norm(tr["random"].worst_xi, axis=1) > 10)
+
+
 # ------------------------------------------------------------------ the closed loop
 
 

@@ -68,7 +68,11 @@ def add_parser(sub, scenario_help: str) -> None:
         help="comma list of gradient, design-point, random, lhs, cma-es",
     )
     q.add_argument("--region", choices=("ball", "box"), default="ball")
-    q.add_argument("--radius", type=float, default=5.0, help="k of the region [sigma]")
+    q.add_argument(
+        "--radius",
+        type=float,
+        help="k of the region [sigma] (default: all but 1e-6 of N(0, I): 6.0 in 5-D)",
+    )
     q.add_argument("--starts", type=int, default=2, help="gradient starts per repeat")
     q.add_argument(
         "--step", type=float, default=1.0, help="line-search base step [sigma] (x0.5, 1, 2..)"
@@ -191,6 +195,7 @@ def _worst(pb, kspec, out: Path, args, store) -> dict:
     from rvdjax.verify.store import read_evals, write_json
     from rvdjax.verify.worst import search
 
+    kspec = kspec.resolved(pb.dim)
     traces = search(pb, kspec, store, progress=not args.quiet)
     methods = {m: tr.summary() for m, tr in traces.items()}
     worst_m = min(traces, key=lambda m: float(np.min(traces[m].worst_margin)))

@@ -44,6 +44,7 @@ from rvdjax.verify.store import EvalStore
 __all__ = ["SearchSpec", "search", "METHODS", "project"]
 
 METHODS = ("gradient", "random", "lhs", "cma-es", "design-point")
+TAIL = 1e-6  # the default search region leaves out this much of N(0, I)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +55,9 @@ class SearchSpec:
         methods: the methods flown (:data:`METHODS`).
         budget: forward evaluations per repeat and method.
         repeats: seeded repeats of every method.
-        region: "ball" or "box"; radius: its k (in standard deviations).
+        region: "ball" or "box"; radius: its k (in standard deviations; None: the radius
+            of the ball that holds all but 1e-6 of N(0, I) in the dispersion's dimension,
+            sqrt(chi2.ppf(1 - 1e-6, d)): 6.0 for 5 coordinates, 18.9 for 240).
         starts: gradient starts per repeat.
         step: the line search's base step [sigma]: the ladder is step x (0.5, 1, 2, ...),
             scaled per start (doubled after a success, halved after a failed search).
@@ -69,7 +72,7 @@ class SearchSpec:
     budget: int = 100
     repeats: int = 20
     region: str = "ball"
-    radius: float = 5.0
+    radius: float | None = None
     starts: int = 2
     step: float = 1.0
     ladder: int = 4
@@ -84,8 +87,18 @@ class SearchSpec:
                 raise ValueError(f"--methods: unknown method {m!r}; allowed: {', '.join(METHODS)}")
         if self.region not in ("ball", "box"):
             raise ValueError(f"--region must be ball or box, got {self.region!r}")
-        if not (0 < self.radius < float("inf")):
+        if self.radius is not None and not (0 < self.radius < float("inf")):
             raise ValueError(f"--radius must be > 0 (standard deviations), got {self.radius}")
+
+    def resolved(self, dim: int) -> SearchSpec:
+        """The spec with its region's radius for ``dim`` coordinates (module docstring): a
+        ball of radius 5 holds almost none of N(0, I) in 240 dimensions, where draws lie
+        near sqrt(240) = 15.5."""
+        if self.radius is not None:
+            return self
+        from scipy.stats import chi2
+
+        return dataclasses.replace(self, radius=float(np.sqrt(chi2.ppf(1 - TAIL, dim))))
         for name in ("repeats", "starts", "popsize", "ladder"):
             v = getattr(self, name)
             if not (isinstance(v, (int, np.integer)) and v >= 1):
@@ -361,6 +374,7 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
 def search(pb: Problem, spec: SearchSpec, store: EvalStore | None = None, progress=True) -> dict:
     """Fly the search's methods; return {method: Trace}."""
     store = EvalStore(None, pb.effort_key) if store is None else store
+    spec = spec.resolved(pb.dim)
     out = {}
     for method in spec.methods:
         bar = None
