@@ -614,7 +614,10 @@ def cmd_bench(args) -> int:
         r["device"] = args.device_used
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"machine": machine_info(), "rows": rows}, f, indent=1)
+            from rvdjax.provenance import environment  # provenance hook
+
+            doc = {"machine": machine_info(), "provenance": environment(), "rows": rows}
+            json.dump(doc, f, indent=1)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:
@@ -767,7 +770,7 @@ def cmd_study(args) -> int:
         from rvdjax.study.runner import prepare_out  # (and the scenario file's copy) first
 
         if index == 0:
-            prepare_out(spec, args.out, args.resume)
+            prepare_out(spec, args.out, args.resume, args.allow_code_change, sc)
             if copy is not None and not os.path.exists(copy):
                 with open(args.scenario, encoding="utf-8") as f:
                     text = f.read()
@@ -785,6 +788,7 @@ def cmd_study(args) -> int:
         devices=args.devices,
         flush_rows=args.flush_rows,
         prepare=count == 1 and copy is None,
+        allow_code_change=args.allow_code_change,
     )
     _barrier("rvdjax-study-done", count)
     if count > 1:
@@ -1135,6 +1139,11 @@ def main(argv=None) -> int:
         )
         q.add_argument("--out", required=True, metavar="DIR", help="study directory")
         q.add_argument("--resume", action="store_true", help="continue the study in DIR")
+        q.add_argument(
+            "--allow-code-change",
+            action="store_true",
+            help="resume a study flown by another code version (new rows marked)",
+        )
         q.add_argument("--plots", metavar="DIR", help="write the study's figures to DIR")
         q.add_argument("--json", action="store_true", help="print the summary as JSON")
         q.add_argument("--quiet", action="store_true", help="no progress bar")

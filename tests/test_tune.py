@@ -109,6 +109,7 @@ def test_tune_command_files_and_run_params(tmp_path, capsys):
     # the tuned file flies, and gives the held-out run's figures
     doc = json.loads((out / "tuned_params.json").read_text())
     assert set(doc["parameters"]) == {"Q", "R", "terminal_scale"}
+    assert doc["provenance"]["definition_sha256"] == r["provenance"]["definition_sha256"]
     assert (
         main(["run", "poseidyn-lqmpc", "--params", str(out / "tuned_params.json"), "--json"]) == 0
     )

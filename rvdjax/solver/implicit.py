@@ -8,6 +8,11 @@ kappa is held at the returned iterate's value (accurate mode: each row's complem
 product, :func:`rvdjax.solver.driver._derivative_kappa`); in paper mode that is the traced
 ``SolverParams.kappa``, which receives its derivative too (the other solver parameters move the
 answer only through the iteration count: their derivative is zero).
+
+A back-solve that is not finite (a singular or overflowing factorisation, a non-finite solve)
+is replaced by zero so that no NaN leaves a batch, and counted: ``SolverParams.
+derivative_probe`` receives 1 per such solve as its cotangent, so the derivative of a loss
+with respect to it is the number of zeroed back-solves behind that loss's gradient.
 """
 
 from __future__ import annotations
@@ -41,10 +46,16 @@ def implicit_bwd(settings: SolverSettings, res, sol_bar):
     _, vjp = jax.vjp(F, ocp, kappa)
     ocp_bar, kappa_bar = vjp((-w.du, -w.dx, -w.nu))
     ok = (sol.status != Status.NONFINITE) & all_finite((w.du, w.dx, w.nu))
+    # a back-solve that is not finite is zeroed, and counted: the cotangent of
+    # params.derivative_probe is 1 for every solve zeroed (in whole or in part)
+    finite = ok & all_finite(ocp_bar)
     ocp_bar = jax.tree.map(lambda a: jnp.where(ok & jnp.isfinite(a), a, 0.0), ocp_bar)
     params_bar = jax.tree.map(jnp.zeros_like, params)
     if settings.mode == "paper":  # the returned kappa is params.kappa
+        finite = finite & jnp.isfinite(kappa_bar)
         kappa_bar = jnp.where(ok & jnp.isfinite(kappa_bar), kappa_bar, 0.0)
         params_bar = params_bar._replace(kappa=kappa_bar.astype(params_bar.kappa.dtype))
+    zeroed = jnp.where(finite, 0.0, 1.0).astype(params_bar.derivative_probe.dtype)
+    params_bar = params_bar._replace(derivative_probe=zeroed)
     init_bar = None if init is None else jax.tree.map(jnp.zeros_like, init)
     return ocp_bar, params_bar, init_bar

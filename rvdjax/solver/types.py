@@ -137,6 +137,10 @@ class SolverParams(NamedTuple):
         centring: barrier mode: centred when decrement^2 / 2 <= centring m kappa.
         violation_tol: a soft state row counts as violated above this distance
             (row-normalised units of the state, e.g. metres).
+        derivative_probe: no effect on the solve. The implicit derivative returns, as its
+            cotangent, the number of back-solves it set to zero because they were not
+            finite (:func:`rvdjax.solver.implicit.implicit_bwd`): the derivative of a loss
+            with respect to it counts them, so a zeroed derivative is never silent.
     """
 
     kappa: jnp.ndarray | float = 0.05
@@ -147,6 +151,7 @@ class SolverParams(NamedTuple):
     kappa_factor: jnp.ndarray | float = 10.0
     centring: jnp.ndarray | float = 1.0
     violation_tol: jnp.ndarray | float = 1e-6
+    derivative_probe: jnp.ndarray | float = 0.0
 
     @classmethod
     def paper(cls, **overrides) -> SolverParams:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rvdjax import provenance
 from rvdjax.study import stats
 from rvdjax.study.spec import StudySpec
 from rvdjax.study.table import read_config, read_table, table_columns
@@ -91,6 +92,7 @@ def summarize(out, confidence: float = 0.9, reliability: float = 0.9973, worst: 
         "zero_failure_runs_needed": stats.zero_failure_runs(reliability, confidence),
     }
     summary["assumptions"] = study_notes(spec)
+    summary["provenance"] = provenance.summary(config.get("provenance"), df)  # provenance hook
     ok = _success(df)
     if ok.all():
         summary["reliability_shown"] = stats.demonstrated_reliability(len(df), confidence)
@@ -186,6 +188,8 @@ def format_summary(s: dict) -> str:
             )
     lines.append("  assumptions:")
     lines.extend(f"    - {a}" for a in s.get("assumptions", []))
+    lines.append("  provenance:")  # provenance hook
+    lines.extend(f"    - {a}" for a in provenance.summary_lines(s.get("provenance")))
     lines.append("  worst runs:")
     for w in s["worst_runs"]:
         lines.append(

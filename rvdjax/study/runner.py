@@ -36,6 +36,7 @@ import numpy as np
 import pyarrow as pa
 from jax import lax
 
+from rvdjax import provenance
 from rvdjax.loop import RunStatus
 from rvdjax.loop.engine import (
     Block,
@@ -533,8 +534,12 @@ def _auto_flush(n_runs: int) -> int:
     return int(min(65536, max(256, n_runs // 64)))
 
 
-def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
-    """Check ``out`` against the study and write its configuration."""
+def prepare_out(
+    spec: StudySpec, out: Path, resume: bool, allow_code_change: bool = False, scenario=None
+) -> None:
+    """Check ``out`` against the study (its spec, then its provenance: the same run
+    definition and code version, :mod:`rvdjax.provenance`) and write its configuration.
+    ``scenario``: the study's scenario record (None: read from the spec)."""
     out = Path(out)
     existing = read_config(out)
     config = {"spec": json.loads(spec.to_json()), "version": 1}
@@ -545,12 +550,25 @@ def prepare_out(spec: StudySpec, out: Path, resume: bool) -> None:
                 "another directory"
             )
         if existing.get("spec") != config["spec"]:
+            diff = "; ".join(provenance.differences(existing.get("spec"), config["spec"]))
             raise ValueError(
-                f"--out {out} holds a different study (its config.json differs); --resume "
-                "continues only the same study"
+                f"--out {out} holds a different study ({diff}); --resume continues only the "
+                "same study"
             )
     elif out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} exists and is not a study directory; choose another")
+    sc = study_scenario(spec, out) if scenario is None else scenario
+    config["provenance"] = provenance.stamp(  # provenance hook (rvdjax.provenance)
+        None if existing is None else existing.get("provenance", {}),
+        provenance.describe(
+            spec=config["spec"],
+            scenario=provenance.scenario_values(sc),
+            params=_build(spec, sc)[0],
+            solver=sc.solver_params(spec.mode),
+        ),
+        allow_code_change=allow_code_change,
+        where=f"--out {out}",
+    )
     write_config(out, config)
 
 
@@ -566,6 +584,7 @@ def run_study(
     prepare: bool = True,
     max_seconds: float | None = None,
     engine: dict | None = None,
+    allow_code_change: bool = False,
 ) -> dict:
     """Fly ``spec`` and write its table to ``out``; returns timing figures.
 
@@ -585,13 +604,15 @@ def run_study(
     device's busy time (``device_busy_s``), the compiles' (``compile_s``), the share of wall
     time the device was not busy (``outside_device_share``: input drawing, collection and
     writing not hidden behind the device's work, and compiles; ``..._flying``: without the
-    compiles), and ``engine``: each group's engine settings.
+    compiles), and ``engine``: each group's engine settings. ``allow_code_change``: resume a
+    study flown by another code version (its new rows are marked, :mod:`rvdjax.provenance`).
     """
     scenario = study_scenario(spec, out)
     spec.validate(dataclasses.replace(scenario, name=spec.scenario))
     out = Path(out)
     if prepare and process_index == 0:
-        prepare_out(spec, out, resume)
+        prepare_out(spec, out, resume, allow_code_change, scenario)
+    marks = provenance.row_marks(read_config(out)["provenance"])  # provenance hook
     effort = effort_metric(scenario)
     all_runs = np.arange(spec.n_runs, dtype=np.int64)
     done = done_runs(out) if resume else np.zeros(0, np.int64)
@@ -655,7 +676,10 @@ def run_study(
         base = flown
 
         def on_results(positions, metrics, queue=queue, point_ts=point_ts):
-            writer.add(queue.table(positions, metrics, effort, point_values, point_ts))
+            table = queue.table(positions, metrics, effort, point_values, point_ts)
+            for name, value in marks.items():  # provenance hook (rvdjax.provenance)
+                table = table.append_column(name, pa.array([value] * table.num_rows))
+            writer.add(table)
 
         def on_progress(done_group, n, base=base):
             if bar is not None:

@@ -16,7 +16,8 @@ __all__ = ["write_params", "read_params", "apply_params_file"]
 FORMAT = "rvdjax-tuned-params/1"
 
 
-def write_params(path, tuner, values: dict, method: str, spec) -> None:
+def write_params(path, tuner, values: dict, method: str, spec, provenance=None) -> None:
+    """Write the file; ``provenance``: the tuning's record (:mod:`rvdjax.provenance`)."""
     space = tuner.space
     doc = {
         "format": FORMAT,
@@ -29,6 +30,8 @@ def write_params(path, tuner, values: dict, method: str, spec) -> None:
         "hand": {k: v.tolist() for k, v in space.hand.items()},
         "description": space.describe(),
     }
+    if provenance is not None:
+        doc["provenance"] = provenance
     tmp = Path(path).with_suffix(".tmp")
     tmp.write_text(json.dumps(doc, indent=2))
     tmp.replace(path)

@@ -506,13 +506,23 @@ def _bar(total, desc, progress):
 def _write(out: Path, spec: TuneSpec, tuner: Tuner, result, history, rows, values) -> None:
     import pandas as pd
 
+    from rvdjax import provenance  # provenance hook: code, machine and definition
     from rvdjax.tune.files import write_params
 
+    result["provenance"] = provenance.stamp(
+        None,
+        provenance.describe(
+            spec=spec.to_dict(), scenario=provenance.scenario_values(tuner.scenario)
+        ),
+    )
     pd.DataFrame(history).to_parquet(out / "history.parquet", index=False)
     pd.DataFrame(rows).to_parquet(out / "heldout.parquet", index=False)
-    write_params(out / "tuned_params.json", tuner, values["tuned"], "gradient", spec)
+    prov = result["provenance"]
+    write_params(out / "tuned_params.json", tuner, values["tuned"], "gradient", spec, prov)
     if "random_search" in values:
-        write_params(out / "random_params.json", tuner, values["random_search"], "random", spec)
+        write_params(
+            out / "random_params.json", tuner, values["random_search"], "random", spec, prov
+        )
     (out / "spec.json").write_text(json.dumps(spec.to_dict(), indent=2, default=list))
     (out / "summary.json").write_text(json.dumps(result, indent=2))
     try:  # the tables and files are written: a failed figure must not lose them

@@ -6,7 +6,8 @@ vector, worst-case search and failure probabilities on the batch engine.
 * :mod:`rvdjax.verify.evaluate`: batched exact and gradient evaluations;
 * :mod:`rvdjax.verify.worst`: worst-case search (gradient, design point, baselines);
 * :mod:`rvdjax.verify.probability`: subset simulation, importance sampling, Monte Carlo;
-* :mod:`rvdjax.verify.store`: the evaluations on disk (resume, replay).
+* :mod:`rvdjax.verify.subset`: subset simulation (adaptive conditional sampling, replicates);
+* :mod:`rvdjax.verify.store`: the evaluations on disk (resume, replay, provenance).
 """
 
 import importlib

@@ -36,6 +36,11 @@ def add_parser(sub, scenario_help: str) -> None:
         )
         q.add_argument("--out", required=True, metavar="DIR", help="verification directory")
         q.add_argument("--resume", action="store_true", help="continue the verification in DIR")
+        q.add_argument(
+            "--allow-code-change",
+            action="store_true",
+            help="resume or reuse evaluations flown by another code version (rows marked)",
+        )
         q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
         q.add_argument("--disturbed", action="store_true", help="noisy loop (paper 003 Ch. 5)")
         q.add_argument("--nav-filter", action="store_true", help="with --disturbed: a filter")
@@ -63,16 +68,29 @@ def add_parser(sub, scenario_help: str) -> None:
         help="comma list of gradient, design-point, random, lhs, cma-es",
     )
     q.add_argument("--region", choices=("ball", "box"), default="ball")
-    q.add_argument("--radius", type=float, default=5.0, help="k of the region [sigma]")
-    q.add_argument("--starts", type=int, default=1, help="gradient starts per repeat")
-    q.add_argument("--lr", type=float, default=2.0, help="Adam's step on xi [sigma]")
+    q.add_argument(
+        "--radius",
+        type=float,
+        help="k of the region [sigma] (default: all but 1e-6 of N(0, I): 6.0 in 5-D)",
+    )
+    q.add_argument("--starts", type=int, default=2, help="gradient starts per repeat")
+    q.add_argument(
+        "--step", type=float, default=1.0, help="line-search base step [sigma] (x0.5, 1, 2..)"
+    )
+    q.add_argument("--ladder", type=int, default=4, help="line-search steps per iteration")
     q.add_argument("--popsize", type=int, default=8, help="CMA-ES population")
 
     q = vsub.add_parser("probability", help="estimate the failure probability")
     common(q)
     q.add_argument("--method", required=True, help="subset, is or mc")
     q.add_argument("--budget", type=int, required=True, help="closed-loop runs at most")
-    q.add_argument("--level-size", type=int, help="subset simulation: runs per level")
+    q.add_argument("--level-size", type=int, help="subset simulation: runs per level and replicate")
+    q.add_argument(
+        "--replicates",
+        type=int,
+        default=4,
+        help="subset simulation: independent replicates; their spread gives the CoV",
+    )
 
 
 def _problem_spec(args):
@@ -93,9 +111,12 @@ def _problem_spec(args):
     )
 
 
-def _prepare(out: Path, config: dict, resume: bool) -> None:
+def _prepare(out: Path, config: dict, resume: bool, pb, allow_code_change: bool):
+    """The directory's :class:`~rvdjax.verify.store.EvalStore`, after checking that ``out``
+    is new, or (``resume``) holds this verification flown by this code version
+    (:mod:`rvdjax.provenance`: one line naming what differs)."""
     from rvdjax.outputs import check_dir
-    from rvdjax.verify.store import CONFIG, write_json
+    from rvdjax.verify.store import CONFIG, EvalStore, write_json
 
     check_dir(str(out), "--out")
     config = json.loads(json.dumps(config))  # as read back (tuples become lists)
@@ -106,12 +127,12 @@ def _prepare(out: Path, config: dict, resume: bool) -> None:
                 f"--out {out} already holds a verification; pass --resume to continue it or "
                 "choose another directory"
             )
-        if json.loads(path.read_text()) != config:
-            raise ValueError(f"--out {out} holds a different verification (config.json differs)")
     elif out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} exists and is not a verification directory")
-    out.mkdir(parents=True, exist_ok=True)
+    definition = {"problem": pb.definition(), "verification": config}
+    store = EvalStore(out, pb.effort_key, definition, allow_code_change)
     write_json(path, config)
+    return store
 
 
 def cmd_verify(args) -> int:
@@ -133,7 +154,8 @@ def cmd_verify(args) -> int:
             region=args.region,
             radius=args.radius,
             starts=args.starts,
-            lr=args.lr,
+            step=args.step,
+            ladder=args.ladder,
             popsize=args.popsize,
             seed=args.seed,
         )
@@ -142,7 +164,11 @@ def cmd_verify(args) -> int:
         from rvdjax.verify.probability import ProbabilitySpec
 
         kspec = ProbabilitySpec(
-            method=args.method, budget=args.budget, level_size=args.level_size, seed=args.seed
+            method=args.method,
+            budget=args.budget,
+            level_size=args.level_size,
+            replicates=args.replicates,
+            seed=args.seed,
         )
     # everything above and the problem's set-up are host-side checks: nothing compiled yet
     pb = problem_for(pspec)
@@ -151,11 +177,11 @@ def cmd_verify(args) -> int:
         "spec": {**dataclasses.asdict(pspec), "truth": "linear"},
         "method": dataclasses.asdict(kspec),
     }
-    _prepare(out, config, args.resume)
+    store = _prepare(out, config, args.resume, pb, args.allow_code_change)
     if args.verify_command == "worst":
-        summary = _worst(pb, kspec, out, args)
+        summary = _worst(pb, kspec, out, args, store)
     else:
-        summary = _probability(pb, kspec, out, args)
+        summary = _probability(pb, kspec, out, args, store)
     if args.json:
         print(json.dumps(summary, indent=2))
     return 0
@@ -165,11 +191,11 @@ def _replay(out: Path, scenario: str, run) -> str:
     return f"rvdjax run {scenario} --study {out} --run {int(run)}"
 
 
-def _worst(pb, kspec, out: Path, args) -> dict:
-    from rvdjax.verify.store import EvalStore, read_evals, write_json
+def _worst(pb, kspec, out: Path, args, store) -> dict:
+    from rvdjax.verify.store import read_evals, write_json
     from rvdjax.verify.worst import search
 
-    store = EvalStore(out, pb.effort_key)
+    kspec = kspec.resolved(pb.dim)
     traces = search(pb, kspec, store, progress=not args.quiet)
     methods = {m: tr.summary() for m, tr in traces.items()}
     worst_m = min(traces, key=lambda m: float(np.min(traces[m].worst_margin)))
@@ -198,6 +224,7 @@ def _worst(pb, kspec, out: Path, args) -> dict:
             f"search region: {kspec.region} of radius {kspec.radius:g} in xi; random draws xi "
             "from the dispersion itself (N(0, I) in the region)",
         ],
+        "provenance": store.provenance_summary(),
     }
     write_json(out / "summary.json", summary)
     if args.plots:
@@ -237,19 +264,34 @@ def _print_worst(s: dict) -> None:
             f"{v['worst_margin']:>14.4g}{v['wall_s']:>10.1f}"
         )
         if "gradient_cost" in v:
-            print(f"  {'':<14}a gradient evaluation costs {v['gradient_cost']:.2f} forward ones")
+            line = f"a gradient evaluation costs {v['gradient_cost']:.2f} forward ones"
+            if "gradient_cost_vs_engine" in v:
+                line += f" ({v['gradient_cost_vs_engine']:.2f} x the engine's wall time per run)"
+            print(f"  {'':<14}{line}")
+            print(
+                f"  {'':<14}zeroed back-solves {v['zeroed_backsolves']}, non-finite gradients "
+                f"{v['nonfinite_gradients']}"
+            )
     w = s["worst"]
     print(f"  worst: margin {w['margin']:.4g} {s['unit']} ({w['method']}) -> {w['replay']}")
     print("  assumptions:")
     for a in s["assumptions"]:
         print(f"    - {a}")
+    _print_provenance(s["provenance"])
 
 
-def _probability(pb, kspec, out: Path, args) -> dict:
+def _print_provenance(block) -> None:
+    from rvdjax.provenance import summary_lines
+
+    print("  provenance:")
+    for line in summary_lines(block):
+        print(f"    - {line}")
+
+
+def _probability(pb, kspec, out: Path, args, store) -> dict:
     from rvdjax.verify.probability import estimate
-    from rvdjax.verify.store import EvalStore, read_evals, write_json
+    from rvdjax.verify.store import read_evals, write_json
 
-    store = EvalStore(out, pb.effort_key)
     res = estimate(pb, kspec, store, progress=not args.quiet)
     summary = {
         "scenario": pb.scenario.name,
@@ -258,6 +300,7 @@ def _probability(pb, kspec, out: Path, args) -> dict:
         "dim": pb.dim,
         **{k: v for k, v in res.items() if k not in ("history",)},
         "assumptions": pb.notes(),
+        "provenance": store.provenance_summary(),
     }
     write_json(out / "summary.json", {**summary, "history": res.get("history")})
     if args.plots:
@@ -282,6 +325,7 @@ def _probability(pb, kspec, out: Path, args) -> dict:
         print("  assumptions:")
         for a in summary["assumptions"]:
             print(f"    - {a}")
+        _print_provenance(summary["provenance"])
     return summary
 
 

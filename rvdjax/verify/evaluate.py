@@ -6,9 +6,10 @@ Two evaluators share one set-up (:class:`Problem`):
   (:func:`rvdjax.loop.engine.run_batch`: slots refilled as runs finish), with the runs'
   Metrics. This is one *forward evaluation* per xi, the unit every method's budget counts.
 * :meth:`Problem.gradient`: the smooth margin and its gradient with respect to xi of a batch
-  (``vmap`` of :func:`rvdjax.loop.fly` under ``jax.value_and_grad``, the step under
-  ``jax.checkpoint``), plus the exact margins of the same runs. Its cost in forward
-  evaluations is measured (:meth:`Problem.gradient_cost`), not assumed.
+  (``vmap`` of :func:`rvdjax.loop.fly` under ``jax.value_and_grad``), plus the exact margins
+  of the same runs. Its cost in forward evaluations is measured on the same footing
+  (:meth:`Problem.gradient_cost`: the same runs flown forward by the same ``vmap``), not
+  assumed.
 
 Every evaluation also goes through an :class:`~rvdjax.verify.store.EvalStore` when one is given,
 so a killed search or estimate resumes where it stopped: a method is deterministic given its
@@ -48,6 +49,9 @@ class ProblemSpec:
         slots, chunk: the batch engine.
         remat: ``jax.checkpoint`` the step in the gradient's forward pass (memory bounded by
             the loop state, about one more forward pass of compute).
+        solver_tol, max_iter: the solver's tolerance and iteration cap (None: the
+            scenario's), e.g. 1e-12 and 300 to check gradients against central differences
+            of a converged solver.
     """
 
     scenario: str
@@ -64,6 +68,8 @@ class ProblemSpec:
     slots: int = 64
     chunk: int = 32
     remat: bool = False
+    solver_tol: float | None = None
+    max_iter: int | None = None
 
     def __post_init__(self):
         if self.mode not in ("accurate", "paper", "barrier"):
@@ -76,6 +82,10 @@ class ProblemSpec:
             raise ValueError(f"--time-limit-s must be > 0 s, got {self.time_limit_s}")
         if self.temperature is not None and not (0 < self.temperature < float("inf")):
             raise ValueError(f"--temperature must be > 0, got {self.temperature}")
+        if self.solver_tol is not None and not (0 < self.solver_tol < 1):
+            raise ValueError(f"solver_tol must be in (0, 1), got {self.solver_tol}")
+        if self.max_iter is not None and not self.max_iter >= 1:
+            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
 
 
 class Problem:
@@ -101,6 +111,11 @@ class Problem:
             time_limit_s=spec.time_limit_s,
             thrusters=spec.thrusters,
         )
+        if spec.max_iter is not None:
+            settings = dataclasses.replace(loop.config.settings, max_iter=int(spec.max_iter))
+            loop = dataclasses.replace(
+                loop, config=dataclasses.replace(loop.config, settings=settings)
+            )
         sc.check(params, x0, loop)
         self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
         fam = sc.family_
@@ -119,6 +134,8 @@ class Problem:
             else float(TEMPERATURE_FRACTION * max(np.linalg.norm(pos), 1e-3))
         )
         self.sp = sc.solver_params(spec.mode)
+        if spec.solver_tol is not None:
+            self.sp = self.sp._replace(tol=float(spec.solver_tol))
         self.key = jax.random.key(spec.seed)
         self._costs: dict = {}
 
@@ -127,6 +144,31 @@ class Problem:
     @property
     def dim(self) -> int:
         return self.dispersion.dim
+
+    def definition(self) -> dict:
+        """Everything that defines this problem's runs, for provenance
+        (:mod:`rvdjax.provenance`): the spec (less the engine's slots, chunk and remat, which
+        do not change a run), the scenario's values, the parameters and initial state built
+        from them, the loop configuration, the solver parameters, the parsed requirement and
+        dispersion and the smooth margin's temperature."""
+        from rvdjax import provenance
+
+        spec = {
+            k: v
+            for k, v in dataclasses.asdict(self.spec).items()
+            if k not in ("slots", "chunk", "remat")
+        }
+        return provenance.describe(
+            spec=spec,
+            scenario=provenance.scenario_values(self.scenario),
+            params=self.params,
+            x0=self.x0,
+            loop=self.loop.config,
+            solver=self.sp,
+            requirement=self.requirement,
+            dispersion={"label": self.dispersion.label(), "names": self.dispersion.names()},
+            tau=self.tau,
+        )
 
     def notes(self) -> list[str]:
         """What the output states next to the figures (assumptions and settings)."""
@@ -207,60 +249,99 @@ class Problem:
         disp, lay = self.dispersion, self.scenario.family_.layout
         x0n, params = jnp.asarray(self.x0), self.params
 
-        def one(xi, key):
+        def one(xi, probe, key):
             x0, p = disp.apply(xi, x0n, params, lay)
-            infos, m = fly(loop, p, x0, key, sp, remat=remat)
+            infos, m = fly(loop, p, x0, key, sp._replace(derivative_probe=probe), remat=remat)
             smooth = req.smooth(loop, p, infos, m, ek, tau)
             return smooth, (req.exact(m, ek), m)
 
-        vg = jax.value_and_grad(one, has_aux=True)
+        vg = jax.value_and_grad(one, argnums=(0, 1), has_aux=True)
 
         def batch(xis, keys):
-            (s, (e, m)), g = jax.vmap(vg)(xis, keys)
+            probes = jnp.zeros(xis.shape[0], xis.dtype)
+            (s, (e, m)), (g, zeroed) = jax.vmap(vg)(xis, probes, keys)
             ok = jnp.isfinite(s) & jnp.all(jnp.isfinite(g), axis=-1)
             # no NaN leaves a batch: a non-finite run keeps its exact margin, zero gradient
-            return jnp.where(ok, s, e), jnp.where(ok[:, None], g, 0.0), e, m
+            # (counted: "nonfinite"); "zeroed": the back-solves the solver zeroed in the run
+            return jnp.where(ok, s, e), jnp.where(ok[:, None], g, 0.0), e, m, ~ok, zeroed
 
         return jax.jit(batch)
 
     def gradient(self, xis) -> dict:
         """Smooth margins, their gradients and the exact margins of a batch of xi.
 
-        Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics}."""
+        Returns {"smooth": (B,), "grad": (B, dim), "margin": (B,), "metrics": Metrics,
+        "nonfinite": (B,) runs whose smooth margin or gradient was not finite (their
+        gradient is zero, their smooth margin the exact one), "zeroed": (B,) back-solves the
+        solver zeroed inside each run (``SolverParams.derivative_probe``)}."""
         xis = np.asarray(xis, float).reshape(-1, self.dim)
         n = xis.shape[0]
         # batch shapes in multiples of 8 (each compiles once; padding is computed, so keep it
         # small: the gradient's measured cost includes it)
         bucket = 8 * int(np.ceil(n / 8))
         pad = np.concatenate([xis, np.repeat(xis[:1], bucket - n, axis=0)])
-        s, g, e, m = self._vg(jnp.asarray(pad), self.keys(bucket))
+        s, g, e, m, bad, zeroed = self._vg(jnp.asarray(pad), self.keys(bucket))
         m = jax.tree.map(lambda a: np.asarray(a)[:n], m)
         return {
             "smooth": np.asarray(s)[:n],
             "grad": np.asarray(g)[:n],
             "margin": np.asarray(e)[:n],
             "metrics": m,
+            "nonfinite": np.asarray(bad)[:n],
+            "zeroed": np.rint(np.asarray(zeroed)[:n]).astype(int),
         }
 
-    def gradient_cost(self, n_grad: int = 8, n_fwd: int = 64, seed: int = 12345) -> float:
-        """The measured cost of one gradient evaluation in forward evaluations: the wall time
-        per run of :meth:`gradient` at ``n_grad`` runs a batch (what the gradient search
-        flies) over that of :meth:`forward` at ``n_fwd`` runs a batch (what the sampling
-        baselines fly), each timed after it is compiled. At least 1. Cached per sizes."""
-        key = (int(n_grad), int(n_fwd))
+    @functools.cached_property
+    def _fwd_vmap(self):
+        """Exact margins of a batch by ``vmap`` of :func:`rvdjax.loop.fly` (every run pays
+        every step, as in :meth:`gradient`): the forward side of the fair cost."""
+        loop, sp, req, ek = self.loop, self.sp, self.requirement, self.effort_key
+        disp, lay = self.dispersion, self.scenario.family_.layout
+        x0n, params = jnp.asarray(self.x0), self.params
+
+        def one(xi, key):
+            x0, p = disp.apply(xi, x0n, params, lay)
+            _, m = fly(loop, p, x0, key, sp)
+            return req.exact(m, ek)
+
+        return jax.jit(jax.vmap(one))
+
+    def _timed(self, fn, *args) -> float:
+        jax.block_until_ready(fn(*args))  # compiled (and warm) first
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        return time.perf_counter() - t0
+
+    def gradient_cost(self, n_grad: int = 8, seed: int = 12345) -> float:
+        """The cost of one gradient evaluation in forward evaluations, measured on the same
+        footing: the wall time of :meth:`gradient` on ``n_grad`` runs (rounded up to its
+        batch of a multiple of 8, so no padding is timed) over that of the same runs flown
+        forward the same way (``vmap`` of the loop, every run paying every step), both
+        compiled. At least 1. Cached per size."""
+        n = 8 * int(np.ceil(n_grad / 8))
+        if n not in self._costs:
+            xs = jnp.asarray(np.random.default_rng(seed).standard_normal((n, self.dim)))
+            keys = self.keys(n)
+            t_f = self._timed(self._fwd_vmap, xs, keys)
+            t_g = self._timed(self._vg, xs, keys)
+            self._costs[n] = max(1.0, t_g / max(t_f, 1e-12))
+        return self._costs[n]
+
+    def gradient_cost_engine(self, n_grad: int = 8, n_fwd: int = 64, seed: int = 12345) -> float:
+        """For comparison only: the gradient's wall time per run over the batch engine's
+        forward wall time per run (which refills finished slots, so a short run costs
+        less there than in a ``vmap``)."""
+        key = ("engine", 8 * int(np.ceil(n_grad / 8)), int(n_fwd))
         if key not in self._costs:
             rng = np.random.default_rng(seed)
             xf = rng.standard_normal((n_fwd, self.dim))
-            xg = rng.standard_normal((n_grad, self.dim))
+            xg = jnp.asarray(rng.standard_normal((key[1], self.dim)))
             self.forward(xf)
-            self.gradient(xg)
             t0 = time.perf_counter()
             self.forward(xf)
             t_f = (time.perf_counter() - t0) / n_fwd
-            t0 = time.perf_counter()
-            self.gradient(xg)
-            t_g = (time.perf_counter() - t0) / n_grad
-            self._costs[key] = max(1.0, t_g / max(t_f, 1e-12))
+            t_g = self._timed(self._vg, xg, self.keys(key[1])) / key[1]
+            self._costs[key] = t_g / max(t_f, 1e-12)
         return self._costs[key]
 
 

@@ -7,7 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["margin_curves", "failure_region", "probability_curves", "worst_runs"]
+__all__ = [
+    "margin_curves",
+    "failure_region",
+    "probability_curves",
+    "worst_runs",
+    "coverage_intervals",
+]
 
 
 def _plt():
@@ -124,3 +130,34 @@ def worst_runs(out_dir, pb, xis, runs) -> list[str]:
         fam.plot(path, pb.scenario, params, jax.tree.map(np.asarray, infos), title=f"run {run}")
         paths.append(path)
     return paths
+
+
+def coverage_intervals(path, cases: list[dict], title: str) -> None:
+    """Each case's seeded estimates with their 95 % intervals against its reference (a
+    panel per case: dicts with "label", "estimates" [{"p", "ci95"}], "reference" {"p",
+    "ci95"})."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.8), squeeze=False)
+    for ax, case in zip(axes[0], cases, strict=True):
+        est = case["estimates"]
+        ref = case["reference"]
+        x = np.arange(len(est))
+        p = np.array([e["p"] for e in est])
+        lo = np.array([e["ci95"][0] for e in est])
+        hi = np.array([e["ci95"][1] if np.isfinite(e["ci95"][1]) else np.nan for e in est])
+        hit = (lo <= ref["p"]) & (ref["p"] <= hi)
+        ax.axhspan(*ref["ci95"], color="0.85", label="reference, 95 %")
+        ax.axhline(ref["p"], color="k", lw=1.0)
+        for ok, color in ((True, "C0"), (False, "C3")):
+            sel = hit == ok
+            ax.errorbar(x[sel], p[sel], yerr=[p[sel] - lo[sel], hi[sel] - p[sel]], fmt="o",
+                        ms=3, color=color, lw=1, label="covers" if ok else "misses")  # fmt: skip
+        ax.set_yscale("log")
+        ax.set_xlabel("seed")
+        ax.set_title(f"{case['label']}: {hit.mean():.0%} cover", fontsize=9)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("P(failure)")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

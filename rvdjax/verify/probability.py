@@ -2,30 +2,24 @@
 
 * ``mc``: crude Monte Carlo, p = k / n, CoV sqrt((1 - p) / (n p)), 95 % Clopper-Pearson
   interval.
-* ``subset``: subset simulation (Au & Beck 2001, Probabilistic Engineering Mechanics 16:
-  263-277) with adaptive conditional sampling (Papaioannou, Betz, Zwirglmaier & Straub 2015,
-  Probabilistic Engineering Mechanics 41: 89-103). Level 0 draws ``level_size`` xi; each
-  level keeps the fraction p0 = 0.1 with the smallest margins as seeds and grows each seed
-  into a chain of 1 / p0 states, the chains flying side by side as one batch per chain step.
-  A candidate is rho xi + sigma z (z ~ N(0, I), rho = sqrt(1 - sigma^2): a move that keeps
-  N(0, I) invariant), accepted when its exact margin stays at or below the level's
-  threshold. sigma = min(1, lambda) is adapted after every chain step toward an acceptance
-  rate of 0.44 (lambda <- lambda exp((a - 0.44) / sqrt(step))), and lambda carries over to
-  the next level. (Component-wise modified Metropolis, tried first, stalled on thesis-vbar's
-  thin failure region: acceptance 0-3 %.) Estimate: p0^(L-1) times the failing fraction of
-  the last level. CoV: sqrt(sum_j (1 - p_j) / (N p_j) (1 + gamma_j)) with gamma_j from the
-  chains' indicator correlation (Au & Beck Eq. 29); 95 % interval from a lognormal with
-  that CoV.
+* ``subset``: subset simulation with adaptive conditional sampling (Papaioannou et al.
+  2015) as ``replicates`` independent runs side by side; the CoV is the replicates' empirical
+  standard error (:mod:`rvdjax.verify.subset`, which says why).
 * ``is``: importance sampling centred on the failure points of a design-point search
-  (:mod:`rvdjax.verify.worst`'s ``design-point``, 8 starts, its runs counted in the budget):
-  each start's smallest-norm failing point c_j is a centre, and xi is drawn from the defensive
+  (:mod:`rvdjax.verify.worst`'s ``design-point``, 8 starts from a stream of the estimate's
+  own, its runs counted in the budget): each start's smallest-norm failing point c_j is a
+  centre (a start that found none gives its lowest-margin point), and xi is drawn from the
+  defensive
   mixture q = a N(0, I) + (1 - a) / J sum_j N(c_j, I) with a = 0.2 (Hesterberg 1995; a
   failure region of several parts, e.g. one per approach side, is covered by the centres, and
   the N(0, I) share bounds the weights). Weight phi(xi) / q(xi) = 1 / (a + (1 - a) / J sum_j
   exp(c_j.xi - |c_j|^2 / 2)); p = mean(w 1[fail]), CoV from the sample variance, 95 %
   interval p +- 1.96 sd (clipped at 0).
 
-Every run goes through the :class:`~rvdjax.verify.store.EvalStore`, so an estimate resumes.
+Every estimate draws from a stream of its own: its seed, the method and the problem's
+definition hash (:meth:`~rvdjax.verify.evaluate.Problem.definition`), so two thresholds of
+one margin never share their draws. Every run goes through the
+:class:`~rvdjax.verify.store.EvalStore`, so an estimate resumes.
 ``runs_for_cov(0.3)`` scales the measured CoV to the runs a CoV of 0.3 needs (CoV^2 ~ 1 / n).
 """
 
@@ -40,13 +34,12 @@ from scipy import stats
 from rvdjax.verify.evaluate import Problem
 from rvdjax.verify.store import EvalStore
 
-__all__ = ["ProbabilitySpec", "estimate", "PROB_METHODS", "clopper_pearson", "P0"]
+__all__ = ["ProbabilitySpec", "estimate", "PROB_METHODS", "clopper_pearson"]
 
 PROB_METHODS = ("subset", "is", "mc")
-P0 = 0.1  # subset simulation's conditional probability per level
 IS_DESIGN_FRACTION = 0.2  # the share of the IS budget spent finding the design point
 IS_DEFENSIVE = 0.2  # the N(0, I) share of the importance-sampling mixture
-MAX_LEVELS = 12
+DEFAULT_REPLICATES = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,7 +49,10 @@ class ProbabilitySpec:
     Attributes:
         method: "subset", "is" or "mc".
         budget: closed-loop runs at most.
-        level_size: subset simulation's N per level (None: budget / 5, at least 100).
+        level_size: subset simulation's N per level and replicate (None: a quarter of a
+            replicate's share of the budget, at least 50).
+        replicates: subset simulation's independent replicates (>= 2: their spread is the
+            CoV).
         block: runs handed to the engine at once (mc, is).
         seed: the estimate's seed.
     """
@@ -64,6 +60,7 @@ class ProbabilitySpec:
     method: str = "subset"
     budget: int = 2000
     level_size: int | None = None
+    replicates: int = DEFAULT_REPLICATES
     block: int = 512
     seed: int = 0
 
@@ -74,19 +71,32 @@ class ProbabilitySpec:
             )
         if not (isinstance(self.budget, (int, np.integer)) and self.budget >= 1):
             raise ValueError(f"--budget must be an integer >= 1, got {self.budget!r}")
-        need = {"mc": 10, "subset": 100, "is": 50}[self.method]
+        if not (isinstance(self.replicates, (int, np.integer)) and self.replicates >= 2):
+            raise ValueError(f"--replicates must be an integer >= 2, got {self.replicates!r}")
+        need = {"mc": 10, "subset": 50 * self.replicates, "is": 50}[self.method]
         if self.budget < need:
             raise ValueError(f"--budget {self.budget}: {self.method} needs at least {need} runs")
-        if self.level_size is not None and not (100 <= self.level_size <= self.budget):
+        share = self.budget // self.replicates
+        if self.level_size is not None and not (50 <= self.level_size <= share):
             raise ValueError(
-                f"--level-size must be in [100, budget = {self.budget}], got {self.level_size}"
+                f"--level-size must be in [50, budget / replicates = {share}], got "
+                f"{self.level_size}"
             )
 
     @property
     def n_level(self) -> int:
         if self.level_size is not None:
             return int(self.level_size)
-        return int(max(100, min(self.budget, self.budget // 5)) // 10 * 10)
+        return int(max(50, self.budget // self.replicates // 4))
+
+
+def _stream(pb, spec: ProbabilitySpec, method_tag: int) -> list[int]:
+    """The entropy of one estimate's draws: seed, method and the problem's definition."""
+    from rvdjax import provenance
+
+    defn = getattr(pb, "definition", None)
+    h = int(provenance.digest(defn())[:8], 16) if callable(defn) else 0
+    return [int(spec.seed), method_tag, h]
 
 
 def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
@@ -125,7 +135,7 @@ def _result(method, p, cov, ci, runs, wall, **extra) -> dict:
 
 
 def _mc(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
-    rng = np.random.default_rng([spec.seed, 10])
+    rng = np.random.default_rng(_stream(pb, spec, 10))
     n, k = spec.budget, 0
     t0 = time.perf_counter()
     history = []
@@ -155,93 +165,12 @@ def _mc(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
 # ----------------------------------------------------------------------------- subset
 
 
-def _gamma(ind) -> float:
-    """Au & Beck Eq. 29: gamma from the failure indicators of the chains (Nc, Ns)."""
-    Nc, Ns = ind.shape
-    p = ind.mean()
-    var = p * (1 - p)
-    if var <= 0 or Ns < 2:
-        return 0.0
-    g = 0.0
-    for k in range(1, Ns):
-        r = np.mean(ind[:, : Ns - k] * ind[:, k:]) - p * p
-        g += 2 * (1 - k / Ns) * (r / var)
-    return float(max(g, 0.0))
-
-
 def _subset(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
-    rng = np.random.default_rng([spec.seed, 20])
-    N, d = spec.n_level, pb.dim
-    Nc = int(round(P0 * N))
-    Ns = int(round(1 / P0))
-    t0 = time.perf_counter()
-    xs = rng.standard_normal((N, d))
-    g = np.asarray(store.evaluate("subset-L0", "subset", xs, pb.forward)["margin"])
-    runs = N
-    if bar is not None:
-        bar.update(N)
-    lam = 0.6  # sigma = min(1, lam): adapted toward an acceptance of 0.44, kept across levels
-    levels, delta2 = [], 0.0
-    p_prod = 1.0
-    prev = None  # (Nc, Ns) margins of the previous level's chains (None: level 0, i.i.d.)
-    converged = False
-    for level in range(1, MAX_LEVELS + 1):
-        order = np.argsort(g, kind="stable")
-        b = float(g[order[Nc - 1]])
-        converged = b <= 0  # the level's threshold reached the failure domain
-        if converged or runs + N - Nc > spec.budget:
-            break
-        # this level's conditional probability is P0 by construction
-        p_j = P0
-        p_prod *= p_j
-        gam = 0.0 if prev is None else _gamma(prev <= b)
-        delta2 += (1 - p_j) / (N * p_j) * (1 + gam)
-        levels.append({"threshold": b, "gamma": gam})
-        seeds_x, seeds_g = xs[order[:Nc]], g[order[:Nc]]
-        chain_x = [seeds_x]
-        chain_g = [seeds_g]
-        cur_x, cur_g = seeds_x.copy(), seeds_g.copy()
-        accepted = 0
-        for step in range(1, Ns):
-            sigma = min(1.0, lam)
-            rho = np.sqrt(1.0 - sigma * sigma)
-            cand = rho * cur_x + sigma * rng.standard_normal(cur_x.shape)
-            res = store.evaluate(f"subset-L{level}-s{step}", "subset", cand, pb.forward)
-            gc = np.asarray(res["margin"])
-            runs += len(cand)
-            if bar is not None:
-                bar.update(len(cand))
-            ok = gc <= b
-            accepted += int(ok.sum())
-            lam = float(np.clip(lam * np.exp((ok.mean() - 0.44) / np.sqrt(step)), 1e-3, 1.0))
-            cur_x = np.where(ok[:, None], cand, cur_x)
-            cur_g = np.where(ok, gc, cur_g)
-            chain_x.append(cur_x.copy())
-            chain_g.append(cur_g.copy())
-        levels[-1]["acceptance"] = accepted / max(1, Nc * (Ns - 1))
-        levels[-1]["sigma"] = min(1.0, lam)
-        xs = np.concatenate(chain_x)  # (N, d): seeds first, then each step's states
-        g = np.concatenate(chain_g)
-        prev = np.stack(chain_g, axis=1)
-    # last level: the fraction below 0 of the current population
-    k = int(np.sum(g < 0))
-    p_last = k / N
-    if p_last > 0:
-        gam = 0.0 if prev is None else _gamma(prev < 0)
-        delta2 += (1 - p_last) / (N * p_last) * (1 + gam)
-    p = p_prod * p_last
-    cov = float(np.sqrt(delta2)) if p > 0 else float("inf")
-    return _result(
-        "subset",
-        p,
-        cov,
-        _lognormal_ci(p, cov),
-        runs,
-        time.perf_counter() - t0,
-        level_size=N,
-        levels=levels,
-        converged=converged,
-    )
+    from rvdjax.verify.subset import subset_simulation
+
+    res = subset_simulation(pb, spec, store, bar, _stream(pb, spec, 20))
+    return _result("subset", res.pop("p"), res.pop("cov"), res.pop("ci95"), res.pop("runs"),
+                   res.pop("wall_s"), **res)  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- IS
@@ -253,32 +182,27 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
     t0 = time.perf_counter()
     dp_budget = max(1, int(IS_DESIGN_FRACTION * spec.budget))
     starts = 8
+    seed = int(np.random.default_rng(_stream(pb, spec, 31)).integers(2**31))
     sspec = SearchSpec(
         methods=("design-point",),
         budget=max(1, dp_budget // starts),
         repeats=starts,
-        seed=spec.seed,
-        lr=1.0,
+        starts=1,
+        seed=seed,
     )
     tr = search(pb, sspec, store, progress=False)["design-point"]
     dp = tr.extra.get("design_point")
-    centres = np.asarray(tr.extra.get("failure_points") or [], float).reshape(-1, pb.dim)
+    # a centre per start: its smallest-norm failing point, else its lowest-margin point (the
+    # estimate is unbiased for any centres: the N(0, I) share keeps the support whole)
+    centres = np.asarray(tr.worst_xi, float).copy()
+    fails = tr.extra.get("failure_starts") or []
+    for r, x in zip(fails, tr.extra.get("failure_points") or [], strict=True):
+        centres[r] = x
     dp_runs = int(np.ceil(sum(float(e[-1]) for e in tr.evals)))
     if bar is not None:
         bar.update(dp_runs)
-    if dp is None:
-        return _result(
-            "is",
-            float("nan"),
-            float("inf"),
-            (float("nan"), float("nan")),
-            dp_runs,
-            time.perf_counter() - t0,
-            note="the design-point search found no failure: no centre for importance sampling",
-        )
-    c = np.asarray(dp, float)
     J = len(centres)
-    rng = np.random.default_rng([spec.seed, 30])
+    rng = np.random.default_rng(_stream(pb, spec, 30))
     n = max(1, spec.budget - dp_runs)
     terms = []
     history = []
@@ -308,9 +232,10 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
         (max(0.0, p - 1.96 * sd), p + 1.96 * sd),
         dp_runs + len(t),
         time.perf_counter() - t0,
-        design_point=[float(v) for v in c],
-        design_point_norm=float(np.linalg.norm(c)),
+        design_point=None if dp is None else [float(v) for v in dp],
+        design_point_norm=None if dp is None else float(np.linalg.norm(dp)),
         centres=int(J),
+        centres_failing=len(fails),
         design_point_runs=dp_runs,
         fixed_runs=dp_runs,
         history=history,

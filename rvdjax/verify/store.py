@@ -9,30 +9,42 @@ evaluations), and the run's main figures.
 Every method is deterministic given its seed, so a resumed method asks for the same batches
 in the same order: :meth:`EvalStore.evaluate` returns a batch found on disk (after checking
 that its xi are the ones asked for) instead of flying it again.
+
+``DIR/provenance.json`` (:mod:`rvdjax.provenance`) holds the definition of the runs (the
+problem's scenario values, parameters, loop, solver, requirement and dispersion) and the code
+and machine that flew them. A store opened with another definition stops with one line naming
+what differs, and one opened by another code version stops unless ``allow_code_change``; every
+row carries ``provenance`` (the environment that flew it) and ``code_changed``.
 """
 
 from __future__ import annotations
 
 import json
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from rvdjax import provenance
 from rvdjax.study.table import _atomic_write_bytes
 
-__all__ = ["EvalStore", "read_evals", "CONFIG", "EVALS"]
+__all__ = ["EvalStore", "read_evals", "CONFIG", "EVALS", "PROVENANCE"]
 
 CONFIG = "config.json"
 EVALS = "evals"
+PROVENANCE = "provenance.json"
 
 
-def _rows(key: str, method: str, first_run: int, xis, res: dict, effort_key: str) -> list[dict]:
+def _rows(
+    key: str, method: str, first_run: int, xis, res: dict, effort_key: str, marks: dict
+) -> list[dict]:
     m = res.get("metrics")
     rows = []
     for i in range(len(xis)):
         row = {
+            **marks,
             "run": first_run + i,
             "batch": key,
             "row": i,
@@ -42,6 +54,9 @@ def _rows(key: str, method: str, first_run: int, xis, res: dict, effort_key: str
             "smooth": float(res["smooth"][i]) if "smooth" in res else None,
             "grad": [float(v) for v in res["grad"][i]] if "grad" in res else None,
         }
+        if "zeroed" in res:  # gradient evaluations: what was zeroed, counted
+            row["zeroed_backsolves"] = int(res["zeroed"][i])
+            row["nonfinite_gradient"] = bool(res["nonfinite"][i])
         if m is not None:
             row.update(
                 docked=bool(m.docked[i]),
@@ -56,29 +71,63 @@ def _rows(key: str, method: str, first_run: int, xis, res: dict, effort_key: str
 
 
 class EvalStore:
-    """Evaluations of one verification directory (or in memory when ``out`` is None)."""
+    """Evaluations of one verification directory (or in memory when ``out`` is None).
 
-    def __init__(self, out=None, effort_key: str = "delta_v_m_s"):
+    ``definition``: what defines the runs (:meth:`~rvdjax.verify.evaluate.Problem.definition`,
+    plus whatever else the caller's batches depend on); required for a directory. A directory
+    holding another definition, or flown by another code version without
+    ``allow_code_change``, raises :class:`~rvdjax.provenance.ProvenanceError` (one line)."""
+
+    def __init__(
+        self,
+        out=None,
+        effort_key: str = "delta_v_m_s",
+        definition: dict | None = None,
+        allow_code_change: bool = False,
+    ):
         self.out = None if out is None else Path(out)
         self.effort_key = effort_key
         self.batches: dict[str, dict] = {}
         self.next_run = 0
         self.seq = 0
+        self.block: dict | None = None
+        self.marks: dict = {}
+        self.used: Counter = Counter()  # rows handed out, by the environment that flew them
         if self.out is not None:
+            if definition is None:
+                raise ValueError(f"{self.out}: a store on disk needs its runs' definition")
             (self.out / EVALS).mkdir(parents=True, exist_ok=True)
             parts = sorted((self.out / EVALS).glob("part-*.parquet"))
+            path = self.out / PROVENANCE
+            stored = json.loads(path.read_text()) if path.exists() else ({} if parts else None)
+            self.block = provenance.stamp(
+                stored, definition, allow_code_change=allow_code_change, where=str(self.out)
+            )
+            write_json(path, self.block)
+            self.marks = provenance.row_marks(self.block)
             self.seq = len(parts)
             for p in parts:
                 df = pq.read_table(p).to_pandas()
+                if "provenance" not in df:
+                    df["provenance"] = "unrecorded"
                 for key, g in df.groupby("batch", sort=False):
                     g = g.sort_values("row")
                     self.batches[key] = {
+                        "env": g["provenance"].to_numpy(str),
                         "run": g["run"].to_numpy(),
                         "xi": np.stack(g["xi"].to_numpy()),
                         "margin": g["margin"].to_numpy(float),
                         "smooth": g["smooth"].to_numpy(float),
                         "grad": (
                             np.stack(g["grad"].to_numpy()) if g["grad"].notna().all() else None
+                        ),
+                        **(
+                            {
+                                "zeroed": g["zeroed_backsolves"].to_numpy(int),
+                                "nonfinite": g["nonfinite_gradient"].to_numpy(bool),
+                            }
+                            if "zeroed_backsolves" in g and g["zeroed_backsolves"].notna().all()
+                            else {}
                         ),
                     }
                     self.next_run = max(self.next_run, int(g["run"].max()) + 1)
@@ -97,16 +146,20 @@ class EvalStore:
                     f"{self.out}: batch {key} on disk was flown at other points; this directory "
                     "holds a different verification (choose another --out)"
                 )
+            self.used.update(b["env"].tolist())
             out = {"margin": b["margin"], "run": b["run"], "xi": xis}
             if not np.all(np.isnan(b["smooth"])):
                 out["smooth"] = b["smooth"]
             if b["grad"] is not None:
                 out["grad"] = b["grad"]
+            for k in ("zeroed", "nonfinite"):
+                if k in b:
+                    out[k] = b[k]
             return out
         res = fn(xis)
         first = self.next_run
         self.next_run += len(xis)
-        rows = _rows(key, method, first, xis, res, self.effort_key)
+        rows = _rows(key, method, first, xis, res, self.effort_key, self.marks)
         if self.out is not None:
             table = pa.Table.from_pylist(rows)
             sink = pa.BufferOutputStream()
@@ -117,14 +170,32 @@ class EvalStore:
         out = {k: v for k, v in res.items() if k != "metrics"}
         out["run"] = np.arange(first, first + len(xis))
         out["xi"] = xis
+        env = self.marks.get("provenance", "memory")
+        self.used[env] += len(xis)
         self.batches[key] = {
+            "env": np.full(len(xis), env),
             "run": out["run"],
             "xi": xis,
             "margin": np.asarray(res["margin"], float),
             "smooth": np.asarray(res.get("smooth", np.full(len(xis), np.nan)), float),
             "grad": res.get("grad"),
+            **{k: np.asarray(res[k]) for k in ("zeroed", "nonfinite") if k in res},
         }
         return out
+
+    def provenance_summary(self) -> dict | None:
+        """The directory's provenance with the rows this store handed out, by environment
+        (None in memory)."""
+        if self.block is None:
+            return None
+        envs = self.block["environments"]
+        first = provenance.code_identity(envs[self.block["first"]])
+        changed = sum(
+            n
+            for e, n in self.used.items()
+            if e not in envs or provenance.code_identity(envs[e]) != first
+        )
+        return {**self.block, "rows_used": dict(self.used), "rows_code_changed": changed}
 
 
 def read_evals(out):

@@ -1,24 +1,34 @@
-"""Worst-case search over the dispersions: gradient descent on the smooth margin against
+"""Worst-case search over the dispersions: gradient steps on the smooth margin against
 derivative-free baselines, at the same budget of closed-loop evaluations.
 
 Methods (every repeat is seeded; the repeats of a method fly as one batch):
 
-* ``gradient``: multi-start Adam (optax) on the smooth margin over xi, projected onto the
-  search region (a ball of radius k or the box [-k, k]^d in xi). Every iterate is judged by
-  its exact margin. A gradient evaluation costs :meth:`Problem.gradient_cost` forward
-  evaluations (measured in the same run), and is counted so.
-* ``design-point``: the most probable failure point, FORM's design point: the smallest ||xi||
-  with an exact margin <= 0. Adam descends the smooth margin until a start fails, then
-  minimises ||xi||^2 / 2 + w max(0, smooth + delta) from there (w and delta stated).
+* ``gradient``: ``starts`` points per repeat (drawn from N(0, I)), all repeats' starts in
+  one gradient batch. At each start the smooth margin's gradient gives a direction d (unit,
+  in standard deviations); one forward batch then judges, by the exact margin, the points
+  xi + a d for a line-search ladder a = step x (0.5, 1, 2, 4) (scaled per start: doubled
+  after a success, halved after a failed search) and the HL-RF point, where the linear model
+  of the exact margin m with the smooth slope |g| crosses below zero (a = 1.05 m / |g|). The
+  start moves to its best candidate when that improves its exact margin. An iteration costs
+  ``starts`` x (gradient cost + ladder + 1) forward evaluations per repeat.
+* ``design-point``: the most probable failure point (FORM's design point) by improved HL-RF
+  iterations (Zhang & Der Kiureghian 1995) on the same linearisation (the exact margin's
+  value, the smooth margin's gradient), with a batched line search on the merit
+  |xi|^2 / 2 + c |m|. Every start's smallest-norm failing point is kept.
 * ``random``: xi drawn from the dispersion (N(0, I), kept in the region): crude Monte Carlo.
 * ``lhs``: a Latin hypercube of the budget's size per repeat (scipy.stats.qmc), mapped
   through the normal quantile.
 * ``cma-es``: CMA-ES (the ``cma`` package) on the exact margin, population lambda.
 
+A gradient evaluation is counted at its measured cost (:meth:`Problem.gradient_cost`): its
+wall time per run over that of the same runs flown forward in the same way (a ``vmap`` of
+the loop in which every run pays every step, as the gradient does). Zeroed back-solves and
+non-finite gradients are counted and reported.
+
 ARCH-COMP's figures: the *falsification rate* is the fraction of repeats that found a
 violation (exact margin < 0); *evaluations* are the forward evaluations spent up to and
 including the one that found it (a batch counts whole: a CMA-ES generation, a gradient
-iteration of every start of a repeat).
+iteration or a line search of every start of a repeat).
 """
 
 from __future__ import annotations
@@ -34,7 +44,7 @@ from rvdjax.verify.store import EvalStore
 __all__ = ["SearchSpec", "search", "METHODS", "project"]
 
 METHODS = ("gradient", "random", "lhs", "cma-es", "design-point")
-DESIGN_WEIGHT = 10.0  # w of the design-point objective (per unit of the smooth margin)
+TAIL = 1e-6  # the default search region leaves out this much of N(0, I)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,9 +55,13 @@ class SearchSpec:
         methods: the methods flown (:data:`METHODS`).
         budget: forward evaluations per repeat and method.
         repeats: seeded repeats of every method.
-        region: "ball" or "box"; radius: its k (in standard deviations).
+        region: "ball" or "box"; radius: its k (in standard deviations; None: the radius
+            of the ball that holds all but 1e-6 of N(0, I) in the dispersion's dimension,
+            sqrt(chi2.ppf(1 - 1e-6, d)): 6.0 for 5 coordinates, 18.9 for 240).
         starts: gradient starts per repeat.
-        lr: Adam's step size on xi (standard deviations).
+        step: the line search's base step [sigma]: the ladder is step x (0.5, 1, 2, ...),
+            scaled per start (doubled after a success, halved after a failed search).
+        ladder: line-search steps per start and iteration (plus the HL-RF point).
         popsize: CMA-ES population.
         seed: the first repeat's seed (repeat r uses seed + r).
         gradient_cost: forward evaluations a gradient evaluation counts for (None: measured
@@ -58,9 +72,10 @@ class SearchSpec:
     budget: int = 100
     repeats: int = 20
     region: str = "ball"
-    radius: float = 5.0
-    starts: int = 1
-    lr: float = 2.0
+    radius: float | None = None
+    starts: int = 2
+    step: float = 1.0
+    ladder: int = 4
     popsize: int = 8
     seed: int = 0
     gradient_cost: float | None = None
@@ -72,24 +87,29 @@ class SearchSpec:
                 raise ValueError(f"--methods: unknown method {m!r}; allowed: {', '.join(METHODS)}")
         if self.region not in ("ball", "box"):
             raise ValueError(f"--region must be ball or box, got {self.region!r}")
-        if not (0 < self.radius < float("inf")):
+        if self.radius is not None and not (0 < self.radius < float("inf")):
             raise ValueError(f"--radius must be > 0 (standard deviations), got {self.radius}")
-        for name in ("repeats", "starts", "popsize"):
+
+    def resolved(self, dim: int) -> SearchSpec:
+        """The spec with its region's radius for ``dim`` coordinates (module docstring): a
+        ball of radius 5 holds almost none of N(0, I) in 240 dimensions, where draws lie
+        near sqrt(240) = 15.5."""
+        if self.radius is not None:
+            return self
+        from scipy.stats import chi2
+
+        return dataclasses.replace(self, radius=float(np.sqrt(chi2.ppf(1 - TAIL, dim))))
+        for name in ("repeats", "starts", "popsize", "ladder"):
             v = getattr(self, name)
             if not (isinstance(v, (int, np.integer)) and v >= 1):
                 raise ValueError(f"--{name} must be an integer >= 1, got {v!r}")
-        if not (0 < self.lr < float("inf")):
-            raise ValueError(f"--lr must be > 0, got {self.lr}")
+        if not (0 < self.step < float("inf")):
+            raise ValueError(f"--step must be > 0 (standard deviations), got {self.step}")
 
     def check_budget(self, gradient_cost: float = 1.0) -> None:
         """ValueError when the budget cannot hold one round of every method."""
-        need = {
-            "random": 1,
-            "lhs": 2,
-            "cma-es": self.popsize,
-            "gradient": int(np.ceil(self.starts * gradient_cost)),
-            "design-point": int(np.ceil(self.starts * gradient_cost)),
-        }
+        one = int(np.ceil(self.starts * (gradient_cost + self.ladder + 1)))
+        need = {"random": 1, "lhs": 2, "cma-es": self.popsize, "gradient": one, "design-point": one}
         for m in self.methods:
             if self.budget < need[m]:
                 raise ValueError(
@@ -242,14 +262,27 @@ def _cma(pb: Problem, spec: SearchSpec, store: EvalStore, bar) -> Trace:
     return tr.trace(time.perf_counter() - t0)
 
 
-def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar) -> Trace:
-    import optax
+def _directions(g, rng):
+    """Unit descent directions -g/|g| (rows); a zero or non-finite gradient gets a random
+    direction (counted by the caller)."""
+    n = np.linalg.norm(g, axis=1, keepdims=True)
+    ok = np.isfinite(n) & (n > 0)
+    rand = rng.standard_normal(g.shape)
+    rand /= np.linalg.norm(rand, axis=1, keepdims=True)
+    return np.where(ok, -g / np.where(ok, n, 1.0), rand), n[:, 0], ok[:, 0]
 
+
+def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar) -> Trace:
+    """Multi-start descent in units of sigma (module docstring): a gradient batch at every
+    start, then one forward batch of candidates per start (the line-search ladder and the
+    HL-RF point for ``gradient``; the iHL-RF line search for ``design-point``); each start
+    moves to its best candidate."""
     R, d, K = spec.repeats, pb.dim, spec.starts
-    # the forward side at the batch size the sampling baselines fly
-    n_fwd = min(max(1, 256 // R) * R, R * spec.budget)
-    cost = spec.gradient_cost or pb.gradient_cost(R * K, n_fwd)
-    iters = max(1, int(spec.budget // (K * cost)))
+    cost = spec.gradient_cost or pb.gradient_cost(R * K)
+    L = spec.ladder
+    per_iter = K * (cost + L + 1)  # forward evaluations per repeat and iteration
+    iters = max(1, int(spec.budget // per_iter))
+    rng = np.random.default_rng([spec.seed, 3])
     xi = np.stack(
         [
             project(
@@ -260,41 +293,78 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
             for r in range(R)
         ]
     ).reshape(R * K, d)
-    opt = optax.adam(spec.lr)
-    state = opt.init(xi)
+    ladder = spec.step * 2.0 ** np.arange(-1, L - 1)  # e.g. 0.5, 1, 2, 4 sigma
+    trust = np.ones(R * K)  # per start: the ladder's scale (halved after a failed search)
     tr = _Tracker(R, d)
-    found = np.zeros(R * K, bool)
     best_norm = np.full(R, np.inf)
     best_dp = np.full((R, d), np.nan)
+    counts = {"zeroed_backsolves": 0, "nonfinite_gradients": 0, "random_directions": 0}
     t0 = time.perf_counter()
+
+    def note_failures(xs, ms, per: int):
+        """Keep each repeat's smallest-norm failing point (``per`` points a repeat)."""
+        for j in np.flatnonzero(ms < 0):
+            r = j // per
+            nj = float(np.linalg.norm(xs[j]))
+            if nj < best_norm[r]:
+                best_norm[r], best_dp[r] = nj, xs[j]
+
     for it in range(iters):
         res = store.evaluate(f"{method}-{it}", method, xi, pb.gradient)
-        m, s, g = res["margin"], res["smooth"], res["grad"]
+        m, g = np.asarray(res["margin"], float), np.asarray(res["grad"], float)
+        counts["zeroed_backsolves"] += int(np.sum(res.get("zeroed", 0)))
+        counts["nonfinite_gradients"] += int(np.sum(res.get("nonfinite", 0)))
         for r, part in enumerate(_split(res, [K] * R)):
             tr.add(r, K * cost, part["margin"], part["xi"], part["run"])
-        if method == "design-point":
-            fail = m <= 0
-            found |= fail
-            norms = np.linalg.norm(xi, axis=1)
-            for j in np.flatnonzero(fail):
-                r = j // K
-                if norms[j] < best_norm[r]:
-                    best_norm[r], best_dp[r] = norms[j], xi[j]
-            # before a failure: descend the margin; after: shrink ||xi|| along the boundary
-            delta = 0.01 * np.maximum(np.abs(s), 1e-9)
-            pen = np.where(s + delta > 0, DESIGN_WEIGHT, 0.0)[:, None] * g
-            grad = np.where(found[:, None], xi + pen, g)
+        note_failures(xi, m, K)
+        dirn, gnorm, ok = _directions(g, rng)
+        counts["random_directions"] += int(np.sum(~ok))
+        slope = np.where(ok, gnorm, 1.0)
+        if method == "gradient":
+            # along the smooth margin's descent direction: a ladder of steps in sigma (scaled
+            # per start) and the HL-RF point, where the linear model of the exact margin m
+            # with the smooth slope |g| crosses below 0
+            steps = ladder[None, :] * trust[:, None]
+            hl = np.clip((m + 0.05 * np.abs(m) + 1e-12) / slope, 0.0, 2 * spec.radius)
+            steps = np.concatenate([steps, hl[:, None]], axis=1)  # (S, L + 1)
+            cand = xi[:, None, :] + steps[:, :, None] * dirn[:, None, :]
         else:
-            grad = g
-        upd, state = opt.update(grad, state, xi)
-        xi = project(np.asarray(optax.apply_updates(xi, upd)), spec.region, spec.radius)
+            # iHL-RF (Zhang & Der Kiureghian 1995): the HL-RF point of the linearisation
+            # (exact value m, smooth gradient) and a line search toward it
+            gu = -dirn * slope[:, None]  # the gradient (a random one where it failed)
+            target = ((np.sum(gu * xi, axis=1) - m) / slope**2)[:, None] * gu
+            lam = np.concatenate([[1.0], 0.5 ** np.arange(1, L + 1)])
+            cand = xi[:, None, :] + lam[None, :, None] * (target - xi)[:, None, :]
+        cand = project(cand.reshape(-1, d), spec.region, spec.radius)
+        res_c = store.evaluate(f"{method}-{it}-line", method, cand, pb.forward)
+        mc = np.asarray(res_c["margin"], float).reshape(R * K, L + 1)
+        cand = cand.reshape(R * K, L + 1, d)
+        for r, part in enumerate(_split(res_c, [K * (L + 1)] * R)):
+            tr.add(r, K * (L + 1), part["margin"], part["xi"], part["run"])
+        note_failures(cand.reshape(-1, d), mc.reshape(-1), K * (L + 1))
+        if method == "gradient":
+            j = np.argmin(mc, axis=1)
+            better = mc[np.arange(R * K), j] < m
+        else:
+            # merit 1/2 |xi|^2 + c |m| (c from the slope: a unit of margin costs 1/|g| sigma)
+            c = (np.linalg.norm(xi, axis=1) / slope + 1.0)[:, None]
+            merit = 0.5 * np.sum(cand**2, axis=2) + c * np.abs(mc)
+            now = 0.5 * np.sum(xi**2, axis=1) + c[:, 0] * np.abs(m)
+            j = np.argmin(merit, axis=1)
+            better = merit[np.arange(R * K), j] < now
+        xi = np.where(better[:, None], cand[np.arange(R * K), j], xi)
+        trust = np.where(better, np.minimum(trust * (2.0 if method == "gradient" else 1.0), 4.0),
+                         trust * 0.5)  # fmt: skip
         if bar is not None:
-            bar.update(int(np.ceil(R * K * cost)))
-    extra = {"gradient_cost": cost, "iterations": iters}
+            bar.update(int(np.ceil(R * per_iter)))
+    extra = {"gradient_cost": cost, "iterations": iters, **counts}
+    if hasattr(pb, "gradient_cost_engine"):
+        extra["gradient_cost_vs_engine"] = pb.gradient_cost_engine(R * K)
     if method == "design-point":
         ok = np.isfinite(best_norm)
         extra["design_point_norm"] = float(np.min(best_norm)) if ok.any() else None
         extra["failure_points"] = [[float(v) for v in best_dp[r]] for r in np.flatnonzero(ok)]
+        extra["failure_starts"] = [int(r) for r in np.flatnonzero(ok)]
         extra["design_point"] = (
             [float(v) for v in best_dp[int(np.argmin(best_norm))]] if ok.any() else None
         )
@@ -304,6 +374,7 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
 def search(pb: Problem, spec: SearchSpec, store: EvalStore | None = None, progress=True) -> dict:
     """Fly the search's methods; return {method: Trace}."""
     store = EvalStore(None, pb.effort_key) if store is None else store
+    spec = spec.resolved(pb.dim)
     out = {}
     for method in spec.methods:
         bar = None
