@@ -765,7 +765,7 @@ def cmd_study(args) -> int:
 
     check_dir(args.out, "--out")  # proven writable before flying; created after
     check_dir(args.plots, "--plots")
-    index, count = _distributed(args)
+    index, count = args.processes
     if count > 1 or copy is not None:  # process 0 checks --out, writes the configuration
         from rvdjax.study.runner import prepare_out  # (and the scenario file's copy) first
 
@@ -1188,6 +1188,9 @@ def main(argv=None) -> int:
             f"--xla_force_host_platform_device_count={devices} " + os.environ.get("XLA_FLAGS", "")
         ).strip()
     try:
+        # jax.distributed must start before anything else touches JAX (the device choice
+        # below does)
+        args.processes = _distributed(args) if getattr(args, "coordinator", None) else (0, 1)
         from rvdjax import devices as _devices
 
         with _devices.placed(args.device, COMMAND_WORK.get(args.command, "single")) as dev:

@@ -24,8 +24,8 @@ WORK = ("single", "batch")
 def _platform_devices(platform: str):
     import jax
 
-    try:
-        return jax.devices(platform)
+    try:  # this process's devices (under jax.distributed, jax.devices() lists every host's)
+        return jax.local_devices(backend=platform)
     except RuntimeError:  # JAX raises RuntimeError for a backend it does not have
         return []
 
@@ -59,7 +59,7 @@ def resolve(choice: str = "auto", work: Literal["single", "batch"] = "single"):
         return gpus[0]
     if choice == "cpu" or work == "single":
         return _platform_devices("cpu")[0]
-    return jax.devices()[0]
+    return jax.local_devices()[0]
 
 
 def describe(device) -> str:

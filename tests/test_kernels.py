@@ -5,6 +5,7 @@ and no loop over stages is left in the iteration."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -146,16 +147,17 @@ def _cuda_text(fn, *args):
     [
         # accurate: factorisation + predictor, corrector, refinement; loops: the solve, the
         # start's drift of the warm-start inputs
-        (SolverSettings(), 3, 2),
+        (SolverSettings(kernel="pallas"), 3, 2),
         # paper: factorisation + step; loops: the solve, the drift, the line search
-        (SolverSettings.paper(), 1, 3),
+        (SolverSettings.paper(kernel="pallas"), 1, 3),
     ],
 )
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
-    a batched and an unbatched solve hold the Riccati sweeps as ``kernels`` Triton kernels
-    and no loop over stages beyond the solve loop, the start's drift and (paper mode) the
-    line search; compiled for the CPU the same program keeps XLA's loops."""
+    a batched and an unbatched solve with ``kernel="pallas"`` hold the Riccati sweeps as
+    ``kernels`` Triton kernels and no loop over stages beyond the solve loop, the start's
+    drift and (paper mode) the line search; for the CPU the same program has no Triton
+    kernel, and the default ``kernel="auto"`` keeps XLA's loops on a GPU."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
@@ -165,3 +167,7 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops):
         assert text.count("stablehlo.while") == loops
     cpu = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu and cpu.count("stablehlo.while") > loops
+    # the default stays on XLA's loops on a GPU (the kernels' compile there, docs/solver.md)
+    default = dataclasses.replace(settings, kernel="auto")
+    gpu_default = _cuda_text(jax.vmap(lambda o: solve(o, default)), ocps)
+    assert "triton" not in gpu_default and gpu_default.count("stablehlo.while") > loops

@@ -1058,7 +1058,7 @@ def run_stream(
     segment = _build(loop, cfg, source_fn)
     pack = _compact_jit(cfg)
     ticks = jnp.asarray(cfg.ticks_per_segment, jnp.int32)
-    upcoming = _next_block(blocks, block.stop, end)
+    upcoming = _next_block(blocks, block.stop, end, n_runs)
     collected_idx, collected = [], []
     done = 0
     host = 0.0
@@ -1102,7 +1102,7 @@ def run_stream(
             limit = _block_limit(cfg, block, lane_counts, n_runs)
             handed_out = _handed_out(cfg, next_seq, limit)
             if handed_out and upcoming is not None:
-                block, upcoming = upcoming, _next_block(blocks, upcoming.stop, end)
+                block, upcoming = upcoming, _next_block(blocks, upcoming.stop, end, n_runs)
                 data = put(block.data)
             if handed_out and upcoming is None and cfg.n_chunks > 1:
                 engs = [pack(e) for e in engs]
@@ -1161,10 +1161,14 @@ def _pad(a, size: int):
     return np.concatenate([a, np.zeros(size - len(a), a.dtype)])
 
 
-def _next_block(blocks: Iterator[Block], stop: int, end: int) -> Block | None:
+def _next_block(blocks: Iterator[Block], stop: int, end: int, n_runs: int) -> Block | None:
     if stop >= end:
         return None
     nxt = next(blocks, None)
+    if nxt is None and stop >= n_runs:
+        # the default lanes (run i in lane i mod chunk) leave every position past n_runs
+        # empty: a queue of one block of n_runs entries is complete
+        return None
     if nxt is None or nxt.start != stop:
         raise ValueError(f"the blocks of a queue must be contiguous: a block starting at {stop}")
     return nxt

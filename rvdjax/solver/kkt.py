@@ -342,14 +342,19 @@ def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
 
 
 def _by_platform(kernel: str, xla, pallas, *args):
-    """``xla(*args)`` or ``pallas(interpret, *args)`` by the platform the program is compiled
-    for: "auto" runs the kernels on a CUDA GPU and XLA elsewhere (today's CPU path is the
-    faster one there, docs/benchmark.md), "pallas" runs the kernels everywhere (interpreted
-    off the GPU: the tests), "xla" never."""
-    if kernel == "xla":
+    """``xla(*args)`` or ``pallas(interpret, *args)``: "auto" and "xla" run XLA's loops on
+    every platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted
+    elsewhere (the tests).
+
+    "auto" stays on XLA's loops on a GPU too: on one H100 (jax 0.11.2, CUDA 13, 2026-11-26)
+    Triton did not finish compiling the paper-mode kernel within 165 s (XLA's slow-compile
+    alarm), against 5 s for the XLA program (docs/benchmark.md). The kernels are opt-in until
+    they compile in seconds."""
+    if kernel != "pallas":
         return xla(*args)
-    off_gpu = xla if kernel == "auto" else functools.partial(pallas, True)
-    return lax.platform_dependent(*args, cuda=functools.partial(pallas, False), default=off_gpu)
+    return lax.platform_dependent(
+        *args, cuda=functools.partial(pallas, False), default=functools.partial(pallas, True)
+    )
 
 
 # op: (unbatched XLA form, XLA vmap rule, kernels' vmap rule); a rule returns (out, flags)
@@ -429,8 +434,8 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" (the GPU kernels of :mod:`rvdjax.solver.lanes` on a CUDA GPU, XLA
-            elsewhere), "xla" or "pallas" (the kernels everywhere; interpreted off the GPU).
+        kernel: "auto" or "xla" (XLA's loops) or "pallas" (the kernels of
+            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere).
     """
     _check_kernel(kernel)
     return _batched("factor", kernel)(A, B, Phi_u, Phi_x)

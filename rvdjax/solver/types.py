@@ -76,11 +76,12 @@ class SolverSettings:
             inputs that follow the warm start's states from the new x0 (the LQR correction
             with the OCP's own Q, R; one extra Riccati solve). docs/reproduction.md gives the
             measurements behind the default.
-        kernel: how the Riccati sweeps of the Newton step run. "auto" (default): one GPU
-            kernel per sweep (:mod:`rvdjax.solver.lanes`) when the program is compiled for a
-            CUDA GPU, XLA's loops elsewhere (the CPU's faster path); "xla": XLA's loops
-            everywhere; "pallas": the GPU kernels everywhere, interpreted off the GPU (the
-            tests check them there). The three give the same iterates to rounding.
+        kernel: how the Riccati sweeps of the Newton step run. "auto" (default) and "xla":
+            XLA's loops; "pallas": one kernel per sweep (:mod:`rvdjax.solver.lanes`),
+            compiled for a CUDA GPU and interpreted elsewhere (the tests check them there).
+            They give the same iterates to rounding. "auto" does not pick the kernels on a
+            GPU yet: Triton's compile of them did not finish in 165 s on an H100
+            (docs/solver.md).
     """
 
     mode: str = "accurate"

@@ -474,7 +474,10 @@ class _GroupQueue:
         if self.per_point:
             local = {p: k for k, p in enumerate(self.point_ids)}
             points = jnp.asarray([local[int(p)] for p in rs.point[index]], jnp.int32)
-            stacked = _stack([self.params_of_point(p) for p in self.point_ids])
+            # device arrays: the engine indexes them with a traced point index
+            stacked = jax.tree.map(
+                jnp.asarray, _stack([self.params_of_point(p) for p in self.point_ids])
+            )
             return (x0, keys, points, stacked)
         return (x0, keys, None)
 
