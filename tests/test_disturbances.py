@@ -95,6 +95,7 @@ def test_bad_disturbances(kw, word):
         disturbances(**kw)
 
 
+@pytest.mark.slow  # 13 s; `pytest -m slow`
 def test_disturbed_rotating_target_batch():
     """A batch of disturbed runs (one key each): every run ends with a valid status per step,
     nothing non-finite escapes, the same key reproduces a run and different keys differ."""

@@ -55,6 +55,7 @@ def test_effort_vs_paper(run):
     assert run["time_to_dock_s"] <= run["planned_tf_s"]
 
 
+@pytest.mark.slow  # 17 s; `pytest -m slow`
 def test_replanning_at_5_hz_as_the_paper():
     """Paper 001 Sec. 5: IDVD re-solved at 5 Hz with at most 15 IPOPT iterations, warm started
     ("convergence was usually achieved under ten iterations"), uses the whole time budget.

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from rvdjax.solver import kkt as K
+from rvdjax.solver import lanes
 
 N, NX, NU = 6, 4, 2
 
@@ -77,7 +78,7 @@ FORMS = {"xla": _compiled("xla"), "pallas": _compiled("pallas")}
 
 
 @pytest.mark.parametrize(
-    "kernel, batch", [("xla", 3), ("xla", K.BATCH_LAST_MAX + 5), ("pallas", 3), ("pallas", 130)]
+    "kernel, batch", [("xla", 3), ("xla", K.BATCH_LAST_MAX + 5), ("pallas", 11)]
 )
 def test_every_form_solves_the_kkt_system(kernel, batch):
     """Unbatched, a small batch (XLA: batch last) and a large one (XLA: batch first, above
@@ -87,7 +88,8 @@ def test_every_form_solves_the_kkt_system(kernel, batch):
     the model repeated per problem."""
     SOLVE, SOLVE_BATCH, SOLVE_SHARED = FORMS[kernel]
     data = _problems(batch)
-    out = SOLVE_BATCH(*data)
+    with lanes.configured(block=8):  # two tiles of 8 lanes, the last padded
+        out = SOLVE_BATCH(*data)
     for i in (0, batch - 1):
         ref = _dense_kkt(*(a[i] for a in data))
         one = SOLVE(*(a[i] for a in data))

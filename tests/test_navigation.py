@@ -127,6 +127,7 @@ def test_filter_converges_below_the_measurement_noise():
     assert np.all(rms < 2.0 * np.sqrt(np.diag(Ps[-1])))
 
 
+@pytest.mark.slow  # 18 s; `pytest -m slow`
 def test_filtered_thesis_vbar_docks():
     """thesis-vbar flown disturbed with the filter through the batch engine over 8 keys: 8 of 8
     dock, within 136 steps (measured). Without the filter the same 8 runs dock once (measured;

@@ -172,6 +172,7 @@ def test_compare_with_table_3_6(runs, lp_run):
     assert lp.phase_delta_v_m_s[0, 0] / dv["lp"] > 0.6
 
 
+@pytest.mark.slow  # 14 s; `pytest -m slow`
 def test_padding_equals_unpadded_phase():
     """A docking-phase OCP (N3 = 12) padded to 30 stages with identity dynamics and zero cost
     has the same solution as the unpadded one."""

@@ -64,7 +64,16 @@ def _tuner(family: str, mode: str, remat: bool = False) -> Tuner:
     )
 
 
-@pytest.fixture(scope="module", params=[(f, m) for f in CASES for m in MODES], ids=str)
+# paper mode per family: `pytest -m slow` (each compiles a 3000-iteration converged solve)
+@pytest.fixture(
+    scope="module",
+    params=[
+        pytest.param((f, m), marks=[pytest.mark.slow] if m == "paper" else [])
+        for f in CASES
+        for m in MODES
+    ],
+    ids=str,
+)
 def short(request):
     """(family, mode, tuner, x0s, keys, refs) of two short maneuvers."""
     family, mode = request.param
@@ -147,6 +156,7 @@ def test_gradient_finite_at_active_thrust_limits():
         np.testing.assert_allclose(gn.flat[i], fd, rtol=5e-3)
 
 
+@pytest.mark.slow  # 12 s; `pytest -m slow`
 def test_remat_gives_the_same_gradient():
     """jax.checkpoint of the step recomputes it in the backward pass: the same gradient up to
     the re-solve. The recomputed step is another compiled program, its solves end at other

@@ -268,6 +268,7 @@ def test_smooth_gradient_against_central_differences(poseidyn):
     np.testing.assert_allclose(r[0]["grad"][0], fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())
 
 
+@pytest.mark.slow  # 13 s; `pytest -m slow`
 def test_draws_replace_the_prng_exactly():
     """A disturbed run fed the standard normals its PRNG key would draw flies the same bits."""
     sc = get_scenario("poseidyn-lqmpc")

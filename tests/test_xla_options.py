@@ -127,6 +127,7 @@ FLY = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # 11 s; `pytest -m slow`
 def test_the_suites_optimisation_level_flies_what_users_fly():
     """The suite compiles at XLA's backend optimisation level 0 (tests/conftest.py); a user's
     program compiles at the default level. The default scenario flown at the default level in
