@@ -88,6 +88,7 @@ def test_parse_loss():
 # ------------------------------------------------------------------ the command and its files
 
 
+@pytest.mark.slow  # 28 s; `pytest -m slow`
 def test_tune_command_files_and_run_params(tmp_path, capsys):
     out = tmp_path / "tuned"
     argv = ["tune", "poseidyn-lqmpc", "--params", "Q,R,terminal_scale", "--train", "2"]

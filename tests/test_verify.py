@@ -250,6 +250,7 @@ def test_keep_out_margin_against_an_stl_monitor(poseidyn):
         assert res["margin"][i] == pytest.approx(rob[0][1], abs=1e-7)
 
 
+@pytest.mark.slow  # 26 s; `pytest -m slow`
 def test_smooth_gradient_against_central_differences(poseidyn):
     """At the worst point of a short gradient search, the smooth margin's gradient against
     central differences of the smooth margin."""
@@ -292,6 +293,7 @@ def test_draws_replace_the_prng_exactly():
 # ------------------------------------------------------------------ command line
 
 
+@pytest.mark.slow  # 28 s; `pytest -m slow`
 def test_worst_resumes_and_replays(tmp_path, capsys):
     out = tmp_path / "v"
     argv = [
