@@ -1274,6 +1274,8 @@ def compile_engine(
         )
         .compile()
     )
+    if config.n_chunks > 1:  # the packing of the live slots once the queue is empty
+        _compact_jit(config).lower(eng).compile()
     try:
         m = compiled.memory_analysis()
         return (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes) / 2**20
