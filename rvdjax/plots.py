@@ -7,6 +7,23 @@ from __future__ import annotations
 import numpy as np
 
 
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (files only, no display needed), unless a
+    backend was chosen already: ``MPLBACKEND`` (a Jupyter kernel sets it to its inline
+    backend) or pyplot imported by the caller. Forcing Agg there would switch a notebook's
+    inline backend off, and its later figures would not show."""
+    import os
+    import sys
+
+    import matplotlib
+
+    if "matplotlib.pyplot" not in sys.modules and not os.environ.get("MPLBACKEND"):
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig, path, dpi: int = 120) -> None:
     """Lay out, write and close a figure."""
     import matplotlib.pyplot as plt
@@ -27,10 +44,7 @@ def plot_plan(path, ocp, solutions: dict, obstacles: dict | None = None, clarabe
             (as :data:`rvdjax.problems.FASTMPC3D`); None for no obstacles.
         clarabel_x: (N, nx) Clarabel's planned states, drawn dashed for comparison.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax, ax_u) = plt.subplots(1, 2, figsize=(12, 5.5), gridspec_kw={"width_ratios": [1.1, 1]})
     x0 = np.asarray(ocp.x0)
@@ -119,10 +133,7 @@ def firing_timeline(path, scenario, infos, title: str | None = None):
     Args:
         infos: the run's StepInfo (leading step axis) with ``pulses`` (steps, T, P) [s].
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t = np.asarray(infos.t)
     active = np.asarray(infos.active)

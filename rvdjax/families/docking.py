@@ -405,12 +405,9 @@ def plot(path, scenario, params, infos, title: str | None = None):
     """Draw a planar docking run: path, target keep-out and holding circles and port axis
     (snapshots, the target may translate), moving obstacles, thrust and torque, holding
     radius and phase / cone activity."""
-    import matplotlib
+    from rvdjax.plots import pyplot, save_figure
 
-    from rvdjax.plots import save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     active = np.asarray(infos.active)
     n = min(int(active.sum()) + 1, len(active))

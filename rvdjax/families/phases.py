@@ -703,12 +703,9 @@ def plot(path, scenario, params, infos, title: str | None = None):
     phase with the keep-out sphere r1 and the approach cone; a zoom on the approach and
     docking (overshoot line at r2, docking cone at the port, at the final attitude of the
     target); distance to the port (log) and delta-v per step."""
-    import matplotlib
+    from rvdjax.plots import cone_edges, finish_lvlh_axes, pyplot, save_figure
 
-    from rvdjax.plots import cone_edges, finish_lvlh_axes, save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     active = np.asarray(infos.active)
     n = min(int(active.sum()) + 1, len(active))

@@ -341,12 +341,9 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
 def plot(path, scenario, params, infos, title: str | None = None):
     """Draw a POSEIDYN LQ-MPC run (paper 001): path, keep-out circle, rotating hyperplane
     snapshots, entry cone, thrust and distance to the docking point."""
-    import matplotlib
+    from rvdjax.plots import pyplot, save_figure
 
-    from rvdjax.plots import save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     active = np.asarray(infos.active)
     n = min(int(active.sum()) + 1, len(active))

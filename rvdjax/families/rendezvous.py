@@ -251,12 +251,9 @@ def plot(path, scenario, params, infos, title: str | None = None):
         params: its :class:`rvdjax.families.rendezvous.Params`.
         infos: the run's :class:`rvdjax.loop.StepInfo` (leading axis: step).
     """
-    import matplotlib
+    from rvdjax.plots import finish_lvlh_axes, pyplot, save_figure
 
-    from rvdjax.plots import finish_lvlh_axes, save_figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     active = np.asarray(infos.active)
     n = int(active.sum()) + 1  # include the state after the last active step

@@ -13,10 +13,9 @@ __all__ = ["study_figures", "scatter_effort_time", "effort_intervals", "failures
 
 
 def _plt():
-    import matplotlib
+    from rvdjax.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt
 

@@ -30,10 +30,9 @@ _EFFORT_LABELS = {
 
 
 def _plt():
-    import matplotlib
+    from rvdjax.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt
 

@@ -17,10 +17,9 @@ __all__ = [
 
 
 def _plt():
-    import matplotlib
+    from rvdjax.plots import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt
 
