@@ -21,7 +21,9 @@ sweep of the first right-hand side, then its forward sweep), :func:`apply` (one 
 right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
 compute the recursion of :mod:`rvdjax.solver.kkt` in the same order (the Joseph form, the
 refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
-runs them on the CPU for the tests.
+runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``:
+on one H100 (jax 0.11.2, CUDA 13) Triton did not finish compiling them within 165 s, so the
+default keeps XLA's loops (docs/solver.md).
 
 Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
 axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
