@@ -841,11 +841,13 @@ COMMAND_WORK = {"study": "batch", "verify": "batch"}
 
 def _add_device_option(parser: argparse.ArgumentParser) -> None:
     """``--device auto|cpu|gpu`` on every command (the leaves of the sub-command tree)."""
+    from rvdjax import devices as _devices
+
     subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
     if not subs:
         parser.add_argument(
             "--device",
-            choices=("auto", "cpu", "gpu"),
+            choices=_devices.CHOICES,
             default="auto",
             help="where to compute: auto (default: one maneuver on the CPU, batches on a GPU "
             "if there is one), cpu or gpu",

@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 from typing import Literal
 
-__all__ = ["CHOICES", "WORK", "current", "describe", "placed", "resolve"]
+__all__ = ["CHOICES", "WORK", "current", "default_device", "describe", "placed", "resolve"]
 
 CHOICES = ("auto", "cpu", "gpu")
 WORK = ("single", "batch")
@@ -71,15 +71,20 @@ def describe(device) -> str:
     return f"{platform} ({kind})"
 
 
-def current() -> str:
-    """:func:`describe` of the device JAX places work on now (inside :func:`placed`: its
-    device)."""
+def default_device():
+    """The device JAX places work on now: ``jax.default_device`` when set (inside
+    :func:`placed`, by ``--device``), else this process's first device."""
     import jax
 
     device = jax.config.jax_default_device
     if isinstance(device, str):  # a platform name
-        device = jax.devices(device)[0]
-    return describe(device if device is not None else jax.devices()[0])
+        return _platform_devices(device)[0]
+    return device if device is not None else jax.local_devices()[0]
+
+
+def current() -> str:
+    """:func:`describe` of :func:`default_device`."""
+    return describe(default_device())
 
 
 @contextlib.contextmanager

@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from rvdjax.devices import default_device
 from rvdjax.loop.kernel import (
     Loop,
     LoopState,
@@ -270,12 +271,7 @@ def _device_memory(device) -> int | None:
 def default_platform() -> str:
     """The platform work goes to: that of ``jax.default_device`` when set (e.g. by the
     command line's ``--device``), else JAX's default backend."""
-    device = jax.config.jax_default_device
-    if isinstance(device, str):
-        return jax.devices(device)[0].platform
-    if device is not None:
-        return device.platform
-    return jax.default_backend()
+    return default_device().platform
 
 
 def _pow2_floor(n: int) -> int:
