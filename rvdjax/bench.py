@@ -403,8 +403,12 @@ def closed_loop_batch_benchmark(
     iterations: int = 3,
     progress=print,
     thrusters: bool = False,
+    options=None,
 ) -> list[dict]:
     """Maneuvers per second flown one jitted maneuver at a time and by the batch engine.
+
+    ``options``: the flight (:class:`~rvdjax.scenarios.flight.FlightOptions`; default: ``mode``
+    and ``disturbed``, ideal forces); ``thrusters`` adds the thruster rows.
 
     ``thrusters``: fly every scenario twice in the same run, with ideal forces and with its
     thruster set (allocation, modulation, the truth under valve pulses); the rows say which
@@ -422,16 +426,17 @@ def closed_loop_batch_benchmark(
     """
     from rvdjax.loop import fly
     from rvdjax.loop.engine import EngineConfig, arrays_source, compile_engine, run_batch
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
 
+    if options is None:
+        options = FlightOptions(mode=mode, disturbed=disturbed)
+    mode, disturbed = options.mode, options.disturbed
     rows = []
     plants = ("ideal", "thrusters") if thrusters else ("ideal",)
     for name, plant in ((n, pl) for n in names for pl in plants):
         sc = get_scenario(name)
-        on = plant == "thrusters"
-        params, x0 = sc.build(thrusters=on)
-        loop = sc.loop(mode, disturbed=disturbed, thrusters=on)
-        sp = sc.solver_params(mode)
+        flight = sc.flight(options.replace(thrusters=plant == "thrusters"))
+        params, x0, loop, sp = flight.params, flight.x0, flight.loop, flight.solver_params
         x0s = perturbed_states(x0, runs)
         keys = jax.random.split(jax.random.key(1), runs)
         # one jitted maneuver at a time

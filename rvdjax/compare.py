@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from rvdjax.loop import fly
-from rvdjax.scenarios import get_scenario
+from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver import SolverSettings
 
 __all__ = ["compare_solvers", "VARIANTS", "format_comparison"]
@@ -63,30 +63,37 @@ def compare_solvers(
     nmpc: bool = True,
     thrusters: bool = False,
     warmup: bool = True,
+    options: FlightOptions | None = None,
 ) -> list[dict]:
-    """Fly scenario ``name`` with every solver; return one row per solver. ``thrusters``:
-    the rvdjax and Clarabel loops fly the scenario's thruster set (the NMPC and IDVD
-    baselines keep their own ideal-force plants). ``warmup``: fly each compiled loop once
-    before the timed flight (False: the one flight is timed, first-call costs included)."""
+    """Fly scenario ``name`` with every solver; return one row per solver. ``options``: the
+    flight (:class:`~rvdjax.scenarios.flight.FlightOptions`; its mode is each variant's own;
+    default: ideal forces, or the thruster set with ``thrusters``): the rvdjax and Clarabel
+    loops fly it, the NMPC and IDVD baselines keep their own ideal-force plants and fly only a
+    noiseless linear truth. ``warmup``: fly each compiled loop once before the timed flight
+    (False: the one flight is timed, first-call costs included)."""
     sc = get_scenario(name)
-    params, x0 = sc.build(thrusters=thrusters)
-    ideal_params = sc.build()[0] if thrusters else params
+    options = FlightOptions(thrusters=thrusters) if options is None else options
+    thrusters = options.thrusters is not False
     rows = []
     for label, (settings_of, mode, paper_name) in VARIANTS.items():
-        loop = sc.loop(mode, settings=settings_of(sc), thrusters=thrusters)
-        sp = sc.solver_params(mode)
-        run = jax.jit(lambda p, x, s, lp=loop: fly(lp, p, x, None, s))
-        run = run.lower(params, x0, sp).compile()
+        flight = sc.flight(options.replace(mode=mode), settings=settings_of(sc))
+        loop, params, x0, sp = flight.loop, flight.params, flight.x0, flight.solver_params
+        key = flight.key if options.disturbed else None
+        run = jax.jit(lambda p, x, k, s, lp=loop: fly(lp, p, x, k, s))
+        run = run.lower(params, x0, key, sp).compile()
         if warmup:
-            jax.block_until_ready(run(params, x0, sp))
+            jax.block_until_ready(run(params, x0, key, sp))
         t0 = time.perf_counter()
-        infos, m = jax.block_until_ready(run(params, x0, sp))
+        infos, m = jax.block_until_ready(run(params, x0, key, sp))
         steps = max(int(np.sum(np.asarray(infos.active))), 1)
         ms = 1e3 * (time.perf_counter() - t0) / steps
         note = _NOTES.get(label, "jitted closed loop, wall time / step")
         rows.append(_row(label, m, ms, sc.published, paper_name, note=note))
         progress(f"{label}: effort {float(m.effort_l1_N_s):.6g} N s, {ms:.3f} ms/step")
 
+    if options.disturbed or options.truth != "linear":
+        progress("note: the NMPC and IDVD baselines fly the noiseless linear truth only: skipped")
+        nmpc = False
     baselines = sc.family_.baselines if nmpc else ()
     if "nmpc" in baselines:
         try:
@@ -94,7 +101,8 @@ def compare_solvers(
         except ImportError as err:
             progress(f"note: NMPC skipped ({err}); pip install 'rvdjax[nmpc]'")
         else:
-            infos, m, solve_s = run_nmpc_loop(ideal_params, x0, sc.loop("accurate"))
+            ideal = sc.flight(options.replace(mode="accurate", thrusters=False))
+            infos, m, solve_s = run_nmpc_loop(ideal.params, ideal.x0, ideal.loop)
             steps = max(int(np.sum(infos["active"])), 1)
             rows.append(
                 _row(

@@ -129,3 +129,27 @@ def apply() -> list[str]:
         return []
     os.environ["XLA_FLAGS"] = " ".join([*add, current]).strip()
     return add
+
+
+def one_thread() -> None:
+    """Keep XLA's CPU backend off Eigen's thread pool (must run before JAX first computes).
+
+    Only real XLA options go into ``XLA_FLAGS``: XLA stops reading the variable at the first
+    token it does not know (the folklore ``intra_op_parallelism_threads=1`` is one), so
+    everything after it, rvdjax's own options included, would silently be dropped. For
+    single-core timings pin the process as well (``taskset -c 0``)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "--xla_cpu_multi_thread_eigen=" not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def host_devices(count: int) -> None:
+    """On a CPU, one XLA host device per core asked for (``--devices N``; before JAX starts);
+    a count the user already set in ``XLA_FLAGS`` is kept."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if count > 1 and "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = (
+            f"--xla_force_host_platform_device_count={count} " + flags
+        ).strip()

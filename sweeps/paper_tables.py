@@ -15,19 +15,20 @@ import sys
 
 
 def main(out: str = "paper_tables.json") -> int:
-    from rvdjax.cli import _one_thread, check_output
+    from rvdjax.outputs import check_file
+    from rvdjax.xla_options import one_thread
 
-    check_output(out, "out", (".json",))
-    _one_thread()
+    check_file(out, "out", (".json",))
+    one_thread()
 
-    from rvdjax.cli import metrics_dict, run_scenario
-    from rvdjax.scenarios import SCENARIOS
+    from rvdjax.outputs import metrics_row
+    from rvdjax.scenarios import SCENARIOS, FlightOptions
 
     results = {}
     for name in SCENARIOS:
         for mode in ("accurate", "paper"):
-            sc, _, _, m, ms = run_scenario(name, mode)
-            results[f"{name}/{mode}"] = {**metrics_dict(m), "ms_per_step": ms}
+            _, m, ms = SCENARIOS[name].flight(FlightOptions(mode=mode)).fly_timed()
+            results[f"{name}/{mode}"] = {**metrics_row(m), "ms_per_step": ms}
             print(f"{name} {mode}: docked {bool(m.docked)}", file=sys.stderr, flush=True)
     with open(out, "w") as f:
         json.dump(results, f, indent=1)

@@ -35,9 +35,9 @@ import sys
 import time
 
 import rvdjax  # noqa: F401  (its XLA options, before JAX starts)
-from rvdjax.cli import _one_thread
+from rvdjax.xla_options import one_thread
 
-_one_thread()
+one_thread()
 
 import numpy as np  # noqa: E402
 

@@ -28,9 +28,9 @@ V_MAX = (0.1, 0.05, 0.02)  # m/s (rvdjax default 0.1 m/s)
 
 
 def main(out: str = "thesis_sensitivity.csv") -> int:
-    from rvdjax.cli import check_output
+    from rvdjax.outputs import check_file
 
-    check_output(out, "out", (".csv",))
+    check_file(out, "out", (".csv",))
     grid = list(itertools.product(CASES, R2, V_MAX))
     # each run's parameters are built and checked from the scenario record with two values
     # changed (r2 < r1 and the speed bound are checked by the family)

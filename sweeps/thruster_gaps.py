@@ -170,9 +170,9 @@ def main() -> int:
     ap.add_argument("--out", help="sweeps: write one row per run to this CSV")
     args = ap.parse_args()
     if args.out:
-        from rvdjax.cli import check_output
+        from rvdjax.outputs import check_file
 
-        check_output(args.out, "--out", (".csv",))
+        check_file(args.out, "--out", (".csv",))
     return tables() if args.what == "tables" else sweeps(args.out)
 
 

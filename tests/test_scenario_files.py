@@ -17,11 +17,16 @@ import numpy as np
 import pytest
 
 from rvdjax.actuators.thrusters import ThrusterSet
-from rvdjax.cli import _same_file_scenario, main
+from rvdjax.cli import main
 from rvdjax.loop import fly
 from rvdjax.scenarios import SCENARIOS, get_scenario
-from rvdjax.scenarios.files import load_scenario_file, scenario_from_toml, scenario_to_toml
-from rvdjax.study import replay_inputs
+from rvdjax.scenarios.files import (
+    load_scenario_file,
+    same_scenario,
+    scenario_from_toml,
+    scenario_to_toml,
+)
+from rvdjax.study import replay
 
 
 def same(a, b) -> bool:
@@ -212,8 +217,9 @@ def test_study_with_a_file_resumes_and_replays(tmp_path, monkeypatch, capsys):
     mine.write_text(edited("n_steps = 60", "n_steps = 61", mine.read_text()))
     assert main([*study, "--resume"]) == 2
     assert "is not the scenario the study in st flies" in capsys.readouterr().err
-    spec, sc, loop, params, x0, *_ = replay_inputs("st", 1)  # what `rvdjax run` replays
+    spec, flight = replay("st", 1)  # what `rvdjax run` replays
+    sc, loop = flight.scenario, flight.loop
     assert sc.name == spec.scenario and loop.config.n_steps == 3
-    assert _same_file_scenario(copy, spec.scenario)  # `rvdjax run COPY --study st --run 1`
+    assert same_scenario(copy, spec.scenario)  # `rvdjax run COPY --study st --run 1`
     assert main(["run", "mine.toml", "--study", "st", "--run", "1"]) == 2  # edited: refused
     assert "flies" in capsys.readouterr().err

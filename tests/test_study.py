@@ -22,7 +22,7 @@ from scipy import stats as st
 
 from rvdjax.dynamics import mean_motion
 from rvdjax.scenarios import get_scenario
-from rvdjax.study import StudySpec, read_table, replay_inputs, run_study, summarize
+from rvdjax.study import StudySpec, read_table, replay, run_study, summarize
 from rvdjax.study import stats as sstats
 from rvdjax.study.runner import run_inputs
 from rvdjax.study.samplers import paper003_initial_state, parse_dist
@@ -175,7 +175,14 @@ def test_a_study_writes_a_tidy_table_and_replays_a_run(tmp_path):
     # the replay flies exactly that run's inputs
     from rvdjax.loop import fly
 
-    _, _, loop, params, x0, key, sp = replay_inputs(out, 4)
+    _, flight = replay(out, 4)
+    loop, params, x0, key, sp = (
+        flight.loop,
+        flight.params,
+        flight.x0,
+        flight.key,
+        flight.solver_params,
+    )
     _, m = jax.jit(lambda p, x, k: fly(loop, p, x, k, sp))(params, x0, key)
     row = df.iloc[4]
     assert bool(m.docked) == bool(row["docked"]) and int(m.steps) == int(row["steps"])

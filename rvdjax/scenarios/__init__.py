@@ -23,6 +23,7 @@ from rvdjax.actuators.thrusters import ThrusterSet
 from rvdjax.families import get_family
 from rvdjax.loop.family import Family
 from rvdjax.loop.kernel import Loop, LoopConfig
+from rvdjax.scenarios.flight import Flight, FlightOptions
 from rvdjax.solver import SolverParams, SolverSettings
 
 __all__ = [
@@ -32,6 +33,8 @@ __all__ = [
     "get_scenario",
     "paper_kappa",
     "PAPER_KAPPA",
+    "Flight",
+    "FlightOptions",
 ]
 
 # Paper 000 Sec. IV.A: kappa = 0.05 for its simulations (0.1 on the SPOT test bed, Sec. IV.C).
@@ -112,7 +115,9 @@ class Scenario:
         params = self.family_.make_params(**physical, x0=x0)
         tset = self.thruster_set(thrusters)
         if thr_keys and tset is None:
-            raise ValueError(f"{', '.join(thr_keys)}: only with the thrusters on (--thrusters)")
+            raise ValueError(
+                f"{', '.join(thr_keys)}: only with the thrusters flown (thrusters=True)"
+            )
         if tset is not None:
             values = {THRUSTER_KEYS[k]: v for k, v in thr_keys.items()}
             fields = {k: v for k, v in values.items() if k in _SET_FIELDS}
@@ -150,7 +155,7 @@ class Scenario:
         if not thrusters:
             return None
         if self.thrusters is None:
-            raise ValueError(f"scenario {self.name!r} has no thruster set")
+            raise ValueError(f"thrusters: scenario {self.name!r} has no thruster set")
         return self.thrusters
 
     def settings(self, mode: str = "accurate", **overrides) -> SolverSettings:
@@ -208,6 +213,29 @@ class Scenario:
                 actuation=None if tset is None else tset.actuation(faults=faults),
             ),
         )
+
+    def flight(
+        self,
+        options: FlightOptions | None = None,
+        *,
+        settings: SolverSettings | None = None,
+        config: Mapping[str, Any] | None = None,
+        check: bool = True,
+        **physical,
+    ) -> Flight:
+        """This scenario made runnable: a :class:`~rvdjax.scenarios.flight.Flight` (loop,
+        checked params, x0, solver params, key) for ``options``
+        (:class:`~rvdjax.scenarios.flight.FlightOptions`, default: ideal forces, accurate
+        mode, linear truth).
+
+        ``physical``: physical values (and ``x0``) replacing the scenario's, as in
+        :meth:`build`; ``config``: the family's static configuration overrides, as in
+        :meth:`loop`; ``settings``: solver settings replacing the mode's. Everything is
+        resolved and checked here, once (ValueError naming the parameter), before anything is
+        compiled; ``check=False`` skips the family's configuration checks (:meth:`check`)."""
+        from rvdjax.scenarios.flight import make_flight
+
+        return make_flight(self, options, settings=settings, config=config, check=check, **physical)
 
     def check(self, params, x0, loop: Loop) -> None:
         """Configuration-dependent checks of the family (ValueError before anything runs)."""

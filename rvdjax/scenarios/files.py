@@ -644,3 +644,13 @@ def scenario_summary(sc: Scenario) -> str:
         lines.append("  assumptions:")
         lines.extend(f"    - {a}" for a in sc.assumptions)
     return "\n".join(lines)
+
+
+def same_scenario(a: str, b: str) -> bool:
+    """Two scenario files hold the same scenario (their names and comments aside)."""
+    if not (str(a).endswith(".toml") and str(b).endswith(".toml")):
+        return False
+    from rvdjax.scenarios import get_scenario
+
+    texts = {scenario_to_toml(dataclasses.replace(get_scenario(n), name="")) for n in (a, b)}
+    return len(texts) == 1

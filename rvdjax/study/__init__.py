@@ -8,8 +8,8 @@ as data), :mod:`.runner` (the batch engine, writing as it goes), :mod:`.table` (
 """
 
 from rvdjax.study.report import format_summary, summarize
-from rvdjax.study.runner import replay_inputs, run_study
+from rvdjax.study.runner import replay, run_study
 from rvdjax.study.spec import StudySpec
 from rvdjax.study.table import read_table
 
-__all__ = ["StudySpec", "run_study", "summarize", "format_summary", "read_table", "replay_inputs"]
+__all__ = ["StudySpec", "run_study", "summarize", "format_summary", "read_table", "replay"]

@@ -51,7 +51,7 @@ from rvdjax.study import samplers
 from rvdjax.study.spec import ParamRef, StudySpec, resolve, study_scenario
 from rvdjax.study.table import PartWriter, done_runs, read_config, write_config
 
-__all__ = ["run_study", "RunSet", "run_inputs", "replay_inputs", "effort_metric", "peak_rss_mb"]
+__all__ = ["run_study", "RunSet", "run_inputs", "replay", "effort_metric", "peak_rss_mb"]
 
 _EFFORT_KEYS = ("delta_v_m_s", "effort_l1_N_s", "total_impulse_N_s")
 ALIGN = 1024  # runs per call of the input samplers (module docstring)
@@ -132,11 +132,11 @@ def _point_overrides(spec: StudySpec, scenario, point):
     return static, physical, x0
 
 
-def _build(spec: StudySpec, scenario, **physical):
-    """scenario.build with the study's thrusters and faults."""
-    if spec.thrusters:
-        physical = {**spec.fault_overrides(scenario.thrusters.n), **physical}
-    return scenario.build(thrusters=spec.thrusters, **physical)
+def _flight(spec: StudySpec, scenario, static: dict | None = None, check: bool = False):
+    """The study's nominal flight of a sweep point's static configuration (faults as
+    physical overrides); a run's parameters are :meth:`Flight.build` of its values."""
+    faults = spec.fault_overrides(scenario.thrusters.n) if spec.thrusters else {}
+    return scenario.flight(spec.flight_options(scenario), config=static, check=check, **faults)
 
 
 def _physical_nominal(scenario, base):
@@ -373,21 +373,6 @@ def _group_key(static: dict) -> tuple:
     return tuple(sorted((k, v if not isinstance(v, list) else tuple(v)) for k, v in static.items()))
 
 
-def _loop_for(spec: StudySpec, scenario, static: dict):
-    loop = scenario.loop(
-        spec.mode,
-        truth=spec.truth,
-        disturbed=spec.disturbed,
-        n_steps=spec.n_steps,
-        time_limit_s=spec.time_limit_s,
-        nav_filter=spec.nav_filter,
-        thrusters=(scenario.thrusters.replace(fdir=spec.fdir) if spec.thrusters else False),
-        faults=spec.has_faults,
-        **static,
-    )
-    return loop
-
-
 def _stack(trees):
     return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a]), *trees)
 
@@ -426,7 +411,9 @@ class _GroupQueue:
     (with lanes, run r in lane r mod chunk), its inputs block by block, and the table rows of
     the results."""
 
-    def __init__(self, spec, scenario, runs, cfg, point_ids, params_of_point, per_point):
+    def __init__(self, spec, nominal, runs, cfg, point_ids, params_of_point, per_point):
+        scenario = nominal.scenario
+        self.nominal = nominal
         self.spec, self.scenario, self.cfg = spec, scenario, cfg
         self.point_ids = list(point_ids)
         self.params_of_point = params_of_point
@@ -468,7 +455,8 @@ class _GroupQueue:
         x0 = jnp.asarray(rs.x0[index])
         keys = rs.keys[index]
         if rs.physical is not None:
-            built = _stack([_build(spec, scenario, **ph, x0=scenario.x0)[0] for ph in rs.physical])
+            nominal = self.nominal
+            built = _stack([nominal.build(**ph, x0=scenario.x0)[0] for ph in rs.physical])
             params = jax.tree.map(lambda a: jnp.asarray(a[index]), built)
             return (x0, keys, params)
         if self.per_point:
@@ -566,7 +554,7 @@ def prepare_out(
         provenance.describe(
             spec=config["spec"],
             scenario=provenance.scenario_values(sc),
-            params=_build(spec, sc)[0],
+            params=_flight(spec, sc).params,
             solver=sc.solver_params(spec.mode),
         ),
         allow_code_change=allow_code_change,
@@ -651,22 +639,22 @@ def run_study(
     flown = 0
     busy = host = compile_s = 0.0
     engines = []
-    nominal_params, _ = _build(spec, scenario)
-    scenario.check(nominal_params, np.asarray(scenario.x0, float), _loop_for(spec, scenario, {}))
+    nominal = _flight(spec, scenario, check=True)
+    nominal_params = nominal.params
     for _, point_ids in groups.items():
         group_runs = todo[np.isin(spec.decompose(todo)[0], point_ids)]
         late = deadline is not None and time.perf_counter() > deadline
         if not len(group_runs) or (late and engines):  # (the first group flies a segment)
             continue
         static = point_cfg[point_ids[0]][0]
-        loop = _loop_for(spec, scenario, static)
-        sp = scenario.solver_params(spec.mode)
+        loop = _flight(spec, scenario, static).loop
+        sp = nominal.solver_params
         params_cache = {}
 
         def params_of_point(p, params_cache=params_cache):
             if p not in params_cache:
                 phys = point_cfg[p][1]
-                params_cache[p] = _build(spec, scenario, **phys)[0] if phys else nominal_params
+                params_cache[p] = nominal.build(**phys)[0] if phys else nominal_params
             return params_cache[p]
 
         per_point = len({repr(sorted(point_cfg[p][1].items())) for p in point_ids}) > 1
@@ -674,7 +662,7 @@ def run_study(
         cfg = _engine_config(
             spec, scenario, loop, sp, group_runs, devices, engine, params_of_point(point_ids[0])
         )
-        queue = _GroupQueue(spec, scenario, group_runs, cfg, point_ids, params_of_point, per_point)
+        queue = _GroupQueue(spec, nominal, group_runs, cfg, point_ids, params_of_point, per_point)
         engines.append(cfg.describe())
         base = flown
 
@@ -751,22 +739,22 @@ def _engine_config(spec, scenario, loop, sp, runs, devices, engine, params):
     return auto_config(devices=devices, n_runs=len(runs), slot_bytes=size, **overrides)
 
 
-def replay_inputs(out, run: int):
-    """(scenario, loop, params, x0, key, solver params) of run ``run`` of the study in
-    ``out``: fly them with :func:`rvdjax.loop.fly` to see that run again."""
+def replay(out, run: int):
+    """(spec, flight) of run ``run`` of the study in ``out``: the
+    :class:`~rvdjax.scenarios.flight.Flight` with that run's parameters, initial state and key
+    (``flight.fly()`` to see that run again)."""
 
     config = read_config(Path(out))
     if config is None:
-        raise ValueError(f"--study {out}: no config.json (not a study directory)")
+        raise ValueError(f"study {out}: no config.json (not a study directory)")
     spec = StudySpec.from_dict(config["spec"])
     if not 0 <= run < spec.n_runs:
-        raise ValueError(f"--run must be in [0, {spec.n_runs - 1}], got {run}")
+        raise ValueError(f"run must be in [0, {spec.n_runs - 1}], got {run}")
     scenario = study_scenario(spec, out)
     rs = run_inputs(spec, scenario, [run])
     p = int(rs.point[0])
     static, phys, _ = _point_overrides(spec, scenario, spec.points[p])
     if rs.physical is not None:
         phys = rs.physical[0]
-    params = _build(spec, scenario, **phys)[0]
-    loop = _loop_for(spec, scenario, static)
-    return spec, scenario, loop, params, rs.x0[0], rs.keys[0], scenario.solver_params(spec.mode)
+    flight = _flight(spec, scenario, static)
+    return spec, flight.replace(params=flight.build(**phys)[0], x0=rs.x0[0], key=rs.keys[0])

@@ -252,6 +252,22 @@ class StudySpec:
             n.startswith("thruster_fault") for n, _ in (*self.vary, *self.grid)
         )
 
+    def flight_options(self, scenario):
+        """The study's :class:`~rvdjax.scenarios.flight.FlightOptions` (the thruster set with
+        its FDIR choice; the run keys come from the study's own streams)."""
+        from rvdjax.scenarios.flight import FlightOptions
+
+        return FlightOptions(
+            mode=self.mode,
+            truth=self.truth,
+            disturbed=self.disturbed,
+            nav_filter=self.nav_filter,
+            thrusters=scenario.thrusters.replace(fdir=self.fdir) if self.thrusters else False,
+            faults=self.has_faults,
+            n_steps=self.n_steps,
+            time_limit_s=self.time_limit_s,
+        )
+
     def fault_overrides(self, n_thrusters: int) -> dict:
         """Scenario.build overrides of the faults (none: {})."""
         if not self.faults:
@@ -286,7 +302,7 @@ class StudySpec:
             if ref.kind == "x0" and ref.index is None:
                 raise ValueError("--grid x0 needs a component: x0[k]")
         if self.thrusters and scenario.thrusters is None:
-            raise ValueError(f"--thrusters: scenario {scenario.name!r} has no thruster set")
+            raise ValueError(f"thrusters: scenario {scenario.name!r} has no thruster set")
         for i, _, _ in self.faults:
             if self.thrusters and not 0 <= i < scenario.thrusters.n:
                 raise ValueError(

@@ -57,11 +57,13 @@ class TuneSpec:
             gradient run).
         lr: Adam's initial step size on theta (log scale for weights: 0.05 = 5 %).
         seed: training set seed (held-out: seed + 1; random search: seed + 2).
-        mode, disturbed, nav_filter: the closed loop.
+        mode, truth, disturbed, nav_filter: the closed loop (ideal forces: see
+            ``judge_thrusters``).
         initial: initial-state sampler ("nominal" or "paper003").
         vary: ((name, distribution), ...) as ``rvdjax study --vary``; default: each position
             component of x0 multiplied by N(1, 0.05).
         n_steps: MPC steps per maneuver (default: the scenario's).
+        time_limit_s: a maneuver not docked by then ends [s] (default: no limit).
         random_search: also run the derivative-free baseline.
         search_sigma: the random search's spread on theta.
         remat: ``jax.checkpoint`` the closed-loop step (bounded memory, ~1 more forward pass).
@@ -81,11 +83,13 @@ class TuneSpec:
     lr: float = 0.05
     seed: int = 0
     mode: str = "accurate"
+    truth: str = "linear"
     disturbed: bool = False
     nav_filter: bool = False
     initial: str = "nominal"
     vary: tuple | None = None
     n_steps: int | None = None
+    time_limit_s: float | None = None
     random_search: bool = True
     search_sigma: float = 0.3
     remat: bool = True
@@ -103,17 +107,27 @@ class TuneSpec:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < float("inf")):
                 raise ValueError(f"{name} must be a number > 0, got {v!r}")
-        if self.n_steps is not None and not (
-            isinstance(self.n_steps, (int, np.integer)) and self.n_steps >= 1
-        ):
-            raise ValueError(f"--n-steps must be an integer >= 1, got {self.n_steps!r}")
-        if self.mode not in ("accurate", "paper", "barrier"):
-            raise ValueError(f"--mode must be accurate, paper or barrier, got {self.mode!r}")
-        if self.nav_filter and not self.disturbed:
-            raise ValueError("--nav-filter needs --disturbed (it filters noisy measurements)")
+        if self.n_steps is not None and not isinstance(self.n_steps, (int, np.integer)):
+            raise ValueError(f"n_steps must be an integer >= 1, got {self.n_steps!r}")
+        self.flight_options()  # mode, truth, nav_filter, n_steps, time_limit_s
         if isinstance(self.params, str):
             object.__setattr__(self, "params", tuple(self.params.split(",")))
         object.__setattr__(self, "params", tuple(str(p).strip() for p in self.params))
+
+    def flight_options(self, thrusters: bool = False):
+        """The :class:`~rvdjax.scenarios.flight.FlightOptions` of the tuned loop (ideal forces;
+        ``thrusters``: the judging loop of ``judge_thrusters``)."""
+        from rvdjax.scenarios.flight import FlightOptions
+
+        return FlightOptions(
+            mode=self.mode,
+            truth=self.truth,
+            disturbed=self.disturbed,
+            nav_filter=self.nav_filter,
+            thrusters=thrusters,
+            n_steps=self.n_steps,
+            time_limit_s=self.time_limit_s,
+        )
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -210,18 +224,11 @@ class Tuner:
         self.spec = spec
         sc = get_scenario(spec.scenario)
         self.scenario = sc
-        params, x0 = sc.build()
-        loop = sc.loop(
-            spec.mode,
-            disturbed=spec.disturbed,
-            nav_filter=spec.nav_filter,
-            n_steps=spec.n_steps,
-            settings=settings,
-        )
-        sc.check(params, x0, loop)
+        flight = sc.flight(spec.flight_options(), settings=settings)
+        loop, params = flight.loop, flight.params
         self.loop = loop
         self.params = params
-        self.sp = sc.solver_params(spec.mode) if solver_params is None else solver_params
+        self.sp = flight.solver_params if solver_params is None else solver_params
         self.space = ParameterSpace.of(sc, spec.params, params, self.sp, spec.mode)
         self.effort_key = effort_metric(sc)
         space, effort_key = self.space, self.effort_key
@@ -244,8 +251,8 @@ class Tuner:
         self._vg = jax.jit(jax.value_and_grad(batch_loss, has_aux=True))
         self._terms_thr = None
         if spec.judge_thrusters:
-            params_thr, _ = sc.build(thrusters=True)
-            loop_thr = loop.replace(actuation=sc.thrusters.actuation())
+            judged = sc.flight(spec.flight_options(thrusters=True), settings=settings)
+            params_thr, loop_thr = judged.params, judged.loop
 
             def terms_thr(theta, x0s, keys):
                 p, sp = space.apply(params_thr, self.sp, space.values(theta))

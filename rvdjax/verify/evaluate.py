@@ -42,7 +42,7 @@ class ProblemSpec:
         scenario: scenario name (or scenario file).
         requirement: ``--requirement`` text (:mod:`rvdjax.verify.requirements`).
         dispersion: ``--dispersion`` text (:mod:`rvdjax.verify.dispersions`).
-        mode, disturbed, nav_filter, thrusters: the closed loop.
+        mode, truth, disturbed, nav_filter, thrusters: the closed loop.
         n_steps, time_limit_s: the run's length (None: the scenario's).
         temperature: the smooth margin's tau (None: 10 % of the initial distance) [m].
         seed: seed of the PRNG noise not given by xi (disturbed loops).
@@ -58,6 +58,7 @@ class ProblemSpec:
     requirement: str
     dispersion: str
     mode: str = "accurate"
+    truth: str = "linear"
     disturbed: bool = False
     nav_filter: bool = False
     thrusters: bool = False
@@ -72,20 +73,28 @@ class ProblemSpec:
     max_iter: int | None = None
 
     def __post_init__(self):
-        if self.mode not in ("accurate", "paper", "barrier"):
-            raise ValueError(f"--mode must be accurate, paper or barrier, got {self.mode!r}")
-        if self.nav_filter and not self.disturbed:
-            raise ValueError("--nav-filter needs --disturbed")
-        if self.n_steps is not None and not self.n_steps >= 1:
-            raise ValueError(f"--n-steps must be >= 1, got {self.n_steps}")
-        if self.time_limit_s is not None and not self.time_limit_s > 0:
-            raise ValueError(f"--time-limit-s must be > 0 s, got {self.time_limit_s}")
+        self.flight_options()  # mode, truth, nav_filter, n_steps, time_limit_s
         if self.temperature is not None and not (0 < self.temperature < float("inf")):
-            raise ValueError(f"--temperature must be > 0, got {self.temperature}")
+            raise ValueError(f"temperature must be > 0 [m], got {self.temperature}")
         if self.solver_tol is not None and not (0 < self.solver_tol < 1):
             raise ValueError(f"solver_tol must be in (0, 1), got {self.solver_tol}")
         if self.max_iter is not None and not self.max_iter >= 1:
             raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
+
+    def flight_options(self):
+        """The :class:`~rvdjax.scenarios.flight.FlightOptions` of the verified loop."""
+        from rvdjax.scenarios.flight import FlightOptions
+
+        return FlightOptions(
+            mode=self.mode,
+            truth=self.truth,
+            disturbed=self.disturbed,
+            nav_filter=self.nav_filter,
+            thrusters=self.thrusters,
+            n_steps=self.n_steps,
+            time_limit_s=self.time_limit_s,
+            seed=self.seed,
+        )
 
 
 class Problem:
@@ -100,23 +109,12 @@ class Problem:
         self.spec = spec
         sc = get_scenario(spec.scenario)
         self.scenario = sc
-        if spec.thrusters and sc.thrusters is None:
-            raise ValueError(f"--thrusters: scenario {sc.name!r} has no thruster set")
-        params, x0 = sc.build(thrusters=spec.thrusters)
-        loop = sc.loop(
-            spec.mode,
-            disturbed=spec.disturbed,
-            nav_filter=spec.nav_filter,
-            n_steps=spec.n_steps,
-            time_limit_s=spec.time_limit_s,
-            thrusters=spec.thrusters,
-        )
+        settings = None
         if spec.max_iter is not None:
-            settings = dataclasses.replace(loop.config.settings, max_iter=int(spec.max_iter))
-            loop = dataclasses.replace(
-                loop, config=dataclasses.replace(loop.config, settings=settings)
-            )
-        sc.check(params, x0, loop)
+            settings = dataclasses.replace(sc.settings(spec.mode), max_iter=int(spec.max_iter))
+        flight = sc.flight(spec.flight_options(), settings=settings)
+        self.flight = flight
+        loop, params, x0 = flight.loop, flight.params, flight.x0
         self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
         fam = sc.family_
         fc = loop.config.family
@@ -133,10 +131,10 @@ class Problem:
             if spec.temperature is not None
             else float(TEMPERATURE_FRACTION * max(np.linalg.norm(pos), 1e-3))
         )
-        self.sp = sc.solver_params(spec.mode)
+        self.sp = flight.solver_params
         if spec.solver_tol is not None:
             self.sp = self.sp._replace(tol=float(spec.solver_tol))
-        self.key = jax.random.key(spec.seed)
+        self.key = flight.key
         self._costs: dict = {}
 
     # ------------------------------------------------------------------ properties
@@ -156,7 +154,7 @@ class Problem:
         spec = {
             k: v
             for k, v in dataclasses.asdict(self.spec).items()
-            if k not in ("slots", "chunk", "remat")
+            if k not in ("slots", "chunk", "remat", "truth")  # truth: in the loop's
         }
         return provenance.describe(
             spec=spec,

@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["add_parser", "cmd_verify", "replay_inputs"]
+from rvdjax.cli.options import add_flight_options, add_json, add_scenario, flight_options
+from rvdjax.verify.replay import KIND
 
-KIND = "verify"
+__all__ = ["add_parser", "cmd"]
 
 
-def add_parser(sub, scenario_help: str) -> None:
+def add_parser(sub) -> None:
     p = sub.add_parser(
         "verify",
         help="verify a guidance law: worst-case search and failure probabilities",
@@ -21,7 +22,7 @@ def add_parser(sub, scenario_help: str) -> None:
     vsub = p.add_subparsers(dest="verify_command", required=True)
 
     def common(q):
-        q.add_argument("scenario", help=scenario_help)
+        add_scenario(q)
         q.add_argument(
             "--requirement",
             required=True,
@@ -41,22 +42,18 @@ def add_parser(sub, scenario_help: str) -> None:
             action="store_true",
             help="resume or reuse evaluations flown by another code version (rows marked)",
         )
-        q.add_argument("--mode", choices=("accurate", "paper", "barrier"), default="accurate")
-        q.add_argument("--disturbed", action="store_true", help="noisy loop (paper 003 Ch. 5)")
-        q.add_argument("--nav-filter", action="store_true", help="with --disturbed: a filter")
-        q.add_argument("--thrusters", action="store_true", help="fly the thruster set")
-        q.add_argument("--n-steps", type=int, help="MPC steps at most (default the scenario's)")
-        q.add_argument("--time-limit-s", type=float, help="a run not docked by then ends")
         q.add_argument(
             "--temperature",
             type=float,
             help="tau of the smooth margin (default 10 %% of the initial distance) [m]",
         )
-        q.add_argument("--seed", type=int, default=0)
+        add_flight_options(
+            q, help={"seed": "seed of the methods' draws and of the noise xi does not give"}
+        )
         q.add_argument("--plots", action="store_true", help="write the figures to DIR")
-        q.add_argument("--json", action="store_true", help="print the summary as JSON")
+        add_json(q, "print the summary as JSON")
         q.add_argument("--quiet", action="store_true", help="no progress bar")
-        q.set_defaults(func=cmd_verify)
+        q.set_defaults(func=cmd)
 
     q = vsub.add_parser("worst", help="search the dispersions for the worst case")
     common(q)
@@ -96,18 +93,20 @@ def add_parser(sub, scenario_help: str) -> None:
 def _problem_spec(args):
     from rvdjax.verify.evaluate import ProblemSpec
 
+    opts = flight_options(args)  # checked in the flags' words
     return ProblemSpec(
         scenario=args.scenario,
         requirement=args.requirement,
         dispersion=args.dispersion,
-        mode=args.mode,
-        disturbed=args.disturbed,
-        nav_filter=args.nav_filter,
-        thrusters=args.thrusters,
-        n_steps=args.n_steps,
-        time_limit_s=args.time_limit_s,
+        mode=opts.mode,
+        truth=opts.truth,
+        disturbed=opts.disturbed,
+        nav_filter=opts.nav_filter,
+        thrusters=bool(opts.thrusters),
+        n_steps=opts.n_steps,
+        time_limit_s=opts.time_limit_s,
         temperature=args.temperature,
-        seed=args.seed,
+        seed=opts.seed,
     )
 
 
@@ -135,7 +134,7 @@ def _prepare(out: Path, config: dict, resume: bool, pb, allow_code_change: bool)
     return store
 
 
-def cmd_verify(args) -> int:
+def cmd(args) -> int:
     from rvdjax.outputs import check_dir
     from rvdjax.verify.evaluate import problem_for
 
@@ -173,8 +172,8 @@ def cmd_verify(args) -> int:
     # everything above and the problem's set-up are host-side checks: nothing compiled yet
     pb = problem_for(pspec)
     config = {
-        KIND: args.verify_command,
-        "spec": {**dataclasses.asdict(pspec), "truth": "linear"},
+        KIND: args.verify_command,  # (rvdjax.verify.replay.is_verification)
+        "spec": dataclasses.asdict(pspec),
         "method": dataclasses.asdict(kspec),
     }
     store = _prepare(out, config, args.resume, pb, args.allow_code_change)
@@ -327,29 +326,3 @@ def _probability(pb, kspec, out: Path, args, store) -> dict:
             print(f"    - {a}")
         _print_provenance(summary["provenance"])
     return summary
-
-
-def replay_inputs(out, run: int):
-    """(spec, scenario, loop, params, x0, key, solver params) of run ``run`` of the
-    verification in ``out`` (``rvdjax run SCENARIO --study DIR --run R``)."""
-    from rvdjax.verify.evaluate import Problem, ProblemSpec
-    from rvdjax.verify.store import CONFIG, read_evals
-
-    config = json.loads((Path(out) / CONFIG).read_text())
-    spec = {k: v for k, v in config["spec"].items() if k != "truth"}
-    pspec = ProblemSpec(**spec)
-    df = read_evals(out)
-    row = df[df["run"] == run]
-    if row.empty:
-        raise ValueError(f"--run must be one of the runs in {out} (0 .. {int(df['run'].max())})")
-    xi = np.asarray(row["xi"].iloc[0], float)
-    pb = Problem(pspec)
-    x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
-    return pspec, pb.scenario, pb.loop, params, x0, pb.key, pb.sp
-
-
-def is_verification(out) -> bool:
-    from rvdjax.verify.store import CONFIG
-
-    p = Path(out) / CONFIG
-    return p.exists() and KIND in json.loads(p.read_text())

@@ -1,0 +1,55 @@
+"""Command line: ``rvdjax run`` (a scenario in closed loop), ``list``, ``scenario``, ``tune``,
+``compare``, ``demo`` (one QP), ``bench``, ``study`` and ``verify``; one module per command,
+each with ``add_parser(sub)`` and ``cmd(args)``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from rvdjax.cli import bench, compare, demo, run, scenarios, study, tune, verify
+from rvdjax.cli.options import add_device_option
+
+__all__ = ["main", "build_parser"]
+
+COMMANDS = (scenarios, run, tune, compare, demo, bench, study, verify)
+# Where each command's work runs under --device auto (rvdjax.devices): one maneuver at a time
+# on the CPU, batches on JAX's default device (a GPU where there is one).
+COMMAND_WORK = {"study": "batch", "verify": "batch"}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rvdjax",
+        description="MPC guidance for spacecraft rendezvous and docking (Fast MPC in JAX).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for command in COMMANDS:
+        command.add_parser(sub)
+    add_device_option(parser)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from rvdjax import devices, distributed, xla_options
+
+    if getattr(args, "threads", 1) == 1:
+        xla_options.one_thread()
+    xla_options.host_devices(getattr(args, "devices", 1))  # before JAX starts
+    try:
+        # jax.distributed must start before anything else touches JAX (the device choice does)
+        coordinator = getattr(args, "coordinator", None)
+        args.processes = distributed.initialize(
+            coordinator, getattr(args, "num_processes", None), getattr(args, "process_id", None)
+        )
+        with devices.placed(args.device, COMMAND_WORK.get(args.command, "single")) as dev:
+            args.device_used = devices.describe(dev)
+            return args.func(args)
+    except ValueError as err:  # bad user input: say what and stop, no traceback
+        print(f"rvdjax {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,5 @@
+import sys
+
+from rvdjax.cli import main
+
+sys.exit(main())
