@@ -91,12 +91,13 @@ def has_avx512() -> bool:
 
 
 def _backend_started() -> bool:
-    """JAX has created a backend (XLA_FLAGS already read). A private JAX function: if a JAX
-    version lacks it, assume not (the options are then appended, at worst without effect)."""
+    """JAX has created a backend (XLA_FLAGS already read). JAX has no public test for it; its
+    public ``get_backend`` is a cache, filled when the first backend is made. If a JAX version
+    changes that, assume not (the options are then appended, at worst without effect)."""
     try:
-        from jax._src import xla_bridge
+        from jax.extend.backend import get_backend
 
-        return bool(xla_bridge.backends_are_initialized())
+        return get_backend.cache_info().currsize > 0
     except (ImportError, AttributeError):
         return False
 

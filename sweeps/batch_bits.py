@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import rvdjax  # noqa: E402, F401  (float64)
 from rvdjax.bench import perturbed_states  # noqa: E402
 from rvdjax.loop.engine import EngineConfig, fly_batch  # noqa: E402
-from rvdjax.scenarios import get_scenario  # noqa: E402
+from rvdjax.scenarios import FlightOptions, get_scenario  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -48,8 +48,10 @@ def main(argv=None) -> None:
     ap.add_argument("--devices", type=int, default=1, help="also fly the first on N devices")
     args = ap.parse_args(argv)
     sc = get_scenario(args.scenario)
-    params, x0 = sc.build()
-    loop = sc.loop(n_steps=args.n_steps, disturbed=args.disturbed, nav_filter=args.nav_filter)
+    flight = sc.flight(
+        FlightOptions(n_steps=args.n_steps, disturbed=args.disturbed, nav_filter=args.nav_filter)
+    )
+    params, x0, loop = flight.params, flight.x0, flight.loop
     x0s = perturbed_states(x0, args.runs, rel=0.05)
     keys = jax.random.split(jax.random.PRNGKey(1), args.runs) if args.disturbed else None
     configs = []

@@ -27,7 +27,7 @@ def main(argv=None) -> None:
     from jax import lax
 
     from rvdjax.loop.kernel import advance, init, prepare
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
     from rvdjax.solver.barrier import m_eff, rows_in, soft_slack
     from rvdjax.solver.driver import finish, finished, iterate, start
 
@@ -37,8 +37,8 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     deltas = [float(d) for d in args.deltas.split(",")]
     sc = get_scenario(args.scenario)
-    params, x0 = sc.build()
-    loop = sc.loop("accurate")
+    flight = sc.flight(FlightOptions(mode="accurate"))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params("accurate")
     settings = loop.config.settings
 

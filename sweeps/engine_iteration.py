@@ -28,7 +28,7 @@ from jax import lax
 from rvdjax.bench import perturbed_states
 from rvdjax.loop.engine import _strip_model, _with_model
 from rvdjax.loop.kernel import Prepared, advance, init, metrics, prepare
-from rvdjax.scenarios import get_scenario
+from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver.driver import finish, iterate, start
 
 ITERATIONS = 3
@@ -39,8 +39,8 @@ def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: boo
     model shared by the chunk as the engine shares it, when the family has one), jitted and
     vmapped over the chunk, and C started slots to time them on."""
     sc = get_scenario(name)
-    params, x0 = sc.build()
-    loop = sc.loop("accurate")
+    flight = sc.flight(FlightOptions(mode="accurate"))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params("accurate")
     settings = loop.config.settings
     shared = loop.family.model is not None

@@ -266,11 +266,11 @@ def _cpu_row(rec, mode, n, ocps_host, chunk=32):
 def _maneuver_row(rec, device, kernel="auto"):
     """One fastmpc-3d maneuver (rvdjax run's closed loop) per MPC step on ``device``."""
     from rvdjax.loop import fly
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
 
     sc = get_scenario("fastmpc-3d")
-    params, x0 = sc.build()
-    loop = sc.loop(settings=sc.settings("accurate", kernel=kernel))
+    flight = sc.flight(FlightOptions(), settings=sc.settings("accurate", kernel=kernel))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     with jax.default_device(device):
         f = jax.jit(lambda p, x: fly(loop, p, x)[1])
         t0 = time.perf_counter()

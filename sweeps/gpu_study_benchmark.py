@@ -111,8 +111,10 @@ def throughput(
 
     t_start = time.perf_counter()
     sc = _scenario(scenario)
-    params, x0 = sc.build()
-    loop = sc.loop(n_steps=SMOKE["n_steps"]) if smoke else sc.loop()
+    from rvdjax.scenarios import FlightOptions
+
+    flight = sc.flight(FlightOptions(n_steps=SMOKE["n_steps"] if smoke else None))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params()
     n = 3 * slots
     source = arrays_source(perturbed_states(x0, n))
@@ -300,8 +302,10 @@ def bits(budget_s: float, smoke: bool = False) -> dict:
     from rvdjax.loop.engine import auto_config, fly_batch
 
     sc = _scenario("thesis-vbar")
-    params, x0 = sc.build()
-    loop = sc.loop(n_steps=SMOKE["n_steps"] if smoke else 400)
+    from rvdjax.scenarios import FlightOptions
+
+    flight = sc.flight(FlightOptions(n_steps=SMOKE["n_steps"] if smoke else 400))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     n = 64 if smoke else 256
     x0s = perturbed_states(x0, n, rel=0.05)
     t0 = time.perf_counter()

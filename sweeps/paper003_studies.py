@@ -114,15 +114,15 @@ def ch6(args) -> dict:
 
     import rvdjax  # noqa: F401
     from rvdjax.loop.kernel import advance, init, prepare
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
     from rvdjax.solver import solve
 
     sc = get_scenario(SCENARIO)
-    params, x0 = sc.build()
-    sp = sc.solver_params()
+    nominal = sc.flight(FlightOptions(n_steps=600))
+    params, x0, sp = nominal.params, nominal.x0, nominal.solver_params
     rows, samples = {}, {}
     for n1 in (15, 30, 45):
-        loop = sc.loop(N=(n1, 15, 12), n_steps=600)
+        loop = sc.flight(nominal.options, config=dict(N=(n1, 15, 12)), check=False).loop
         settings = loop.config.settings
         prep = jax.jit(lambda s, loop=loop: prepare(loop, params, s))
         slv = jax.jit(lambda o, w, settings=settings: solve(o, settings, init=w, params=sp))

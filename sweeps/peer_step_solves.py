@@ -63,7 +63,7 @@ def main(argv=None) -> None:
     from rvdjax import peers
     from rvdjax.loop.kernel import init, prepare
     from rvdjax.qp import qp_objective, to_qp
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
     from rvdjax.study import StudySpec
     from rvdjax.study.runner import run_inputs
 
@@ -72,8 +72,8 @@ def main(argv=None) -> None:
     ap.add_argument("--runs", type=int, default=8)
     args = ap.parse_args(argv)
     sc = get_scenario(args.scenario)
-    params, _ = sc.build()
-    loop = sc.loop()
+    flight = sc.flight(FlightOptions())
+    params, _, loop = flight.params, flight.x0, flight.loop
     spec = StudySpec(kind="montecarlo", scenario=sc.name, n_initial=args.runs, initial="paper003")
     rs = run_inputs(spec, sc, np.arange(args.runs))
     rows: dict[str, list] = {}

@@ -1,6 +1,6 @@
 """Papers 001 and 002 against their own numbers: the sweeps behind docs/reproduction.md.
 
-Every maneuver flies its thrusters (``Scenario.build(thrusters=True)``) through the batch
+Every maneuver flies its thrusters (``FlightOptions(thrusters=True)``) through the batch
 engine; each sweep writes one CSV row per run as the runs finish and resumes where it stopped
 (the rows already in the file are not flown again).
 
@@ -34,7 +34,7 @@ import jax
 import numpy as np
 
 from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
-from rvdjax.scenarios import SCENARIOS
+from rvdjax.scenarios import SCENARIOS, FlightOptions
 
 CASES = ("a", "b", "c")
 PHI0_DEG = tuple(range(0, 360, 45))
@@ -121,15 +121,17 @@ def paper002(out: str) -> int:
             sc = SCENARIOS[f"rotating-target-{case}"]
             rate = sc.physical["target_rate_deg_s"]
             tset = sc.thrusters.replace(allocation=alloc)
-            params, x0 = sc.build(
-                thrusters=tset,
+            flight = sc.flight(
+                FlightOptions(thrusters=tset, n_steps=250),
+                check=False,
                 target=(2.0, 2.0, float(np.deg2rad(phi))),
                 target_rate_deg_s=sense * rate,
             )
             key = dict(case=case, phi0_deg=phi, sense=sense, allocation=alloc)
-            items.append((key, params, x0, 0))
+            items.append((key, flight.params, flight.x0, 0))
         sc = SCENARIOS["rotating-target-a"]
-        loop = sc.loop(thrusters=sc.thrusters.replace(allocation=alloc), n_steps=250)
+        tset = sc.thrusters.replace(allocation=alloc)
+        loop = sc.flight(FlightOptions(thrusters=tset, n_steps=250), check=False).loop
 
         def row(m):
             out_ = _common(m)
@@ -158,14 +160,21 @@ def paper001(out: str) -> int:
                 continue  # no noise: one run per setting is the answer
             sc = SCENARIOS[name]
             dist = dict(sigma_pos=sp, sigma_vel=sv, **NO_THRUST_ERROR)
-            params, x0 = sc.build(thrusters=True, ts=ts, dock_tol=tol, disturbances=dist)
+            flight = sc.flight(
+                FlightOptions(thrusters=True, disturbed=True),
+                check=False,
+                ts=ts,
+                dock_tol=tol,
+                disturbances=dist,
+            )
             key = dict(
                 scenario=name, ts_s=ts, N=N, sigma_v=sv, sigma_p=sp, dock_tol_m=tol, seed=seed
             )
-            items.append((key, params, x0, seed))
+            items.append((key, flight.params, flight.x0, seed))
         sc = SCENARIOS["poseidyn-lqmpc"]
         n_steps = int(round(sc.n_steps * 5.0 / ts))
-        loop = sc.loop(thrusters=True, disturbed=True, n_steps=n_steps, N=N)
+        options = FlightOptions(thrusters=True, disturbed=True, n_steps=n_steps)
+        loop = sc.flight(options, config=dict(N=N), check=False).loop
         _fly(
             os.path.join(out, "paper001_noise_preview.csv"),
             items,
@@ -208,13 +217,18 @@ def table(out: str) -> int:
                     continue
                 if v.get("family", sc.family) != sc.family:
                     continue
-                params, x0 = sc.build(thrusters=v["thrusters"])
                 settings = None
                 if v.get("mode") == "dual":
                     from rvdjax.solver import SolverSettings
 
                     settings = SolverSettings(mode="dual", max_iter=100)
-                loop = sc.loop(thrusters=v["thrusters"], settings=settings, **v.get("config", {}))
+                flight = sc.flight(
+                    FlightOptions(thrusters=v["thrusters"]),
+                    settings=settings,
+                    config=v.get("config", {}),
+                    check=False,
+                )
+                params, x0, loop = flight.params, flight.x0, flight.loop
                 t0 = time.perf_counter()
                 _, m = jax.jit(lambda p, x, lp=loop: fly(lp, p, x))(params, x0)
                 m = jax.tree.map(np.asarray, m)

@@ -24,7 +24,7 @@ import numpy as np
 
 import rvdjax  # noqa: F401  (float64)
 from rvdjax.loop import kernel
-from rvdjax.scenarios import SCENARIOS, get_scenario
+from rvdjax.scenarios import SCENARIOS, FlightOptions, get_scenario
 
 DISTURBED = (("thesis-vbar", True), ("rotating-target-b", False))
 
@@ -47,8 +47,8 @@ def _row(name, infos, m, runs):
 
 def nominal(name: str, setting: tuple[str, float] | None = None) -> dict:
     sc = get_scenario(name)
-    params, x0 = sc.build()
-    loop = sc.loop("accurate")
+    flight = sc.flight(FlightOptions(mode="accurate"))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params("accurate")
     if setting is not None:
         sp = sp._replace(**{setting[0]: jnp.asarray(setting[1])})
@@ -62,8 +62,8 @@ def nominal(name: str, setting: tuple[str, float] | None = None) -> dict:
 
 def disturbed(name: str, nav_filter: bool, runs: int) -> dict:
     sc = get_scenario(name)
-    params, x0 = sc.build()
-    loop = sc.loop("accurate", disturbed=True, nav_filter=nav_filter)
+    flight = sc.flight(FlightOptions(mode="accurate", disturbed=True, nav_filter=nav_filter))
+    params, x0, loop = flight.params, flight.x0, flight.loop
     keys = jax.random.split(jax.random.PRNGKey(0), runs)
     f = jax.jit(jax.vmap(lambda k: kernel.fly(loop, params, jnp.asarray(x0), k)))
     infos, m = f(keys)

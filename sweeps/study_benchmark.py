@@ -47,19 +47,19 @@ def throughput(args) -> list[dict]:
 
     from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
     from rvdjax.loop.reference import reference_loop
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
     from rvdjax.study import StudySpec
     from rvdjax.study.runner import run_inputs
 
     sc = get_scenario(args.scenario)
-    params, _ = sc.build()
+    flight = sc.flight(FlightOptions(time_limit_s=args.time_limit_s, n_steps=args.n_steps))
+    params, loop = flight.params, flight.loop
     initial = "paper003" if sc.family == "three-phase" else "nominal"
     vary = () if initial == "paper003" else (("x0", "*normal(1,0.02)"),)
     spec = StudySpec(
         kind="montecarlo", scenario=sc.name, n_initial=args.batch_runs, initial=initial, vary=vary
     )
     rs = run_inputs(spec, sc, np.arange(args.batch_runs))
-    loop = sc.loop(time_limit_s=args.time_limit_s, n_steps=args.n_steps)
     rows = []
     cfg = EngineConfig(slots=min(args.slots, args.batch_runs), chunk=32)
     src = arrays_source(rs.x0, rs.keys)
@@ -183,13 +183,13 @@ def memory(args) -> list[dict]:
 def refresh(args) -> list[dict]:
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import EngineConfig, arrays_source, compile_engine, run_batch
-    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios import FlightOptions, get_scenario
 
     rows = []
     for name in args.scenarios.split(","):
         sc = get_scenario(name)
-        params, x0 = sc.build()
-        loop = sc.loop()
+        flight = sc.flight(FlightOptions())
+        params, x0, loop = flight.params, flight.x0, flight.loop
         sp = sc.solver_params()
         source = arrays_source(perturbed_states(x0, args.batch_runs))
         configs = {

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
-from rvdjax.scenarios import SCENARIOS
+from rvdjax.scenarios import SCENARIOS, FlightOptions
 from rvdjax.scenarios.paper003 import CASES as THESIS_CASES
 
 CASES = ("vbar", "rbar", "rotating")
@@ -34,10 +34,13 @@ def main(out: str = "thesis_sensitivity.csv") -> int:
     grid = list(itertools.product(CASES, R2, V_MAX))
     # each run's parameters are built and checked from the scenario record with two values
     # changed (r2 < r1 and the speed bound are checked by the family)
-    built = [SCENARIOS[f"thesis-{c}"].build(r2=r2, v_max=v) for c, r2, v in grid]
-    params = jax.tree.map(lambda *a: np.stack(a), *[b[0] for b in built])
-    x0 = np.stack([b[1] for b in built])
-    loop = SCENARIOS["thesis-vbar"].loop(n_steps=400)
+    options = FlightOptions(n_steps=400)
+    built = [
+        SCENARIOS[f"thesis-{c}"].flight(options, check=False, r2=r2, v_max=v) for c, r2, v in grid
+    ]
+    params = jax.tree.map(lambda *a: np.stack(a), *[b.params for b in built])
+    x0 = np.stack([b.x0 for b in built])
+    loop = SCENARIOS["thesis-vbar"].flight(options).loop
     result = run_batch(
         loop, arrays_source(x0, params=params), len(grid), config=EngineConfig(slots=16, chunk=8)
     )

@@ -33,7 +33,7 @@ import numpy as np
 
 from rvdjax.loop import fly
 from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
-from rvdjax.scenarios import SCENARIOS
+from rvdjax.scenarios import SCENARIOS, FlightOptions
 
 PUBLISHED = [n for n, sc in SCENARIOS.items() if sc.published and sc.thrusters is not None]
 
@@ -77,8 +77,8 @@ def tables() -> int:
         sc = SCENARIOS[name]
         out = {}
         for on in (False, True):
-            params, x0 = sc.build(thrusters=on)
-            loop = sc.loop(thrusters=on)
+            flight = sc.flight(FlightOptions(thrusters=on), check=False)
+            params, x0, loop = flight.params, flight.x0, flight.loop
             _, m = jax.jit(lambda p, x, lp=loop: fly(lp, p, x))(params, x0)
             out[on] = jax.tree.map(np.asarray, m)
         for key, refs in sc.published.items():
@@ -99,16 +99,16 @@ def sweeps(out_csv: str | None) -> int:
     for fam, cfg in SWEEPS.items():
         names, keys = cfg["scenarios"], list(cfg["grid"])
         combos = list(itertools.product(*cfg["grid"].values()))
+        options = FlightOptions(thrusters=True, n_steps=cfg["n_steps"])
         built, labels = [], []
         for name in names:
             for combo in combos:
-                built.append(
-                    SCENARIOS[name].build(thrusters=True, **dict(zip(keys, combo, strict=True)))
-                )
+                values = dict(zip(keys, combo, strict=True))
+                built.append(SCENARIOS[name].flight(options, check=False, **values))
                 labels.append((name, combo))
-        params = jax.tree.map(lambda *a: np.stack(a), *[b[0] for b in built])
-        x0 = np.stack([b[1] for b in built])
-        loop = SCENARIOS[names[0]].loop(thrusters=True, n_steps=cfg["n_steps"])
+        params = jax.tree.map(lambda *a: np.stack(a), *[b.params for b in built])
+        x0 = np.stack([b.x0 for b in built])
+        loop = SCENARIOS[names[0]].flight(options, check=False).loop
         t0 = time.perf_counter()
         res = run_batch(
             loop,

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import rvdjax  # noqa: F401  (float64, XLA options)
 from rvdjax.bench import perturbed_states
 from rvdjax.loop import engine as E
-from rvdjax.scenarios import get_scenario
+from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver import SolverParams
 
 FREE = {
@@ -162,8 +162,8 @@ def loops_with_trips(comps: dict, body: str, trips: int) -> list[str]:
 def program(scenario: str, slots: int, chunk: int, refresh: str, platform: str | None):
     """(optimised HLO text, cost analysis) of one device's segment program."""
     sc = get_scenario(scenario)
-    params, x0 = sc.build()
-    loop = sc.loop()
+    flight = sc.flight(FlightOptions())
+    params, x0, loop = flight.params, flight.x0, flight.loop
     sp = SolverParams.for_settings(loop.config.settings)
     source = E.arrays_source(perturbed_states(x0, 8))
     if hasattr(E, "segment_program"):  # this engine

@@ -577,6 +577,8 @@ def scenario_from_toml(text: str, where: str = "<scenario>", name: str | None = 
 
 
 def _check_build(r: _Reader, sc: Scenario) -> None:
+    from rvdjax.scenarios.flight import FlightOptions
+
     """The family's own checks (make_params, the configuration-dependent check), host-side:
     arrays are built, nothing is compiled."""
     kinds, _ = _physical_schema(sc.family_)
@@ -584,8 +586,7 @@ def _check_build(r: _Reader, sc: Scenario) -> None:
     plants = (False, True) if sc.thrusters is not None else (False,)
     for thrusters in plants:
         try:
-            params, x0 = sc.build(thrusters=thrusters)
-            sc.check(params, x0, sc.loop(thrusters=thrusters))
+            sc.flight(FlightOptions(thrusters=thrusters))  # built and checked, not compiled
         except (ValueError, TypeError, IndexError) as err:
             raise r.rewrap(err, "physical", kinds, subs) from None
 
