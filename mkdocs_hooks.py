@@ -4,8 +4,15 @@
   ``docs/``: they are added to the site as ``notebooks/NAME.py`` pages, which mkdocs-jupyter
   then renders without executing them.
 * The docstrings use Sphinx roles (``:class:`~rvdjax.ocp.OCP```); mkdocstrings renders the
-  code span but keeps the role's text (and the ``~``), which are dropped here, as is the
-  second colon of a reST literal-block marker (``states::``) ending a paragraph.
+  code span but keeps the role's text. Each role becomes a cross-reference here: an optional
+  mkdocs-autorefs reference, a link where the target is documented on the site (a dotted
+  path such as ``rvdjax.ocp.OCP``), plain code otherwise (a name relative to its module).
+  ``~`` shows the last component only, as in Sphinx. The second colon of a reST
+  literal-block marker (``states::``) ending a paragraph is dropped.
+* The notebooks' display math (``$$...$$`` in a Markdown cell, left as text by nbconvert) is
+  marked up as pymdownx.arithmatex does it for the Markdown pages, so that the one MathJax
+  of the site (``extra_javascript``) renders both; the notebook template's own MathJax
+  loader (an empty ``src``) is dropped.
 """
 
 from __future__ import annotations
@@ -18,8 +25,10 @@ from mkdocs.structure.files import File
 
 _ROOT = Path(__file__).resolve().parent
 _NOTEBOOKS = _ROOT / "notebooks"
-_ROLE = re.compile(r":(?:mod|class|func|meth|data|attr|exc|obj):<code>~?")
+_ROLE = re.compile(r":(?:mod|class|func|meth|data|attr|exc|obj):<code>(~?)([^<]+)</code>")
 _LITERAL_MARKER = re.compile(r"::</p>")
+_DISPLAY_MATH = re.compile(r"\$\$([^$<]+?)\$\$")
+_NB_MATHJAX = re.compile(r"<!-- Load mathjax -->.*?<!-- End of mathjax configuration -->", re.S)
 
 
 @event_priority(100)  # before mkdocs-jupyter's on_files, which turns .py files into pages
@@ -38,7 +47,24 @@ def on_files(files, config):
     return files
 
 
+def _autoref(m: re.Match) -> str:
+    tilde, target = m.groups()
+    identifier = target.removesuffix("()")
+    shown = target.rsplit(".", 1)[-1] if tilde else target
+    return f'<autoref identifier="{identifier}" optional><code>{shown}</code></autoref>'
+
+
+def _math(m: re.Match) -> str:
+    return f'<div class="arithmatex">\\[{m.group(1).strip()}\\]</div>'
+
+
 def on_page_content(html, page, config, files):
-    if not page.file.src_uri.startswith("api/"):
+    src = page.file.src_uri
+    if src.startswith("notebooks/"):
+        html = _NB_MATHJAX.sub("", html)
+        # a paragraph that is one display formula becomes the formula's block
+        html = re.sub(r"<p>(\$\$[^$<]+?\$\$)</p>", r"\1", html)
+        return _DISPLAY_MATH.sub(_math, html)
+    if not src.startswith("api/"):
         return html
-    return _LITERAL_MARKER.sub(":</p>", _ROLE.sub("<code>", html))
+    return _LITERAL_MARKER.sub(":</p>", _ROLE.sub(_autoref, html))

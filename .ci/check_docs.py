@@ -13,7 +13,8 @@ Defects looked for in the HTML that ``mkdocs build`` wrote (each reported with i
 
 With ``--sources DIR`` the Markdown sources are read as well: a list item indented by one to
 three spaces under another item (Python-Markdown nests only at four: the sub-bullets become
-items of the parent list) is a defect.
+items of the parent list) is a defect, and so is a continuation block (a paragraph, a table
+after a blank line) of a list item indented by one to three spaces.
 
 Exit status 1 with one line per defect, 0 when there is none. Standard library only.
 """
@@ -71,22 +72,30 @@ def check(site: Path) -> list[str]:
         rel = page.parent.relative_to(site).as_posix() or "."
         if rel.startswith(("search", "assets")) or rel == "404":
             continue
-        parser = _Page()
-        parser.feed(page.read_text(encoding="utf-8"))
-        for para in parser.paragraphs:
-            if any(line.lstrip().startswith("- ") for line in para.splitlines()[1:]):
-                first = next(ln for ln in para.splitlines() if ln.strip())
-                problems.append(f"{rel}: a list collapsed into a paragraph: {first[:70]!r}")
-        text = "".join(parser.text)
-        for m in ROLE.finditer(text):
-            problems.append(
-                f"{rel}: leftover role {m.group(0)!r}: {text[m.start() : m.start() + 60]!r}"
-            )
-        if "$$" in text:
-            i = text.index("$$")
-            problems.append(f"{rel}: unrendered math: {text[i : i + 60]!r}")
-        if rel.startswith("notebooks/") and parser.images == 0:
-            problems.append(f"{rel}: a notebook page without an output image")
+        problems += page_defects(rel, page.read_text(encoding="utf-8"))
+    return problems
+
+
+def page_defects(rel: str, html: str) -> list[str]:
+    """The defects of one built page; ``rel`` is its path in the site (``notebooks/NAME``)."""
+    problems = []
+    parser = _Page()
+    parser.feed(html)
+    parser.close()
+    for para in parser.paragraphs:
+        if any(line.lstrip().startswith("- ") for line in para.splitlines()[1:]):
+            first = next(ln for ln in para.splitlines() if ln.strip())
+            problems.append(f"{rel}: a list collapsed into a paragraph: {first[:70]!r}")
+    text = "".join(parser.text)
+    for m in ROLE.finditer(text):
+        problems.append(
+            f"{rel}: leftover role {m.group(0)!r}: {text[m.start() : m.start() + 60]!r}"
+        )
+    if "$$" in text:
+        i = text.index("$$")
+        problems.append(f"{rel}: unrendered math: {text[i : i + 60]!r}")
+    if rel.startswith("notebooks/") and parser.images == 0:
+        problems.append(f"{rel}: a notebook page without an output image")
     return problems
 
 
@@ -94,30 +103,50 @@ _ITEM = re.compile(r"^( *)(?:[-*+]|\d+\.) \S")
 
 
 def check_sources(root: Path) -> list[str]:
-    """Nested list items indented by 1-3 spaces in the Markdown sources (outside code)."""
+    """Markdown sources (outside fenced code) whose lists Python-Markdown would not nest."""
     problems = []
     for path in sorted(root.rglob("*.md")):
-        fenced = False
-        in_list = False
-        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-            if line.lstrip().startswith("```"):
-                fenced = not fenced
-                continue
-            if fenced:
-                continue
-            m = _ITEM.match(line)
-            if m:
-                indent = len(m.group(1))
-                if in_list and indent % 4:
-                    problems.append(
-                        f"{path.as_posix()}:{n}: a nested list item indented {indent} spaces "
-                        "(4 per level)"
-                    )
-                in_list = True
-            elif not line.strip():
-                continue
-            elif not line.startswith(" "):
-                in_list = False
+        where = path.as_posix()
+        problems += [f"{where}:{n}: {msg}" for n, msg in source_defects(path.read_text("utf-8"))]
+    return problems
+
+
+def source_defects(text: str) -> list[tuple[int, str]]:
+    """(line, message) for each list defect of one Markdown text.
+
+    * a list item under another item indented by a number of spaces that is not a multiple of
+      four (Python-Markdown nests only at four: a sub-bullet at two becomes an item of the
+      parent list);
+    * a block after a blank line inside a list (a continuation paragraph, a table) indented by
+      one to three spaces: it ends the list, and what follows at four spaces becomes code.
+    """
+    problems = []
+    fenced = False
+    in_list = False
+    after_blank = False
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith(("```", "~~~")):
+            fenced = not fenced
+            after_blank = False
+            continue
+        if fenced:
+            continue
+        if not line.strip():
+            after_blank = True
+            continue
+        indent = len(line) - len(line.lstrip(" "))
+        m = _ITEM.match(line)
+        if m:
+            if in_list and indent % 4:
+                problems.append((n, f"a nested list item indented {indent} spaces (4 per level)"))
+            in_list = True
+        elif indent == 0:
+            in_list = False
+        elif in_list and after_blank and indent % 4:
+            problems.append(
+                (n, f"a list's continuation block indented {indent} spaces (4 per level)")
+            )
+        after_blank = False
     return problems
 
 

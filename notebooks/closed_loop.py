@@ -22,6 +22,9 @@
 # Run it with `python notebooks/closed_loop.py` (about a minute, most of it compilation).
 
 # %%
+import tempfile
+from pathlib import Path
+
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
@@ -52,7 +55,12 @@ print(
     f"{float(m.max_violation_m):.1e} m, statuses {np.asarray(m.status_counts)}"
 )
 assert bool(m.docked) and float(m.max_violation_m) == 0.0
-sc.family_.plot("rotating_target_b.png", sc, params, infos)  # trajectory, thrust, r_hold
+OUT = Path(tempfile.mkdtemp(prefix="rvdjax-closed-loop-"))  # the figures' files
+sc.family_.plot(OUT / "rotating_target_b.png", sc, params, infos)  # trajectory, thrust, r_hold
+fig, ax = plt.subplots(figsize=(9, 6))
+ax.imshow(plt.imread(OUT / "rotating_target_b.png"))
+ax.set_axis_off()
+plt.show()
 
 # %% [markdown]
 # ## 2. Paper mode
@@ -104,4 +112,5 @@ ax.set_xlabel("x [m]")
 ax.set_ylabel("y [m]")
 ax.set_title("disturbed runs (colour), undisturbed (black)", fontsize=10)
 fig.tight_layout()
-fig.savefig("disturbed_runs.png")
+fig.savefig(OUT / "disturbed_runs.png")
+plt.show()

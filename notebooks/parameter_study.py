@@ -66,8 +66,7 @@ from rvdjax.study.spec import StudySpec as _Spec  # noqa: E402
 from rvdjax.study.table import read_config  # noqa: E402
 
 spec = _Spec.from_dict(read_config(STUDY_DIR)["spec"])
-figs = Path("study_figures")
-figs.mkdir(exist_ok=True)
+figs = Path(tempfile.mkdtemp(prefix="rvdjax-study-figures-"))  # the paper's figures' files
 scatter_effort_time(df, spec, figs / "effort_vs_time.png")
 effort_intervals(df, spec, figs / "effort_vs_intervals.png")
 failures_per_point(df, spec, figs / "failures.png")

@@ -32,6 +32,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import matplotlib.pyplot as plt
 import numpy as np
 
 import rvdjax  # noqa: F401  (enables float64 in JAX)
@@ -42,7 +43,7 @@ from rvdjax.problems import (
     fastmpc3d_first_step_batch,
     perturbed_x0,
 )
-from rvdjax.qp import to_qp
+from rvdjax.qp import split_solution, to_qp
 from rvdjax.solver import SolverParams, SolverSettings, Status, max_violation, solve
 
 # %% [markdown]
@@ -108,6 +109,23 @@ for name, sol in sols.items():
     viol = float(max_violation(ocp, sol.u, sol.x))
     print(f"{name:9s} relative gap {gap:+.2e}, max constraint violation {viol:.1e}")
 assert abs(float(sols["accurate"].objective) - ref.objective) <= 1e-6 * abs(ref.objective)
+
+# %% [markdown]
+# The two plans in the orbital plane (radial x against along-track y), with Clarabel's optimum.
+
+# %%
+fig, ax = plt.subplots(figsize=(6, 4))
+for name, sol in sols.items():
+    x = np.vstack([np.asarray(ocp.x0), np.asarray(sol.x)])
+    ax.plot(x[:, 1], x[:, 0], "-o", ms=2.5, label=name)
+_, x_clarabel = split_solution(ref.z, ocp.N, ocp.nx, ocp.nu)
+x_ref = np.vstack([np.asarray(ocp.x0), x_clarabel])
+ax.plot(x_ref[:, 1], x_ref[:, 0], "k--", lw=1, label="Clarabel")
+ax.plot([0], [0], "ks", label="target")
+ax.set_xlabel("along-track y [m]")
+ax.set_ylabel("radial x [m]")
+ax.legend(fontsize=8)
+plt.show()
 
 # %% [markdown]
 # ## 4. A batch: 64 perturbed initial states in one call

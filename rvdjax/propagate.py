@@ -238,8 +238,10 @@ def inertial_to_lvlh(orbit: Orbit, r_c, v_c):
 def accel(r, j2: bool = False):
     """Gravitational acceleration in ECI: two-body plus (optionally) the J2 zonal term.
 
+    ```text
     a = -mu r / |r|^3
         - (3/2) J2 mu Re^2 / |r|^5 * (x (1 - 5 z^2/|r|^2), y (1 - 5 z^2/|r|^2), z (3 - 5 z^2/|r|^2))
+    ```
 
     Args:
         r: position (3,) [m] (ECI, z along the Earth's spin axis).

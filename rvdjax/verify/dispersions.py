@@ -1,30 +1,26 @@
 """Dispersions as one standardised vector xi ~ N(0, I).
 
 A dispersion (``--dispersion``) is a ``+``-separated list of components; each takes its own
-coordinates of xi and maps them, differentiably, to the run's inputs:
+coordinates of xi (the count in brackets) and maps them, differentiably, to the run's
+inputs:
 
-==========================  ==============  ==============================================
-component                   coordinates     what it sets
-==========================  ==============  ==============================================
-``paper003``                5               paper 003 Sec. 4 initial state (3-D CW): range
-                                            r_min + (r_max - r_min) Phi(xi_0) (0.15-2.5 km),
-                                            bearing 2 pi Phi(xi_1) in the orbital plane,
-                                            velocity (0, -2 n x, 0) + 0.5 m/s xi_2..4 (the
-                                            same law as the studies' ``--initial paper003``)
-``x0:SP,SV[,SA]``           nx              x0 + N(0, SP) m on positions, N(0, SV) m/s on
-                                            velocities, N(0, SA) rad on attitudes
-``mass:S``                  1               the truth's mass m exp(S xi) (the guidance keeps
-                                            m): the applied force acts on the true mass
-``inertia:S``               1               the same for the torques (planar 3-DOF)
-``thrust:S``                force axes / T  thrust magnitude (1 + S xi) per force axis, or
-                                            per thruster with ``--thrusters``
-``misalignment:DEG``        3 T             thruster direction rotation vectors DEG xi [deg]
-                                            (``--thrusters``)
-``nav``                     S nx            the navigation-noise sequence (``--disturbed``):
-                                            step k's standard-normal draws
-``thrust-error``            A + 2 S A       the Gauss-Markov thrust error: w(0) and its
-                                            driving noise per step (``--disturbed``)
-==========================  ==============  ==============================================
+* ``paper003`` (5 coordinates): paper 003 Sec. 4 initial state (3-D CW): range
+  r_min + (r_max - r_min) Phi(xi_0) (0.15-2.5 km), bearing 2 pi Phi(xi_1) in the orbital
+  plane, velocity (0, -2 n x, 0) + 0.5 m/s xi_2..4 (the same law as the studies'
+  ``--initial paper003``);
+* ``x0:SP,SV[,SA]`` (nx): x0 + N(0, SP) m on positions, N(0, SV) m/s on velocities,
+  N(0, SA) rad on attitudes;
+* ``mass:S`` (1): the truth's mass m exp(S xi) (the guidance keeps m): the applied force acts
+  on the true mass;
+* ``inertia:S`` (1): the same for the torques (planar 3-DOF);
+* ``thrust:S`` (force axes / T): thrust magnitude (1 + S xi) per force axis, or per thruster
+  with ``--thrusters``;
+* ``misalignment:DEG`` (3 T): thruster direction rotation vectors DEG xi [deg]
+  (``--thrusters``);
+* ``nav`` (S nx): the navigation-noise sequence (``--disturbed``): step k's standard-normal
+  draws;
+* ``thrust-error`` (A + 2 S A): the Gauss-Markov thrust error: w(0) and its driving noise per
+  step (``--disturbed``).
 
 (S: MPC steps of the loop, A: thrust-error axes, T: thrusters.) A run's inputs are a pure
 function of xi, so a gradient with respect to xi shapes an initial state, a vehicle and a

@@ -10,19 +10,18 @@ Each requirement has two values per run:
 
 The requirements (``--requirement``; ``NAME``, ``NAME>=X`` or ``NAME<=X``):
 
-========================  =====  ===============================================================
-name                      unit   exact margin
-========================  =====  ===============================================================
-``keep-out[>=X]``         m      smallest clearance of the keep-out zones over the truth, at
-                                 the samples and between them (the families' sub-samples),
-                                 minus X (default 0; X < 0: a breach deeper than -X fails)
-``entry-cone[>=X]``       m      smallest distance inside the entry (docking) cone, minus X
-``overshoot[>=X]``        m      smallest distance before the overshoot plane, minus X
-``contact-speed<=V``      m/s    V minus the truth's speed at docking (V when it never docks)
-``time-to-dock<=T``       s      T minus the time to dock (-T when it never docks)
-``effort<=B``             *      B minus the headline effort (the paper's delta-v or impulse)
-``docks``                 -      +1 when the run docks, -1 when it does not
-========================  =====  ===============================================================
+| name | unit | exact margin |
+| --- | --- | --- |
+| ``keep-out[>=X]`` | m | smallest clearance of the keep-out zones over the truth, minus X |
+| ``entry-cone[>=X]`` | m | smallest distance inside the entry (docking) cone, minus X |
+| ``overshoot[>=X]`` | m | smallest distance before the overshoot plane, minus X |
+| ``contact-speed<=V`` | m/s | V minus the truth's speed at docking (V when it never docks) |
+| ``time-to-dock<=T`` | s | T minus the time to dock (-T when it never docks) |
+| ``effort<=B`` | * | B minus the headline effort (the paper's delta-v or impulse) |
+| ``docks`` | - | +1 when the run docks, -1 when it does not |
+
+The keep-out clearance is taken at the samples and between them (the families' sub-samples);
+X is 0 by default (X < 0: a breach deeper than -X fails).
 
 Smooth margins:
 
