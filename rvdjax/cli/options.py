@@ -96,10 +96,8 @@ def add_flight_options(
 
 def flight_options(args, **changes) -> FlightOptions:
     """The :class:`FlightOptions` of parsed arguments (ValueError naming the option)."""
-    values = {f: getattr(args, f) for f in _FLIGHT if hasattr(args, f)}
-    values.update(changes)
     try:
-        return FlightOptions(**values)
+        return FlightOptions.of(args, **changes)
     except ValueError as err:  # name the flags the user typed, not the fields
         text = str(err)
         for field, (flag, _) in _FLIGHT.items():

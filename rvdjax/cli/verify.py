@@ -93,20 +93,14 @@ def add_parser(sub) -> None:
 def _problem_spec(args):
     from rvdjax.verify.evaluate import ProblemSpec
 
-    opts = flight_options(args)  # checked in the flags' words
+    flight = dataclasses.asdict(flight_options(args))  # checked in the flags' words
+    del flight["faults"]
     return ProblemSpec(
         scenario=args.scenario,
         requirement=args.requirement,
         dispersion=args.dispersion,
-        mode=opts.mode,
-        truth=opts.truth,
-        disturbed=opts.disturbed,
-        nav_filter=opts.nav_filter,
-        thrusters=bool(opts.thrusters),
-        n_steps=opts.n_steps,
-        time_limit_s=opts.time_limit_s,
         temperature=args.temperature,
-        seed=opts.seed,
+        **flight,
     )
 
 

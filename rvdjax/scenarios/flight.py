@@ -77,6 +77,14 @@ class FlightOptions:
     def replace(self, **changes) -> FlightOptions:
         return dataclasses.replace(self, **changes)
 
+    @classmethod
+    def of(cls, source, **changes) -> FlightOptions:
+        """The options held by ``source`` (a study's, a verification's or a tuning's spec,
+        parsed arguments: any object with some of these fields by name), with ``changes``."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        values = {n: getattr(source, n) for n in names if hasattr(source, n)}
+        return cls(**{**values, **changes})
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Flight:

@@ -257,15 +257,11 @@ class StudySpec:
         its FDIR choice; the run keys come from the study's own streams)."""
         from rvdjax.scenarios.flight import FlightOptions
 
-        return FlightOptions(
-            mode=self.mode,
-            truth=self.truth,
-            disturbed=self.disturbed,
-            nav_filter=self.nav_filter,
+        return FlightOptions.of(
+            self,
             thrusters=scenario.thrusters.replace(fdir=self.fdir) if self.thrusters else False,
             faults=self.has_faults,
-            n_steps=self.n_steps,
-            time_limit_s=self.time_limit_s,
+            seed=0,  # (the study's seed draws its runs' keys)
         )
 
     def fault_overrides(self, n_thrusters: int) -> dict:

@@ -119,15 +119,7 @@ class TuneSpec:
         ``thrusters``: the judging loop of ``judge_thrusters``)."""
         from rvdjax.scenarios.flight import FlightOptions
 
-        return FlightOptions(
-            mode=self.mode,
-            truth=self.truth,
-            disturbed=self.disturbed,
-            nav_filter=self.nav_filter,
-            thrusters=thrusters,
-            n_steps=self.n_steps,
-            time_limit_s=self.time_limit_s,
-        )
+        return FlightOptions.of(self, thrusters=thrusters, seed=0)  # (the runs' keys: seed)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -85,16 +85,7 @@ class ProblemSpec:
         """The :class:`~rvdjax.scenarios.flight.FlightOptions` of the verified loop."""
         from rvdjax.scenarios.flight import FlightOptions
 
-        return FlightOptions(
-            mode=self.mode,
-            truth=self.truth,
-            disturbed=self.disturbed,
-            nav_filter=self.nav_filter,
-            thrusters=self.thrusters,
-            n_steps=self.n_steps,
-            time_limit_s=self.time_limit_s,
-            seed=self.seed,
-        )
+        return FlightOptions.of(self)
 
 
 class Problem:
