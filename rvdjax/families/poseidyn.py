@@ -52,9 +52,19 @@ from rvdjax.families.common import (
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.schema import (
+    Input,
+    Schema,
+    finite,
+    make_params_of,
+    nonnegative,
+    positive,
+    value,
+    within,
+)
 from rvdjax.solver import drift_plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY"]
+__all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
 
 POS = (0, 1)
 NX, NU = 4, 2
@@ -140,59 +150,88 @@ class Guidance(NamedTuple):
     cone_on: jnp.ndarray
 
 
-def make_params(
-    *,
-    mass: float = 10.0,
-    ts: float = 5.0,
-    Q=(1e2, 1e2, 1e5, 1e5),
-    R=(1e3, 1e3),
-    terminal_scale: float = 100.0,
-    u_max: float = 0.15,
-    target=(0.5, 0.5),
-    dock_offset: float = 0.3,
-    cone_angle_deg: float = 45.0,
-    half_angle_deg: float = 10.0,
-    cone_range: float = 0.5,
-    obstacle=(2.5, 2.5),
-    r_obs: float = 0.4,
-    plane_rate_deg_s: float = 1.8,
-    plane_direction: int = 1,
-    rho: float = 1e8,
-    dock_tol: float = 0.05,
-    dock_speed_tol: float = 0.05,
-    x0=(3.5, 3.5, 0.0, 0.0),
-    disturbances: dict | None = None,
-) -> Params:
-    """Check physical values and build :class:`Params` (once, before any jit). Defaults:
-    paper 001 Tables 1-2 (initial tuning) plus the scenario's assumptions.
+SCHEMA = Schema(
+    (
+        positive("mass", "kg", "chaser mass", default=10.0),
+        positive("ts", "s", "sample time (zero-order hold)", default=5.0),
+        value(
+            "Q",
+            "",
+            "state weight: 4 diagonal entries or a (4, 4) PSD matrix",
+            shape="(4, 4)",
+            default=(1e2, 1e2, 1e5, 1e5),
+        ),
+        value(
+            "R",
+            "",
+            "input weight: 2 diagonal entries or a (2, 2) PD matrix",
+            shape="(2, 2)",
+            default=(1e3, 1e3),
+        ),
+        positive(
+            "terminal_scale",
+            "",
+            "P = terminal_scale * P_bar (100 initial, 1 re-tuned)",
+            default=100.0,
+        ),
+        positive("u_max", "N", "F_max on each axis", default=0.15),
+        value("target", "m", "target centre", shape="(2,)", default=(0.5, 0.5)),
+        nonnegative(
+            "dock_offset", "m", "docking point (cone apex) from the target centre", default=0.3
+        ),
+        finite("cone_angle_deg", "deg", "direction of the cone axis", default=45.0),
+        within(
+            "half_angle_deg",
+            "deg",
+            0.0,
+            90.0,
+            "entry-cone half angle",
+            label="half_angle_deg (entry cone)",
+            default=10.0,
+        ),
+        positive(
+            "cone_range", "m", "distance to the docking point that activates the cone", default=0.5
+        ),
+        value("obstacle", "m", "keep-out zone centre", shape="(2,)", default=(2.5, 2.5)),
+        positive("r_obs", "m", "keep-out zone radius", default=0.4),
+        positive("plane_rate_deg_s", "deg/s", "hyperplane rotation rate", default=1.8),
+        Input(
+            "plane_direction",
+            "+1 anticlockwise, -1 clockwise",
+            kind="int",
+            check="choice",
+            choices=(-1, 1),
+            default=1,
+        ),
+        positive("rho", "", "exact penalty of the soft constraint rows", default=1e8),
+        positive("dock_tol", "m", "docking position tolerance", default=0.05),
+        positive("dock_speed_tol", "m/s", "docking speed tolerance", default=0.05),
+        value(
+            "x0",
+            "m, m/s",
+            "initial state (x, y, vx, vy): outside the keep-out zone",
+            shape="(4,)",
+            kind="state",
+            default=(3.5, 3.5, 0.0, 0.0),
+        ),
+        value(
+            "disturbances",
+            "",
+            "disturbance keyword values over the lab's",
+            kind="table",
+            default=None,
+        ),
+    )
+)
 
-    Args:
-        Q, R: diagonals (length 4, 2) or full matrices.
-        terminal_scale: P = terminal_scale * P_bar (100 initial, 1 re-tuned).
-        u_max: F_max [N] on each axis.
-        target: target centre [m]; the docking point (cone apex) is ``dock_offset`` metres
-            from it along the cone axis (``cone_angle_deg``).
-        plane_rate_deg_s: hyperplane rotation rate [deg/s]; plane_direction: +1
-            anticlockwise, -1 clockwise.
-        x0: initial state (x, y, vx, vy): finite, outside the keep-out zone.
+
+def _build(v) -> Params:
+    """Check physical values and build :class:`Params` (once, before any jit). Keywords and
+    defaults: :data:`SCHEMA` (paper 001 Tables 1-2, initial tuning, plus the scenario's
+    assumptions); the docking point (cone apex) is ``dock_offset`` metres from ``target``
+    along the cone axis (``cone_angle_deg``) and must lie outside the keep-out zone.
     """
-    for name, v, unit in (
-        ("mass", mass, "kg"),
-        ("ts", ts, "s"),
-        ("terminal_scale", terminal_scale, ""),
-        ("u_max", u_max, "N"),
-        ("r_obs", r_obs, "m"),
-        ("cone_range", cone_range, "m"),
-        ("plane_rate_deg_s", plane_rate_deg_s, "deg/s"),
-        ("rho", rho, ""),
-        ("dock_tol", dock_tol, "m"),
-        ("dock_speed_tol", dock_speed_tol, "m/s"),
-    ):
-        checks.positive(name, v, unit)
-    checks.nonnegative("dock_offset", dock_offset, "m")
-    checks.in_range("half_angle_deg (entry cone)", half_angle_deg, 0.0, 90.0, unit="deg")
-    checks.finite("cone_angle_deg", cone_angle_deg, "deg")
-    checks.choice("plane_direction", plane_direction, (-1, 1))
+    Q, R, target, obstacle, x0 = v.Q, v.R, v.target, v.obstacle, v.x0
     Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
     R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
     checks.shape("Q", Q, (NX, NX))
@@ -202,50 +241,55 @@ def make_params(
     target = checks.shape("target", target, (2,))
     obstacle = checks.shape("obstacle", obstacle, (2,))
     x0 = checks.shape("x0", x0, (NX,))
-    axis = np.deg2rad(cone_angle_deg)
-    dock = target + dock_offset * np.array([np.cos(axis), np.sin(axis)])
-    checks.outside("the keep-out zone", x0[:2], obstacle, r_obs)
+    axis = np.deg2rad(v.cone_angle_deg)
+    dock = target + v.dock_offset * np.array([np.cos(axis), np.sin(axis)])
+    checks.outside("the keep-out zone", x0[:2], obstacle, v.r_obs)
     dd = float(np.linalg.norm(dock - obstacle))
-    if dd <= r_obs:
+    if dd <= v.r_obs:
         raise ValueError(
             f"the docking point lies inside the keep-out zone ({dd:.3g} m from the obstacle "
-            f"centre, radius r_obs = {r_obs} m)"
+            f"centre, radius r_obs = {v.r_obs} m)"
         )
 
     from rvdjax.dynamics import dare, discretize_zoh, planar2dof_continuous
 
-    A, B = discretize_zoh(*planar2dof_continuous(mass), ts)
+    A, B = discretize_zoh(*planar2dof_continuous(v.mass), v.ts)
     P_bar = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
     phi0 = np.arctan2(*(x0[:2] - obstacle)[::-1])
     phi_f = np.arctan2(*(dock - obstacle)[::-1])
     # unwrap the final angle in the chosen direction (a full half turn when collinear)
-    delta = (phi_f - phi0) % (2 * np.pi) if plane_direction > 0 else -((phi0 - phi_f) % (2 * np.pi))
+    delta = (
+        (phi_f - phi0) % (2 * np.pi) if v.plane_direction > 0 else -((phi0 - phi_f) % (2 * np.pi))
+    )
     f = jnp.asarray
     return Params(
         A=A,
         B=B,
         Q=f(Q),
         R=f(R),
-        Q_f=terminal_scale * P_bar,
-        terminal_scale=f(float(terminal_scale)),
-        u_max=f(np.full(NU, u_max, dtype=float)),
+        Q_f=v.terminal_scale * P_bar,
+        terminal_scale=f(float(v.terminal_scale)),
+        u_max=f(np.full(NU, v.u_max, dtype=float)),
         dock=f(dock),
         cone_axis=f(axis),
-        half_angle=f(np.deg2rad(half_angle_deg)),
-        cone_range=f(float(cone_range)),
+        half_angle=f(np.deg2rad(v.half_angle_deg)),
+        cone_range=f(float(v.cone_range)),
         obstacle=f(obstacle),
-        r_obs=f(float(r_obs)),
+        r_obs=f(float(v.r_obs)),
         phi0=f(phi0),
         phi_final=f(phi0 + delta),
-        plane_rate=f(plane_direction * np.deg2rad(plane_rate_deg_s)),
-        rho=f(float(rho)),
-        ts=f(float(ts)),
-        dock_tol=f(float(dock_tol)),
-        dock_speed_tol=f(float(dock_speed_tol)),
-        mass=f(float(mass)),
-        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
-        **continuous_fields(*planar2dof_continuous(mass)),
+        plane_rate=f(v.plane_direction * np.deg2rad(v.plane_rate_deg_s)),
+        rho=f(float(v.rho)),
+        ts=f(float(v.ts)),
+        dock_tol=f(float(v.dock_tol)),
+        dock_speed_tol=f(float(v.dock_speed_tol)),
+        mass=f(float(v.mass)),
+        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
+        **continuous_fields(*planar2dof_continuous(v.mass)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def plane_angle(p: Params, times):

@@ -37,9 +37,10 @@ from rvdjax.families.common import (
 )
 from rvdjax.loop.family import Family, Layout, Tuning
 from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.schema import Schema, finite, make_params_of, positive, value, within
 from rvdjax.solver import drift_plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY"]
+__all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
 
 LAYOUT = Layout(
     nx=6,
@@ -108,48 +109,53 @@ class Guidance(NamedTuple):
     """No guidance state: one phase, fixed constraints."""
 
 
-def make_params(
-    *,
-    altitude_m: float,
-    mass: float,
-    ts: float,
-    Q,
-    R,
-    u_max,
-    stop_radius: float,
-    obstacles=None,
-    radii=None,
-    obstacles_on: bool = True,
-    rho: float = 1e8,
-    x_ref=None,
-    x0=None,
-    inclination_deg: float = 0.0,
-    disturbances: dict | None = None,
-) -> Params:
+SCHEMA = Schema(
+    (
+        positive("altitude_m", "m", "circular target orbit altitude (CW mean motion)"),
+        positive("mass", "kg", "chaser mass"),
+        positive("ts", "s", "sample time (zero-order hold)"),
+        value("Q", "", "state weight: 6 diagonal entries or a (6, 6) PSD matrix", shape="(6, 6)"),
+        value("R", "", "input weight: 3 diagonal entries or a (3, 3) PD matrix", shape="(3, 3)"),
+        positive("u_max", "N", "per-axis thrust bound (one value or 3)", shape="(3,)"),
+        positive("stop_radius", "m", "distance to the target that ends the run"),
+        finite("obstacles", "m, m/s", "obstacle states at t = 0", shape="(k, 6)", default=None),
+        positive("radii", "m", "keep-out radius of each obstacle", shape="(k,)", default=None),
+        value("obstacles_on", "", "false switches every obstacle off", kind="bool", default=True),
+        positive("rho", "per metre", "exact penalty of the keep-out rows", default=1e8),
+        value("x_ref", "m, m/s", "holding state (none: the origin)", shape="(6,)", default=None),
+        value("x0", "m, m/s", "initial state", shape="(6,)", kind="state", default=None),
+        within(
+            "inclination_deg",
+            "deg",
+            0.0,
+            180.0,
+            "target orbit inclination",
+            closed=True,
+            default=0.0,
+        ),
+        value("disturbances", "", "disturbance keyword values", kind="table", default=None),
+    )
+)
+
+
+def _build(v) -> Params:
     """Check physical values and build :class:`Params` (once, before any jit).
 
-    Args:
-        altitude_m: circular target orbit altitude [m] (CW mean motion; nonlinear truth).
-        mass: chaser mass [kg]. ts: sample time [s] (zero-order hold).
-        Q, R: diagonals (6, 3 entries) or full weights; Q_f is the DARE solution.
-        u_max: per-axis thrust bound [N] (scalar or 3).
-        stop_radius: distance to the target that ends the run [m].
-        obstacles: (k, 6) initial obstacle states; radii: (k,) keep-out radii [m].
-        obstacles_on: False keeps the shapes but switches every obstacle off.
-        rho: exact penalty of the keep-out rows [per metre of penetration], one value or one
-            per obstacle.
-        x0: initial state, checked to be finite and outside every zone and the stop radius.
-        inclination_deg: target orbit inclination (nonlinear truths).
-        disturbances: keyword values for :func:`rvdjax.disturbances.disturbances`.
+    Keywords: :data:`SCHEMA` (each value's unit, check and default); ``x0``, when given, is
+    checked to be finite and outside every keep-out zone and the stop radius.
     """
     from rvdjax.dynamics import cw_continuous, dare, discretize_zoh, mean_motion
 
-    checks.positive("altitude_m", altitude_m, "m")
-    checks.positive("mass", mass, "kg")
-    checks.positive("ts", ts, "s")
-    checks.positive("stop_radius", stop_radius, "m")
-    checks.positive("rho", rho, "per metre")
-    checks.in_range("inclination_deg", inclination_deg, 0.0, 180.0, False, False, "deg")
+    Q, R, u_max, obstacles, radii, obstacles_on, x_ref, x0 = (
+        v.Q,
+        v.R,
+        v.u_max,
+        v.obstacles,
+        v.radii,
+        v.obstacles_on,
+        v.x_ref,
+        v.x0,
+    )
     Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
     R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
     checks.shape("Q", Q, (6, 6))
@@ -157,24 +163,21 @@ def make_params(
     checks.pos_semidef("Q", Q)
     checks.pos_def("R", R)
     u_max = np.broadcast_to(np.asarray(u_max, float), (3,)).copy()
-    checks.positive("u_max", u_max, "N")
     if obstacles is None or len(obstacles) == 0:  # one inactive placeholder: fixed shapes
         obstacles, radii, obstacles_on = np.zeros((1, 6)), np.ones(1), False
     obstacles = np.asarray(obstacles, float).reshape(-1, 6)
     radii = np.asarray(radii, float).reshape(-1)
-    checks.finite("obstacles", obstacles, "m, m/s")
     if radii.shape != (len(obstacles),):
         raise ValueError(f"radii must give one radius per obstacle ({len(obstacles)})")
-    checks.positive("radii", radii, "m")
     x_ref = np.zeros(6) if x_ref is None else checks.shape("x_ref", x_ref, (6,))
     if x0 is not None:
         x0 = checks.shape("x0", x0, (6,))
-        checks.outside("the stop radius (it has already arrived)", x0[:3], x_ref[:3], stop_radius)
+        checks.outside("the stop radius (it has already arrived)", x0[:3], x_ref[:3], v.stop_radius)
         if obstacles_on:
             for j, (o, r) in enumerate(zip(obstacles, radii, strict=True)):
                 checks.outside(f"keep-out zone {j + 1}", x0[:3], o[:3], r)
-    n = mean_motion(altitude_m=altitude_m)
-    A, B = discretize_zoh(*cw_continuous(n, mass), ts)
+    n = mean_motion(altitude_m=v.altitude_m)
+    A, B = discretize_zoh(*cw_continuous(n, v.mass), v.ts)
     P = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
     f = jnp.asarray
     return Params(
@@ -188,14 +191,17 @@ def make_params(
         obstacles=f(obstacles),
         radii=f(radii),
         obstacle_mask=f(np.full(len(radii), 1.0 if obstacles_on else 0.0)),
-        rho=f(np.broadcast_to(np.asarray(rho, float), radii.shape).copy()),
-        ts=f(float(ts)),
-        mass=f(float(mass)),
-        stop_radius=f(float(stop_radius)),
-        orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
-        disturbances=make_disturbances(**(disturbances or {})),
-        **continuous_fields(*cw_continuous(n, mass)),
+        rho=f(np.broadcast_to(np.asarray(v.rho, float), radii.shape).copy()),
+        ts=f(float(v.ts)),
+        mass=f(float(v.mass)),
+        stop_radius=f(float(v.stop_radius)),
+        orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
+        disturbances=make_disturbances(**(v.disturbances or {})),
+        **continuous_fields(*cw_continuous(n, v.mass)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def _centres(p: Params, times):

@@ -40,6 +40,8 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
+from rvdjax.schema import Schema
+
 __all__ = ["Layout", "Family", "Tunable", "Tuning"]
 
 
@@ -132,6 +134,8 @@ class Family:
         plot: (path, scenario, params, infos) -> None, the run's figure.
         dock_error: optional (params, fconfig, G, x, t) -> distance to docking [m].
         tuning: optional :class:`Tuning` (the parameters ``rvdjax tune`` may change).
+        schema: the physical inputs (:class:`rvdjax.schema.Schema`: names, units, checks,
+            defaults, study aliases); by default ``make_params.schema``.
     """
 
     name: str
@@ -158,6 +162,11 @@ class Family:
     baselines: tuple[str, ...] = ()
     dock_error: Callable | None = None
     tuning: Tuning | None = None
+    schema: Schema | None = None
+
+    def __post_init__(self):
+        if self.schema is None:  # make_params built by rvdjax.schema.make_params_of
+            object.__setattr__(self, "schema", getattr(self.make_params, "schema", None))
 
     def __hash__(self):
         return hash(self.name)
