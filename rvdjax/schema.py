@@ -250,15 +250,19 @@ class Schema:
             i.validate(get(i.name), self.n_phases)
 
     def markdown(self) -> str:
-        """The inputs as a Markdown table (the docs' per-family tables)."""
+        """The physical inputs (all but ``x0``) as a Markdown table (the docs' tables)."""
         rows = [
             "| input | shape | unit | allowed | default | description |",
             "|---|---|---|---|---|---|",
         ]
-        for i in self.inputs:
+        for i in self.physical:
             default = "required" if i.required else _shown(i.default)
-            name = f"`{i.name}`" + (f" (`{i.alias}`)" if i.alias else "")
-            shape = i.shape if i.shape != "per-phase" else f"per phase ({self.n_phases},)"
+            short = [a for a, full in self.aliases().items() if full.split("[")[0] == i.name]
+            name = f"`{i.name}`" + (f" ({', '.join(f'`{a}`' for a in short)})" if short else "")
+            shape = {"per-phase": f"per phase ({self.n_phases},)", "scalar": "()"}.get(
+                i.shape, i.shape
+            )
+            shape = "table" if i.kind == "table" else shape
             cells = (name, shape, i.unit or "-", i.allowed() or "-", default, i.description)
             rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
         return "\n".join(rows)
@@ -266,7 +270,9 @@ class Schema:
 
 def _shown(v) -> str:
     if v is None:
-        return "derived"
+        return "none"
+    if isinstance(v, bool):
+        return "true" if v else "false"
     if isinstance(v, float):
         return f"{v:g}"
     if isinstance(v, tuple):
