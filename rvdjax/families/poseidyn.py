@@ -51,7 +51,7 @@ from rvdjax.families.common import (
     truth_model,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.schema import (
     Input,
     Schema,
@@ -382,58 +382,6 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
     ]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw a POSEIDYN LQ-MPC run (paper 001): path, keep-out circle, rotating hyperplane
-    snapshots, entry cone, thrust and distance to the docking point."""
-    from rvdjax.plots import pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = min(int(active.sum()) + 1, len(active))
-    x = np.asarray(infos.x)[:n]
-    u = np.asarray(infos.u)[: n - 1]
-    t = np.concatenate([[0.0], np.cumsum(np.asarray(infos.dt)[: n - 1])])
-    dock, obs = np.asarray(params.dock), np.asarray(params.obstacle)
-    r_obs = float(params.r_obs)
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    ax.add_patch(plt.Circle(obs, r_obs, color="tab:blue", alpha=0.3, label="keep-out zone"))
-
-    phis = np.asarray(plane_angle(params, np.asarray(infos.t)[:n]))
-    for k, s in enumerate(np.linspace(0, n - 1, 6).astype(int)):
-        e = np.array([np.cos(phis[s]), np.sin(phis[s])])
-        p0 = obs + r_obs * e
-        tangent = np.array([-e[1], e[0]])
-        seg = np.stack([p0 - 0.6 * tangent, p0 + 0.6 * tangent])
-        ax.plot(seg[:, 0], seg[:, 1], color="tab:blue", alpha=0.2 + 0.7 * k / 5, lw=1)
-    a, h = float(params.cone_axis), float(params.half_angle)
-    for sgn in (-1, 1):
-        ray = dock + float(params.cone_range) * np.array([np.cos(a + sgn * h), np.sin(a + sgn * h)])
-        ax.plot([dock[0], ray[0]], [dock[1], ray[1]], color="tab:green")
-    ax.plot(x[:, 0], x[:, 1], "-o", ms=2, color="tab:red", label="chaser (truth)")
-    ax.plot(*dock, "ks", label="docking point")
-    ax.plot([], [], color="tab:blue", label="rotating hyperplane (snapshots)")
-    ax.plot([], [], color="tab:green", label="entry cone")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(title or f"{scenario.name}: closed loop")
-    ax_u = fig.add_subplot(2, 2, 2)
-    ax_u.step(t[: len(u)], u[:, 0], where="post", label="Fx [N]")
-    ax_u.step(t[: len(u)], u[:, 1], where="post", ls="--", label="Fy [N]")
-    ax_u.grid(alpha=0.3)
-    ax_u.legend(fontsize=8)
-    ax_r = fig.add_subplot(2, 2, 4)
-    ax_r.plot(t, np.linalg.norm(x[:, :2] - dock, axis=1), label="distance to docking point [m]")
-    ax_r.set_xlabel("time [s]")
-    ax_r.grid(alpha=0.3)
-    ax_r.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):
     """Distance beyond dock_tol of the docking point [m]."""
     return smooth_excess(smooth_norm(x[:2] - p.dock), p.dock_tol)
@@ -471,24 +419,26 @@ FAMILY = Family(
     name="poseidyn",
     description="planar double-integrator LQ-MPC docking with a rotating-hyperplane keep-out "
     "and entry cone (paper 001)",
-    layout=LAYOUT,
-    n_phases=1,
-    config_type=Config,
+    law=Hooks(
+        layout=LAYOUT,
+        n_phases=1,
+        config_type=Config,
+        horizon=lambda fc: fc.N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        model=model,
+        subsamples=subsamples,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=lambda fc: fc.N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
-    model=model,
-    subsamples=subsamples,
-    plot=plot,
+    plot=lazy("rvdjax.families.plots.poseidyn:plot"),
     baselines=("idvd",),
-    dock_error=dock_error,
     tuning=TUNING,
 )

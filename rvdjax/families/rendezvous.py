@@ -35,7 +35,7 @@ from rvdjax.families.common import (
     truth_model,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.propagate import Drag, Orbit, circular_orbit
 from rvdjax.schema import Schema, finite, make_params_of, positive, value, within
 from rvdjax.solver import drift_plan
@@ -248,76 +248,6 @@ def truth_blocks(p: Params, fc, g, x, t):
     return [keep_out.masked(p.obstacle_mask.reshape(1, k))]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw one rendezvous run: path with keep-out snapshots, thrust, range and margins.
-
-    Args:
-        path: output file.
-        scenario: the :class:`rvdjax.scenarios.Scenario` (for the title).
-        params: its :class:`rvdjax.families.rendezvous.Params`.
-        infos: the run's :class:`rvdjax.loop.StepInfo` (leading axis: step).
-    """
-    from rvdjax.plots import finish_lvlh_axes, pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = int(active.sum()) + 1  # include the state after the last active step
-    x = np.asarray(infos.x)[: min(n, len(active))]
-    u = np.asarray(infos.u)[: n - 1]
-    ts = float(params.ts)
-    t = np.arange(len(x)) * ts
-    obstacles = np.asarray(params.obstacles)
-    radii = np.asarray(params.radii)
-    mask = np.asarray(params.obstacle_mask) > 0
-    d = obstacles.shape[1] // 2
-
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    ax.plot(x[:, 1], x[:, 0], "-", color="tab:red", lw=1.5, label="chaser (truth)")
-    ax.plot(x[0, 1], x[0, 0], "o", color="tab:red")
-    snaps = np.linspace(0, len(x) - 1, 6).astype(int)
-    for j in np.flatnonzero(mask):
-        path_o = obstacles[j, :d][None] + t[:, None] * obstacles[j, d:][None]
-        ax.plot(path_o[:, 1], path_o[:, 0], ":", color="tab:blue", lw=1)
-        for k, s in enumerate(snaps):
-            alpha = 0.15 + 0.7 * k / max(len(snaps) - 1, 1)
-            ax.add_patch(
-                plt.Circle(
-                    (path_o[s, 1], path_o[s, 0]),
-                    radii[j],
-                    color="tab:blue",
-                    fill=False,
-                    alpha=alpha,
-                )
-            )
-            ax.plot(x[s, 1], x[s, 0], ".", color="tab:red", alpha=alpha)
-    if mask.any():
-        ax.plot([], [], color="tab:blue", label="keep-out zones (snapshots, later = darker)")
-    finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
-
-    ax_u = fig.add_subplot(2, 2, 2)
-    for i, ls in zip(range(u.shape[1]), ["-", "--", ":"], strict=False):
-        ax_u.step(t[: len(u)], u[:, i], where="post", ls=ls, label=f"u{'xyz'[i]}")
-    ax_u.set_ylabel("thrust [N]")
-    ax_u.grid(alpha=0.3)
-    ax_u.legend(fontsize=8, ncol=3)
-
-    ax_r = fig.add_subplot(2, 2, 4)
-    ax_r.semilogy(t, np.linalg.norm(x[:, :d], axis=1), color="k", label="range to target")
-    margins = np.asarray(infos.margins["keep_out"])[: len(x)]
-    for j in np.flatnonzero(mask):
-        ax_r.semilogy(
-            t, np.maximum(margins[:, j], 1e-3), label=f"keep-out margin {j + 1} (floored at 1 mm)"
-        )
-    ax_r.axhline(float(params.stop_radius), color="gray", ls="--", lw=1, label="holding distance")
-    ax_r.set_xlabel("time [s]")
-    ax_r.set_ylabel("[m]")
-    ax_r.grid(alpha=0.3, which="both")
-    ax_r.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc, g, x, t):
     """Distance beyond ``stop_radius`` of the holding position [m] (where the run ends)."""
     return smooth_excess(smooth_norm(x[:3] - p.x_ref[:3]), p.stop_radius)
@@ -328,24 +258,26 @@ TUNING = Tuning(tunables=weight_tunables(), derive=derive_terminal)
 FAMILY = Family(
     name="rendezvous",
     description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
-    layout=LAYOUT,
-    n_phases=1,
-    config_type=Config,
+    law=Hooks(
+        layout=LAYOUT,
+        n_phases=1,
+        config_type=Config,
+        horizon=lambda fc: fc.N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        model=model,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=lambda fc: fc.N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
-    model=model,
     truths=("linear", "two-body", "two-body-j2"),
-    plot=plot,
+    plot=lazy("rvdjax.families.plots.rendezvous:plot"),
     baselines=("nmpc",),
-    dock_error=dock_error,
     tuning=TUNING,
 )
