@@ -58,10 +58,11 @@ from rvdjax.families.common import (
     truth_model,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
+from rvdjax.schema import Schema, finite, make_params_of, nonnegative, positive, value, within
 from rvdjax.solver import drift_plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY"]
+__all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
 
 POS = (0, 1)
 LAYOUT = Layout(
@@ -162,94 +163,107 @@ class Guidance(NamedTuple):
     cone_on: jnp.ndarray
 
 
-def make_params(
-    *,
-    mass: float,
-    inertia: float,
-    ts: float,
-    Q,
-    R,
-    u_max,
-    target,
-    target_rate_deg_s: float,
-    r_t: float,
-    r_hold0: float,
-    gap: float,
-    gamma: float,
-    c_pos: float,
-    c_att_deg: float,
-    half_angle_deg: float,
-    r_min: float | None = None,
-    r_port: float | None = None,
-    target_vel=(0.0, 0.0),
-    cone_radius: float = float("inf"),
-    obstacles=None,
-    obstacle_radii=None,
-    obstacles_on: bool = True,
-    rho: float = 1e5,
-    dock_tol: float = 0.05,
-    x0=None,
-    disturbances: dict | None = None,
-) -> Params:
+SCHEMA = Schema(
+    (
+        positive("mass", "kg", "chaser mass"),
+        positive("inertia", "kg m^2", "chaser moment of inertia about z"),
+        positive("ts", "s", "sample time (zero-order hold)"),
+        value("Q", "", "state weight: 6 diagonal entries or a (6, 6) PSD matrix", shape="(6, 6)"),
+        value("R", "", "input weight: 3 diagonal entries or a (3, 3) PD matrix", shape="(3, 3)"),
+        positive("u_max", "N, N, N m", "force and torque bounds", shape="(3,)"),
+        value("target", "m, m, rad", "target centre and port direction at t = 0", shape="(3,)"),
+        finite("target_rate_deg_s", "deg/s", "target rotation rate"),
+        positive("r_t", "m", "target keep-out radius"),
+        positive("r_hold0", "m", "initial holding radius (> r_min)"),
+        nonnegative("gap", "m", "holding-radius margin over the keep-out radius"),
+        within(
+            "gamma",
+            "",
+            0.0,
+            1.0,
+            "holding-radius shrink factor",
+            label="gamma (holding-radius shrink factor)",
+        ),
+        positive("c_pos", "m", "position tolerance of a holding-radius shrink"),
+        positive("c_att_deg", "deg", "attitude tolerance of a holding-radius shrink"),
+        within(
+            "half_angle_deg",
+            "deg",
+            0.0,
+            90.0,
+            "entry-cone half angle",
+            label="half_angle_deg (entry cone)",
+        ),
+        value("r_min", "m", "smallest holding radius, in [r_t, r_hold0) (none: r_t)", default=None),
+        value("r_port", "m", "docking-port radius, in (0, r_min] (none: r_t)", default=None),
+        value("target_vel", "m/s", "target velocity", shape="(2,)", default=(0.0, 0.0)),
+        value("cone_radius", "m", "entry-cone activation radius (> 0)", default=float("inf")),
+        finite("obstacles", "m, m/s", "obstacle states at t = 0", shape="(k, 4)", default=None),
+        positive("obstacle_radii", "m", "obstacle keep-out radii", shape="(k,)", default=None),
+        value("obstacles_on", "", "false switches every obstacle off", kind="bool", default=True),
+        positive("rho", "", "exact penalty of the soft constraint rows", default=1e5),
+        positive("dock_tol", "m", "docking tolerance", default=0.05),
+        value(
+            "x0",
+            "m, m, rad, m/s, m/s, rad/s",
+            "initial state",
+            shape="(6,)",
+            kind="state",
+            default=None,
+        ),
+        value(
+            "disturbances",
+            "",
+            "disturbance keyword values over the lab's",
+            kind="table",
+            default=None,
+        ),
+    )
+)
+
+
+def _build(v) -> Params:
     """Check physical values and build :class:`Params` (once, before any jit).
 
-    Angles in degrees (``target`` = x, y [m] and the port direction [rad]); radii must satisfy
-    r_t <= r_min < r_hold0 and 0 < r_port <= r_min; ``x0`` (if given) must be finite and
-    outside the target keep-out circle and every obstacle.
+    Keywords: :data:`SCHEMA`. Angles in degrees (``target`` = x, y [m] and the port
+    direction [rad]); radii must satisfy r_t <= r_min < r_hold0 and 0 < r_port <= r_min;
+    ``x0`` (if given) must be finite and outside the target keep-out circle and every obstacle.
     """
     from rvdjax.dynamics import dare, discretize_zoh, planar3dof_continuous
 
-    for name, v, unit in (
-        ("mass", mass, "kg"),
-        ("inertia", inertia, "kg m^2"),
-        ("ts", ts, "s"),
-        ("r_t", r_t, "m"),
-        ("r_hold0", r_hold0, "m"),
-        ("c_pos", c_pos, "m"),
-        ("c_att_deg", c_att_deg, "deg"),
-        ("rho", rho, ""),
-        ("dock_tol", dock_tol, "m"),
-    ):
-        checks.positive(name, v, unit)
-    checks.in_range("gamma (holding-radius shrink factor)", gamma, 0.0, 1.0)
-    checks.in_range("half_angle_deg (entry cone)", half_angle_deg, 0.0, 90.0, unit="deg")
-    checks.nonnegative("gap", gap, "m")
-    checks.finite("target_rate_deg_s", target_rate_deg_s, "deg/s")
-    r_min = r_t if r_min is None else r_min
-    r_port = r_t if r_port is None else r_port
-    if not r_t <= r_min < r_hold0:
+    r_min = v.r_t if v.r_min is None else v.r_min
+    r_port = v.r_t if v.r_port is None else v.r_port
+    if not v.r_t <= r_min < v.r_hold0:
         raise ValueError(
-            f"radii must satisfy r_t <= r_min < r_hold0, got r_t={r_t}, r_min={r_min}, "
-            f"r_hold0={r_hold0} m"
+            f"radii must satisfy r_t <= r_min < r_hold0, got r_t={v.r_t}, r_min={r_min}, "
+            f"r_hold0={v.r_hold0} m"
         )
     checks.in_range("r_port", r_port, 0.0, r_min, hi_open=False, unit="m")
-    if not cone_radius > 0:
-        raise ValueError(f"cone_radius must be > 0 m, got {cone_radius}")
+    if not v.cone_radius > 0:
+        raise ValueError(f"cone_radius must be > 0 m, got {v.cone_radius}")
+    obstacles, obstacle_radii, obstacles_on = v.obstacles, v.obstacle_radii, v.obstacles_on
     if obstacles is None or len(obstacles) == 0:  # one inactive placeholder: fixed shapes
         obstacles, obstacle_radii, obstacles_on = np.zeros((1, 4)), np.ones(1), False
     obstacles = np.asarray(obstacles, float).reshape(-1, 4)
     obstacle_radii = np.asarray(obstacle_radii, float).reshape(-1)
-    checks.finite("obstacles", obstacles, "m, m/s")
-    checks.positive("obstacle_radii", obstacle_radii, "m")
     obstacle_mask = np.full(len(obstacle_radii), 1.0 if obstacles_on else 0.0)
-    Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
-    R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
+    Q = np.diag(np.asarray(v.Q, float)) if np.ndim(v.Q) == 1 else np.asarray(v.Q, float)
+    R = np.diag(np.asarray(v.R, float)) if np.ndim(v.R) == 1 else np.asarray(v.R, float)
     checks.shape("Q", Q, (6, 6))
     checks.shape("R", R, (3, 3))
     checks.pos_semidef("Q", Q)
     checks.pos_def("R", R)
-    u_max = checks.shape("u_max", u_max, (3,))
-    checks.positive("u_max", u_max, "N, N, N m")
-    target = checks.shape("target", target, (3,))
-    target_vel = checks.shape("target_vel", target_vel, (2,))
-    if x0 is not None:
-        x0 = checks.shape("x0", x0, (6,))
-        checks.outside("the target keep-out zone", x0[:2], target[:2], r_t)
+    u_max = checks.shape("u_max", v.u_max, (3,))
+    target = checks.shape("target", v.target, (3,))
+    target_vel = checks.shape("target_vel", v.target_vel, (2,))
+    if v.x0 is not None:
+        x0 = checks.shape("x0", v.x0, (6,))
+        checks.outside("the target keep-out zone", x0[:2], target[:2], v.r_t)
         for j in np.flatnonzero(obstacle_mask):
             checks.outside(
                 f"obstacle keep-out zone {j + 1}", x0[:2], obstacles[j, :2], obstacle_radii[j]
             )
-    A, B = discretize_zoh(*planar3dof_continuous(mass, inertia), ts)
+    A, B = discretize_zoh(*planar3dof_continuous(v.mass, v.inertia), v.ts)
     P = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
     f = jnp.asarray
     return Params(
@@ -260,28 +274,31 @@ def make_params(
         Q_f=P,
         u_max=f(u_max),
         target=f(target),
-        target_rate=f(np.deg2rad(target_rate_deg_s)),
+        target_rate=f(np.deg2rad(v.target_rate_deg_s)),
         target_vel=f(target_vel),
-        r_t=f(float(r_t)),
-        r_hold0=f(float(r_hold0)),
+        r_t=f(float(v.r_t)),
+        r_hold0=f(float(v.r_hold0)),
         r_min=f(float(r_min)),
         r_port=f(float(r_port)),
-        cone_radius=f(float(cone_radius)),
+        cone_radius=f(float(v.cone_radius)),
         obstacles=f(obstacles),
         obstacle_radii=f(obstacle_radii),
         obstacle_mask=f(obstacle_mask),
-        gap=f(float(gap)),
-        gamma=f(float(gamma)),
-        c_pos=f(float(c_pos)),
-        c_att=f(np.deg2rad(c_att_deg)),
-        half_angle=f(np.deg2rad(half_angle_deg)),
-        rho=f(float(rho)),
-        ts=f(float(ts)),
-        dock_tol=f(float(dock_tol)),
-        mass=f(float(mass)),
-        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
-        **continuous_fields(*planar3dof_continuous(mass, inertia)),
+        gap=f(float(v.gap)),
+        gamma=f(float(v.gamma)),
+        c_pos=f(float(v.c_pos)),
+        c_att=f(np.deg2rad(v.c_att_deg)),
+        half_angle=f(np.deg2rad(v.half_angle_deg)),
+        rho=f(float(v.rho)),
+        ts=f(float(v.ts)),
+        dock_tol=f(float(v.dock_tol)),
+        mass=f(float(v.mass)),
+        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
+        **continuous_fields(*planar3dof_continuous(v.mass, v.inertia)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def _wrap(a):
@@ -401,89 +418,6 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
     ]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw a planar docking run: path, target keep-out and holding circles and port axis
-    (snapshots, the target may translate), moving obstacles, thrust and torque, holding
-    radius and phase / cone activity."""
-    from rvdjax.plots import pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = min(int(active.sum()) + 1, len(active))
-    x = np.asarray(infos.x)[:n]
-    u = np.asarray(infos.u)[: n - 1]
-    r_hold = np.asarray(infos.guidance.r_hold)[:n]
-    ts = float(params.ts)
-    t = np.arange(n) * ts
-    c0, v_t = np.asarray(params.target)[:2], np.asarray(params.target_vel)
-    phi0, rate = float(params.target[2]), float(params.target_rate)
-    r_t, r_port = float(params.r_t), float(params.r_port)
-    centres = c0[None] + t[:, None] * v_t[None]
-    obstacles = np.asarray(params.obstacles)
-    radii = np.asarray(params.obstacle_radii)
-    obs_on = np.asarray(params.obstacle_mask) > 0
-
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    snaps = np.linspace(0, n - 1, 6).astype(int)
-    for k, s in enumerate(snaps):
-        alpha = 0.15 + 0.7 * k / (len(snaps) - 1)
-        c = centres[s]
-        phi = phi0 + rate * s * ts
-        e = np.array([np.cos(phi), np.sin(phi)])
-        ax.add_patch(plt.Circle(c, r_t, color="k", alpha=0.25 * alpha))
-        ax.add_patch(plt.Circle(c, r_hold[s], color="gray", fill=False, ls="--", alpha=alpha))
-        ax.plot(
-            *np.stack([c + r_port * e, c + (r_hold[s] + 0.15) * e]).T,
-            color="tab:green",
-            alpha=alpha,
-        )
-        ax.plot(*x[s, :2], "o", color="tab:red", alpha=alpha, ms=4)
-        for j in np.flatnonzero(obs_on):
-            o = obstacles[j, :2] + s * ts * obstacles[j, 2:]
-            ax.add_patch(plt.Circle(o, radii[j], color="tab:blue", fill=False, alpha=alpha))
-    phi = phi0 + rate * (n - 1) * ts
-    h = float(params.half_angle)
-    dock = centres[-1] + r_port * np.array([np.cos(phi), np.sin(phi)])
-    for sgn in (-1, 1):
-        ray = dock + 0.6 * np.array([np.cos(phi + sgn * h), np.sin(phi + sgn * h)])
-        ax.plot(*np.stack([dock, ray]).T, color="tab:green", ls=":")
-    ax.plot(x[:, 0], x[:, 1], "-", color="tab:red", label="chaser (truth)")
-    ax.plot(centres[:, 0], centres[:, 1], "k:", lw=1, label="target centre")
-    ax.plot([], [], color="gray", ls="--", label="holding radius (snapshots, later = darker)")
-    ax.plot([], [], color="tab:green", label="port axis; final entry cone (dotted)")
-    if obs_on.any():
-        ax.plot([], [], color="tab:blue", label="obstacle keep-out zones")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
-    ax.set_title(title or f"{scenario.name}: closed loop")
-
-    ax_u = fig.add_subplot(2, 2, 2)
-    ax_u.step(t[: len(u)], u[:, 0], where="post", label="Fx [N]")
-    ax_u.step(t[: len(u)], u[:, 1], where="post", ls="--", label="Fy [N]")
-    ax_u.step(t[: len(u)], 10 * u[:, 2], where="post", ls=":", label="10 x torque [N m]")
-    ax_u.grid(alpha=0.3)
-    ax_u.legend(fontsize=8, ncol=3)
-    ax_r = fig.add_subplot(2, 2, 4)
-    ax_r.plot(t, r_hold, label="r_hold [m]")
-    ax_r.plot(t, np.linalg.norm(x[:, :2] - centres, axis=1), label="distance to target [m]")
-    ax_r.step(
-        t,
-        np.asarray(infos.guidance.cone_on)[:n].astype(float),
-        where="post",
-        label="entry cone active",
-    )
-    ax_r.axhline(r_t, color="k", lw=0.8, ls="--")
-    ax_r.set_xlabel("time [s]")
-    ax_r.grid(alpha=0.3)
-    ax_r.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):
     """Distance [m] beyond dock_tol of the docked holding position (the circle shrunk to
     r_min, plus the gap, on the port axis) at time t."""
@@ -513,22 +447,24 @@ FAMILY = Family(
     name="planar-docking",
     description="planar 3-DOF docking to a rotating, translating target: holding radius, "
     "entry cone, moving obstacles (papers 000, 002)",
-    layout=LAYOUT,
-    n_phases=2,
-    config_type=Config,
+    law=Hooks(
+        layout=LAYOUT,
+        n_phases=2,
+        config_type=Config,
+        horizon=lambda fc: fc.N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        model=model,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=lambda fc: fc.N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
-    model=model,
-    plot=plot,
-    dock_error=dock_error,
+    plot=lazy("rvdjax.families.plots.docking:plot"),
     tuning=TUNING,
 )

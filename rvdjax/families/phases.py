@@ -65,12 +65,22 @@ from rvdjax.families.common import (
     smooth_norm,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.ocp import OCP
 from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.schema import Input, Schema, finite, make_params_of, positive, value, within
 from rvdjax.solver import Plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY", "target_state", "LP_EPS", "LP_REG"]
+__all__ = [
+    "Params",
+    "Config",
+    "SCHEMA",
+    "make_params",
+    "FAMILY",
+    "target_state",
+    "LP_EPS",
+    "LP_REG",
+]
 
 POS = (0, 1, 2)
 VEL = (3, 4, 5)
@@ -205,81 +215,115 @@ class Guidance(NamedTuple):
     entered: jnp.ndarray | bool = True
 
 
-def make_params(
-    *,
-    mass: float,
-    altitude_m: float,
-    ts,
-    Q,
-    R,
-    u_max,
-    lam,
-    los_deg,
-    r1: float,
-    r2: float,
-    r3: float,
-    v_max: float,
-    port_body,
-    target_angle0_deg: float = 0.0,
-    target_rate_deg_s: float = 0.0,
-    rho: float = 1e6,
-    switch_tol: float = 0.05,
-    setpoint: bool = True,
-    x0=None,
-    inclination_deg: float = 51.6,
-    drag_area_m2: float = 0.0366,
-    cd_chaser: float = 1.4,
-    cd_target: float = 2.0,
-    target_mass: float | None = None,
-    target_area_m2: float | None = None,
-    disturbances: dict | None = None,
-) -> Params:
+SCHEMA = Schema(
+    (
+        positive("mass", "kg", "chaser mass"),
+        positive("altitude_m", "m", "circular target orbit altitude (CW mean motion)"),
+        positive("ts", "s", "sample time", shape="per-phase", alias="Ts"),
+        value(
+            "Q",
+            "",
+            "state weight per phase: (6,) diagonals or (6, 6) PSD matrices",
+            shape="(3, 6, 6)",
+        ),
+        value(
+            "R",
+            "",
+            "input weight per phase: (3,) diagonals or (3, 3) PD matrices",
+            shape="(3, 3, 3)",
+        ),
+        positive("u_max", "m/s", "per-axis delta-v bound per step", shape="per-phase"),
+        positive("lam", "", "cone-penalty weight lambda", shape="per-phase"),
+        within(
+            "los_deg",
+            "deg",
+            0.0,
+            90.0,
+            "line-of-sight cone half angles",
+            shape="per-phase",
+            label="los_deg (cone half angles)",
+        ),
+        positive("r1", "m", "keep-out radius (rendezvous -> approach switch)"),
+        positive("r2", "m", "approach -> docking switch radius (< r1)"),
+        positive("r3", "m", "docked distance (< r2)"),
+        positive("v_max", "m/s", "soft-docking velocity bound"),
+        value("port_body", "m", "docking port in the target body frame (non-zero)", shape="(3,)"),
+        finite("target_angle0_deg", "deg", "target body angle about z at t = 0", default=0.0),
+        finite("target_rate_deg_s", "deg/s", "target body rate about z", default=0.0),
+        positive("rho", "", "exact penalty of the hard constraints", default=1e6),
+        Input(
+            "switch_tol",
+            "relative tolerance of the phase switches",
+            check="range",
+            lo=0.0,
+            hi=1.0,
+            lo_open=False,
+            default=0.05,
+        ),
+        value(
+            "setpoint",
+            "",
+            "rendezvous reference: the set point at r1 (false: the target)",
+            kind="bool",
+            default=True,
+        ),
+        value(
+            "x0",
+            "m, m/s",
+            "initial state: finite, outside r1",
+            shape="(6,)",
+            kind="state",
+            default=None,
+        ),
+        within(
+            "inclination_deg",
+            "deg",
+            0.0,
+            180.0,
+            "target orbit inclination",
+            closed=True,
+            default=51.6,
+        ),
+        positive("drag_area_m2", "m^2", "chaser drag area", default=0.0366),
+        positive("cd_chaser", "", "chaser drag coefficient", default=1.4),
+        positive("cd_target", "", "target drag coefficient", default=2.0),
+        positive("target_mass", "kg", "target mass (none: mass)", default=None),
+        positive("target_area_m2", "m^2", "target drag area (none: drag_area_m2)", default=None),
+        value(
+            "disturbances",
+            "",
+            "disturbance keyword values over paper 003 Ch. 5's",
+            kind="table",
+            default=None,
+        ),
+    ),
+    n_phases=N_PHASES,
+)
+
+
+def _build(v) -> Params:
     """Check physical values and build :class:`Params` (once, before any jit).
 
-    ``ts``, ``u_max``, ``lam``, ``los_deg`` take three values (one per phase), ``Q`` and ``R``
-    three matrices (or diagonals). ``inclination_deg``, ``drag_area_m2``, ``cd_chaser``,
-    ``cd_target``, ``target_mass`` (default: ``mass``) and ``target_area_m2`` (default:
-    ``drag_area_m2``) set up the nonlinear truths: the
-    target's circular orbit (ascending node at t = 0) and both bodies' ballistic coefficients
+    Keywords: :data:`SCHEMA`. ``ts``, ``u_max``, ``lam``, ``los_deg`` take three values (one
+    per phase), ``Q`` and ``R`` three matrices (or diagonals). ``inclination_deg``,
+    ``drag_area_m2``, ``cd_chaser``, ``cd_target``, ``target_mass`` (default: ``mass``) and
+    ``target_area_m2`` (default: ``drag_area_m2``) set up the nonlinear truths: the target's
+    circular orbit (ascending node at t = 0) and both bodies' ballistic coefficients
     C_D A / m (paper 003 Sec. 5.4). ``disturbances``: keyword values over paper 003 Ch. 5's
     defaults (:data:`rvdjax.disturbances.THESIS_DISTURBANCES`).
 
-    Raises ValueError naming the parameter: mass, altitude, every ts, u_max, lam, r1, r2, r3,
-    v_max, rho > 0; 0 < los < 90 deg; r3 < r2 < r1; R positive definite and Q positive
-    semidefinite per phase; port_body non-zero; switch_tol in [0, 1); x0 finite and outside r1.
+    Raises ValueError naming the parameter: each input's own check (:data:`SCHEMA`), then
+    r3 < r2 < r1; R positive definite and Q positive semidefinite per phase; port_body
+    non-zero; x0 finite and outside r1.
     """
     from rvdjax.dynamics import cw_continuous, dare, discretize_impulsive, mean_motion
 
-    def three(name, v):
-        a = np.asarray(v, dtype=float)
-        if a.shape != (N_PHASES,):
-            raise ValueError(f"{name} must have one value per phase (3,), got shape {a.shape}")
-        return a
-
-    ts, u_max, lam, los = (
-        three(k, v) for k, v in (("ts", ts), ("u_max", u_max), ("lam", lam), ("los_deg", los_deg))
-    )
-    for name, v, unit in (
-        ("mass", mass, "kg"),
-        ("altitude_m", altitude_m, "m"),
-        ("r1", r1, "m"),
-        ("r2", r2, "m"),
-        ("r3", r3, "m"),
-        ("v_max", v_max, "m/s"),
-        ("rho", rho, ""),
-        ("ts", ts, "s"),
-        ("u_max", u_max, "m/s"),
-        ("lam", lam, ""),
-    ):
-        checks.positive(name, v, unit)
-    checks.in_range("los_deg (cone half angles)", los, 0.0, 90.0, unit="deg")
-    if not r3 < r2 < r1:
-        raise ValueError(f"radii must satisfy r3 < r2 < r1, got r1={r1}, r2={r2}, r3={r3} m")
-    checks.in_range("switch_tol", switch_tol, 0.0, 1.0, lo_open=False)
-    checks.finite("target_angle0_deg", target_angle0_deg, "deg")
-    checks.finite("target_rate_deg_s", target_rate_deg_s, "deg/s")
-    Qs = [np.diag(np.asarray(q, float)) if np.ndim(q) == 1 else np.asarray(q, float) for q in Q]
-    Rs = [np.diag(np.asarray(r, float)) if np.ndim(r) == 1 else np.asarray(r, float) for r in R]
+    x0 = v.x0
+    ts, u_max, lam, los = (np.asarray(a, dtype=float) for a in (v.ts, v.u_max, v.lam, v.los_deg))
+    if not v.r3 < v.r2 < v.r1:
+        raise ValueError(f"radii must satisfy r3 < r2 < r1, got r1={v.r1}, r2={v.r2}, r3={v.r3} m")
+    Qs = [np.diag(np.asarray(q, float)) if np.ndim(q) == 1 else np.asarray(q, float) for q in v.Q]
+    Rs = [np.diag(np.asarray(r, float)) if np.ndim(r) == 1 else np.asarray(r, float) for r in v.R]
     if len(Qs) != N_PHASES or len(Rs) != N_PHASES:
         raise ValueError("Q and R must give one matrix per phase (3 each)")
     for k in range(N_PHASES):
@@ -287,25 +331,16 @@ def make_params(
         checks.shape(f"R[{k}]", Rs[k], (3, 3))
         checks.pos_semidef(f"Q[{k}] (phase {k})", Qs[k])
         checks.pos_def(f"R[{k}] (phase {k})", Rs[k])
-    port = checks.shape("port_body", port_body, (3,))
+    port = checks.shape("port_body", v.port_body, (3,))
     if np.linalg.norm(port) == 0:
         raise ValueError("port_body must be a non-zero (3,) vector [m]")
     if x0 is not None:
         x0 = checks.shape("x0", x0, (6,))
-        checks.outside("the keep-out sphere r1", x0[:3], np.zeros(3), r1)
-    target_mass = mass if target_mass is None else target_mass
-    target_area_m2 = drag_area_m2 if target_area_m2 is None else target_area_m2
-    for name, v, unit in (
-        ("drag_area_m2", drag_area_m2, "m^2"),
-        ("target_area_m2", target_area_m2, "m^2"),
-        ("cd_chaser", cd_chaser, ""),
-        ("cd_target", cd_target, ""),
-        ("target_mass", target_mass, "kg"),
-    ):
-        checks.positive(name, v, unit)
-    checks.in_range("inclination_deg", inclination_deg, 0.0, 180.0, False, False, "deg")
-    n = mean_motion(altitude_m=altitude_m)
-    Ac, _ = cw_continuous(n, mass)
+        checks.outside("the keep-out sphere r1", x0[:3], np.zeros(3), v.r1)
+    target_mass = v.mass if v.target_mass is None else v.target_mass
+    target_area_m2 = v.drag_area_m2 if v.target_area_m2 is None else v.target_area_m2
+    n = mean_motion(altitude_m=v.altitude_m)
+    Ac, _ = cw_continuous(n, v.mass)
     A, B, P = [], [], []
     for k in range(N_PHASES):
         Ak, Bk = discretize_impulsive(Ac, float(ts[k]))
@@ -324,26 +359,29 @@ def make_params(
         lam=f(lam),
         half_angle=f(np.deg2rad(los)),
         n=f(n),
-        mass=f(float(mass)),
-        r1=f(float(r1)),
-        r2=f(float(r2)),
-        r3=f(float(r3)),
-        v_max=f(float(v_max)),
+        mass=f(float(v.mass)),
+        r1=f(float(v.r1)),
+        r2=f(float(v.r2)),
+        r3=f(float(v.r3)),
+        v_max=f(float(v.v_max)),
         port_body=f(port),
         axis_body=f(port / np.linalg.norm(port)),
-        target_angle0=f(np.deg2rad(target_angle0_deg)),
-        target_rate=f(np.deg2rad(target_rate_deg_s)),
-        rho=f(float(rho)),
-        switch_tol=f(float(switch_tol)),
-        setpoint=f(1.0 if setpoint else 0.0),
-        orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
+        target_angle0=f(np.deg2rad(v.target_angle0_deg)),
+        target_rate=f(np.deg2rad(v.target_rate_deg_s)),
+        rho=f(float(v.rho)),
+        switch_tol=f(float(v.switch_tol)),
+        setpoint=f(1.0 if v.setpoint else 0.0),
+        orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
         drag=Drag(
-            b_chaser=f(cd_chaser * drag_area_m2 / mass),
-            b_target=f(cd_target * target_area_m2 / target_mass),
+            b_chaser=f(v.cd_chaser * v.drag_area_m2 / v.mass),
+            b_target=f(v.cd_target * target_area_m2 / target_mass),
         ),
-        disturbances=make_disturbances(**{**THESIS_DISTURBANCES, **(disturbances or {})}),
-        **continuous_fields(*cw_continuous(n, mass)),
+        disturbances=make_disturbances(**{**THESIS_DISTURBANCES, **(v.disturbances or {})}),
+        **continuous_fields(*cw_continuous(n, v.mass)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def check(params: Params, x0, config) -> None:
@@ -698,84 +736,6 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
     ]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw a three-phase thesis run (paper 003): the radial / along-track path coloured by
-    phase with the keep-out sphere r1 and the approach cone; a zoom on the approach and
-    docking (overshoot line at r2, docking cone at the port, at the final attitude of the
-    target); distance to the port (log) and delta-v per step."""
-    from rvdjax.plots import cone_edges, finish_lvlh_axes, pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = min(int(active.sum()) + 1, len(active))
-    x = np.asarray(infos.x)[:n]
-    u = np.asarray(infos.u)[:n]
-    t = np.asarray(infos.t)[:n]
-    phase = np.asarray(infos.phase)[:n]
-    colors = ["tab:red", "tab:orange", "tab:green"]
-    names = ["rendezvous", "approach", "docking"]
-    r1, r2 = float(params.r1), float(params.r2)
-    ang = float(params.target_angle0) + float(params.target_rate) * t[-1]
-    rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
-    axis = rot @ np.asarray(params.axis_body)[:2]
-    port = rot @ np.asarray(params.port_body)[:2]
-    half = np.asarray(params.half_angle)
-
-    fig = plt.figure(figsize=(17, 6))
-    grid = fig.add_gridspec(2, 3, width_ratios=[1.25, 1.0, 1.1])
-    ax = fig.add_subplot(grid[:, 0])
-    ax_z = fig.add_subplot(grid[:, 1])
-    for a_, zoom in ((ax, False), (ax_z, True)):
-        for k in range(3):
-            sel = phase == k
-            if sel.any():
-                a_.plot(x[sel, 1], x[sel, 0], ".-", ms=3, color=colors[k], label=names[k])
-        circle = plt.Circle((0.0, 0.0), r1, fill=False, ls="--", color="0.4")
-        a_.add_patch(circle)
-        reach = (1.6 if zoom else 3.0) * r1
-        for i, (ex, ey) in enumerate(cone_edges(np.zeros(2), axis, half[0], reach)):
-            a_.plot(ex, ey, ":", color="tab:purple", label="approach cone" if i == 0 else None)
-        if zoom:
-            normal = np.array([-axis[1], axis[0]])
-            p_os = r2 * axis
-            a_.plot(
-                [p_os[1] - 0.6 * r1 * normal[1], p_os[1] + 0.6 * r1 * normal[1]],
-                [p_os[0] - 0.6 * r1 * normal[0], p_os[0] + 0.6 * r1 * normal[0]],
-                "-",
-                color="tab:brown",
-                lw=0.8,
-                label="overshoot line r2",
-            )
-            for i, (ex, ey) in enumerate(cone_edges(port, axis, half[2], 2.0 * r2)):
-                a_.plot(
-                    ex, ey, "-", color="tab:green", lw=0.8, label="docking cone" if i == 0 else None
-                )
-    ax.plot([], [], "--", color="0.4", label=f"keep-out r1 = {r1:g} m")
-    finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
-    finish_lvlh_axes(ax_z, "approach and docking (target attitude at the end)")
-    ax_z.set_aspect("equal", adjustable="box")
-    ax_z.set_xlim(-1.6 * r1, 1.6 * r1)
-    ax_z.set_ylim(-1.6 * r1, 1.6 * r1)
-    ax_d = fig.add_subplot(grid[0, 2])
-
-    port_t = np.asarray(target_state(params, t[:, None])[0])[:, 0] if len(t) else np.zeros((0, 3))
-    port_distance = np.linalg.norm(x[:, :3] - port_t, axis=1)
-    ax_d.semilogy(t, np.maximum(port_distance, 1e-3), color="k")
-    ax_d.set_ylabel("distance to port [m]")
-    ax_d.grid(alpha=0.3, which="both")
-    ax_u = fig.add_subplot(grid[1, 2])
-    dv = np.linalg.norm(u, axis=1)
-    for k in range(3):
-        sel = phase == k
-        width = np.asarray(params.ts)[phase[sel]] * 0.8
-        ax_u.bar(t[sel], dv[sel], width=width, color=colors[k])
-    ax_u.set_xlabel("time [s]")
-    ax_u.set_ylabel("|delta-v| per step [m/s]")
-    ax_u.grid(alpha=0.3)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):
     """Distance beyond r3 of the docking port [m] (docked within r3)."""
     port, _, _ = target_state(p, t)
@@ -816,26 +776,28 @@ TUNING = Tuning(
 
 FAMILY = Family(
     name="three-phase",
-    subsamples=subsamples,
     description="three-phase CW rendezvous, approach and docking with impulsive delta-v "
     "(paper 003)",
-    layout=LAYOUT,
-    n_phases=N_PHASES,
-    config_type=Config,
+    law=Hooks(
+        subsamples=subsamples,
+        layout=LAYOUT,
+        n_phases=N_PHASES,
+        config_type=Config,
+        horizon=_N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=_N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
     truths=("linear", "two-body", "two-body-j2", "two-body-j2-drag"),
     check=check,
-    plot=plot,
-    dock_error=dock_error,
+    plot=lazy("rvdjax.families.plots.phases:plot"),
     tuning=TUNING,
 )

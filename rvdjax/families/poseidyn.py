@@ -51,10 +51,20 @@ from rvdjax.families.common import (
     truth_model,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
+from rvdjax.schema import (
+    Input,
+    Schema,
+    finite,
+    make_params_of,
+    nonnegative,
+    positive,
+    value,
+    within,
+)
 from rvdjax.solver import drift_plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY"]
+__all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
 
 POS = (0, 1)
 NX, NU = 4, 2
@@ -140,59 +150,88 @@ class Guidance(NamedTuple):
     cone_on: jnp.ndarray
 
 
-def make_params(
-    *,
-    mass: float = 10.0,
-    ts: float = 5.0,
-    Q=(1e2, 1e2, 1e5, 1e5),
-    R=(1e3, 1e3),
-    terminal_scale: float = 100.0,
-    u_max: float = 0.15,
-    target=(0.5, 0.5),
-    dock_offset: float = 0.3,
-    cone_angle_deg: float = 45.0,
-    half_angle_deg: float = 10.0,
-    cone_range: float = 0.5,
-    obstacle=(2.5, 2.5),
-    r_obs: float = 0.4,
-    plane_rate_deg_s: float = 1.8,
-    plane_direction: int = 1,
-    rho: float = 1e8,
-    dock_tol: float = 0.05,
-    dock_speed_tol: float = 0.05,
-    x0=(3.5, 3.5, 0.0, 0.0),
-    disturbances: dict | None = None,
-) -> Params:
-    """Check physical values and build :class:`Params` (once, before any jit). Defaults:
-    paper 001 Tables 1-2 (initial tuning) plus the scenario's assumptions.
+SCHEMA = Schema(
+    (
+        positive("mass", "kg", "chaser mass", default=10.0),
+        positive("ts", "s", "sample time (zero-order hold)", default=5.0),
+        value(
+            "Q",
+            "",
+            "state weight: 4 diagonal entries or a (4, 4) PSD matrix",
+            shape="(4, 4)",
+            default=(1e2, 1e2, 1e5, 1e5),
+        ),
+        value(
+            "R",
+            "",
+            "input weight: 2 diagonal entries or a (2, 2) PD matrix",
+            shape="(2, 2)",
+            default=(1e3, 1e3),
+        ),
+        positive(
+            "terminal_scale",
+            "",
+            "P = terminal_scale * P_bar (100 initial, 1 re-tuned)",
+            default=100.0,
+        ),
+        positive("u_max", "N", "F_max on each axis", default=0.15),
+        value("target", "m", "target centre", shape="(2,)", default=(0.5, 0.5)),
+        nonnegative(
+            "dock_offset", "m", "docking point (cone apex) from the target centre", default=0.3
+        ),
+        finite("cone_angle_deg", "deg", "direction of the cone axis", default=45.0),
+        within(
+            "half_angle_deg",
+            "deg",
+            0.0,
+            90.0,
+            "entry-cone half angle",
+            label="half_angle_deg (entry cone)",
+            default=10.0,
+        ),
+        positive(
+            "cone_range", "m", "distance to the docking point that activates the cone", default=0.5
+        ),
+        value("obstacle", "m", "keep-out zone centre", shape="(2,)", default=(2.5, 2.5)),
+        positive("r_obs", "m", "keep-out zone radius", default=0.4),
+        positive("plane_rate_deg_s", "deg/s", "hyperplane rotation rate", default=1.8),
+        Input(
+            "plane_direction",
+            "+1 anticlockwise, -1 clockwise",
+            kind="int",
+            check="choice",
+            choices=(-1, 1),
+            default=1,
+        ),
+        positive("rho", "", "exact penalty of the soft constraint rows", default=1e8),
+        positive("dock_tol", "m", "docking position tolerance", default=0.05),
+        positive("dock_speed_tol", "m/s", "docking speed tolerance", default=0.05),
+        value(
+            "x0",
+            "m, m/s",
+            "initial state (x, y, vx, vy): outside the keep-out zone",
+            shape="(4,)",
+            kind="state",
+            default=(3.5, 3.5, 0.0, 0.0),
+        ),
+        value(
+            "disturbances",
+            "",
+            "disturbance keyword values over the lab's",
+            kind="table",
+            default=None,
+        ),
+    )
+)
 
-    Args:
-        Q, R: diagonals (length 4, 2) or full matrices.
-        terminal_scale: P = terminal_scale * P_bar (100 initial, 1 re-tuned).
-        u_max: F_max [N] on each axis.
-        target: target centre [m]; the docking point (cone apex) is ``dock_offset`` metres
-            from it along the cone axis (``cone_angle_deg``).
-        plane_rate_deg_s: hyperplane rotation rate [deg/s]; plane_direction: +1
-            anticlockwise, -1 clockwise.
-        x0: initial state (x, y, vx, vy): finite, outside the keep-out zone.
+
+def _build(v) -> Params:
+    """Check physical values and build :class:`Params` (once, before any jit). Keywords and
+    defaults: :data:`SCHEMA` (paper 001 Tables 1-2, initial tuning, plus the scenario's
+    assumptions); the docking point (cone apex) is ``dock_offset`` metres from ``target``
+    along the cone axis (``cone_angle_deg``) and must lie outside the keep-out zone.
     """
-    for name, v, unit in (
-        ("mass", mass, "kg"),
-        ("ts", ts, "s"),
-        ("terminal_scale", terminal_scale, ""),
-        ("u_max", u_max, "N"),
-        ("r_obs", r_obs, "m"),
-        ("cone_range", cone_range, "m"),
-        ("plane_rate_deg_s", plane_rate_deg_s, "deg/s"),
-        ("rho", rho, ""),
-        ("dock_tol", dock_tol, "m"),
-        ("dock_speed_tol", dock_speed_tol, "m/s"),
-    ):
-        checks.positive(name, v, unit)
-    checks.nonnegative("dock_offset", dock_offset, "m")
-    checks.in_range("half_angle_deg (entry cone)", half_angle_deg, 0.0, 90.0, unit="deg")
-    checks.finite("cone_angle_deg", cone_angle_deg, "deg")
-    checks.choice("plane_direction", plane_direction, (-1, 1))
+    Q, R, target, obstacle, x0 = v.Q, v.R, v.target, v.obstacle, v.x0
     Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
     R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
     checks.shape("Q", Q, (NX, NX))
@@ -202,50 +241,55 @@ def make_params(
     target = checks.shape("target", target, (2,))
     obstacle = checks.shape("obstacle", obstacle, (2,))
     x0 = checks.shape("x0", x0, (NX,))
-    axis = np.deg2rad(cone_angle_deg)
-    dock = target + dock_offset * np.array([np.cos(axis), np.sin(axis)])
-    checks.outside("the keep-out zone", x0[:2], obstacle, r_obs)
+    axis = np.deg2rad(v.cone_angle_deg)
+    dock = target + v.dock_offset * np.array([np.cos(axis), np.sin(axis)])
+    checks.outside("the keep-out zone", x0[:2], obstacle, v.r_obs)
     dd = float(np.linalg.norm(dock - obstacle))
-    if dd <= r_obs:
+    if dd <= v.r_obs:
         raise ValueError(
             f"the docking point lies inside the keep-out zone ({dd:.3g} m from the obstacle "
-            f"centre, radius r_obs = {r_obs} m)"
+            f"centre, radius r_obs = {v.r_obs} m)"
         )
 
     from rvdjax.dynamics import dare, discretize_zoh, planar2dof_continuous
 
-    A, B = discretize_zoh(*planar2dof_continuous(mass), ts)
+    A, B = discretize_zoh(*planar2dof_continuous(v.mass), v.ts)
     P_bar = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
     phi0 = np.arctan2(*(x0[:2] - obstacle)[::-1])
     phi_f = np.arctan2(*(dock - obstacle)[::-1])
     # unwrap the final angle in the chosen direction (a full half turn when collinear)
-    delta = (phi_f - phi0) % (2 * np.pi) if plane_direction > 0 else -((phi0 - phi_f) % (2 * np.pi))
+    delta = (
+        (phi_f - phi0) % (2 * np.pi) if v.plane_direction > 0 else -((phi0 - phi_f) % (2 * np.pi))
+    )
     f = jnp.asarray
     return Params(
         A=A,
         B=B,
         Q=f(Q),
         R=f(R),
-        Q_f=terminal_scale * P_bar,
-        terminal_scale=f(float(terminal_scale)),
-        u_max=f(np.full(NU, u_max, dtype=float)),
+        Q_f=v.terminal_scale * P_bar,
+        terminal_scale=f(float(v.terminal_scale)),
+        u_max=f(np.full(NU, v.u_max, dtype=float)),
         dock=f(dock),
         cone_axis=f(axis),
-        half_angle=f(np.deg2rad(half_angle_deg)),
-        cone_range=f(float(cone_range)),
+        half_angle=f(np.deg2rad(v.half_angle_deg)),
+        cone_range=f(float(v.cone_range)),
         obstacle=f(obstacle),
-        r_obs=f(float(r_obs)),
+        r_obs=f(float(v.r_obs)),
         phi0=f(phi0),
         phi_final=f(phi0 + delta),
-        plane_rate=f(plane_direction * np.deg2rad(plane_rate_deg_s)),
-        rho=f(float(rho)),
-        ts=f(float(ts)),
-        dock_tol=f(float(dock_tol)),
-        dock_speed_tol=f(float(dock_speed_tol)),
-        mass=f(float(mass)),
-        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(disturbances or {})}),
-        **continuous_fields(*planar2dof_continuous(mass)),
+        plane_rate=f(v.plane_direction * np.deg2rad(v.plane_rate_deg_s)),
+        rho=f(float(v.rho)),
+        ts=f(float(v.ts)),
+        dock_tol=f(float(v.dock_tol)),
+        dock_speed_tol=f(float(v.dock_speed_tol)),
+        mass=f(float(v.mass)),
+        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
+        **continuous_fields(*planar2dof_continuous(v.mass)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def plane_angle(p: Params, times):
@@ -338,58 +382,6 @@ def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
     ]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw a POSEIDYN LQ-MPC run (paper 001): path, keep-out circle, rotating hyperplane
-    snapshots, entry cone, thrust and distance to the docking point."""
-    from rvdjax.plots import pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = min(int(active.sum()) + 1, len(active))
-    x = np.asarray(infos.x)[:n]
-    u = np.asarray(infos.u)[: n - 1]
-    t = np.concatenate([[0.0], np.cumsum(np.asarray(infos.dt)[: n - 1])])
-    dock, obs = np.asarray(params.dock), np.asarray(params.obstacle)
-    r_obs = float(params.r_obs)
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    ax.add_patch(plt.Circle(obs, r_obs, color="tab:blue", alpha=0.3, label="keep-out zone"))
-
-    phis = np.asarray(plane_angle(params, np.asarray(infos.t)[:n]))
-    for k, s in enumerate(np.linspace(0, n - 1, 6).astype(int)):
-        e = np.array([np.cos(phis[s]), np.sin(phis[s])])
-        p0 = obs + r_obs * e
-        tangent = np.array([-e[1], e[0]])
-        seg = np.stack([p0 - 0.6 * tangent, p0 + 0.6 * tangent])
-        ax.plot(seg[:, 0], seg[:, 1], color="tab:blue", alpha=0.2 + 0.7 * k / 5, lw=1)
-    a, h = float(params.cone_axis), float(params.half_angle)
-    for sgn in (-1, 1):
-        ray = dock + float(params.cone_range) * np.array([np.cos(a + sgn * h), np.sin(a + sgn * h)])
-        ax.plot([dock[0], ray[0]], [dock[1], ray[1]], color="tab:green")
-    ax.plot(x[:, 0], x[:, 1], "-o", ms=2, color="tab:red", label="chaser (truth)")
-    ax.plot(*dock, "ks", label="docking point")
-    ax.plot([], [], color="tab:blue", label="rotating hyperplane (snapshots)")
-    ax.plot([], [], color="tab:green", label="entry cone")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(title or f"{scenario.name}: closed loop")
-    ax_u = fig.add_subplot(2, 2, 2)
-    ax_u.step(t[: len(u)], u[:, 0], where="post", label="Fx [N]")
-    ax_u.step(t[: len(u)], u[:, 1], where="post", ls="--", label="Fy [N]")
-    ax_u.grid(alpha=0.3)
-    ax_u.legend(fontsize=8)
-    ax_r = fig.add_subplot(2, 2, 4)
-    ax_r.plot(t, np.linalg.norm(x[:, :2] - dock, axis=1), label="distance to docking point [m]")
-    ax_r.set_xlabel("time [s]")
-    ax_r.grid(alpha=0.3)
-    ax_r.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc: Config, g: Guidance, x, t):
     """Distance beyond dock_tol of the docking point [m]."""
     return smooth_excess(smooth_norm(x[:2] - p.dock), p.dock_tol)
@@ -427,24 +419,26 @@ FAMILY = Family(
     name="poseidyn",
     description="planar double-integrator LQ-MPC docking with a rotating-hyperplane keep-out "
     "and entry cone (paper 001)",
-    layout=LAYOUT,
-    n_phases=1,
-    config_type=Config,
+    law=Hooks(
+        layout=LAYOUT,
+        n_phases=1,
+        config_type=Config,
+        horizon=lambda fc: fc.N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        model=model,
+        subsamples=subsamples,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=lambda fc: fc.N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
-    model=model,
-    subsamples=subsamples,
-    plot=plot,
+    plot=lazy("rvdjax.families.plots.poseidyn:plot"),
     baselines=("idvd",),
-    dock_error=dock_error,
     tuning=TUNING,
 )

@@ -35,11 +35,12 @@ from rvdjax.families.common import (
     truth_model,
     weight_tunables,
 )
-from rvdjax.loop.family import Family, Layout, Tuning
+from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.schema import Schema, finite, make_params_of, positive, value, within
 from rvdjax.solver import drift_plan
 
-__all__ = ["Params", "Config", "make_params", "FAMILY"]
+__all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
 
 LAYOUT = Layout(
     nx=6,
@@ -108,48 +109,53 @@ class Guidance(NamedTuple):
     """No guidance state: one phase, fixed constraints."""
 
 
-def make_params(
-    *,
-    altitude_m: float,
-    mass: float,
-    ts: float,
-    Q,
-    R,
-    u_max,
-    stop_radius: float,
-    obstacles=None,
-    radii=None,
-    obstacles_on: bool = True,
-    rho: float = 1e8,
-    x_ref=None,
-    x0=None,
-    inclination_deg: float = 0.0,
-    disturbances: dict | None = None,
-) -> Params:
+SCHEMA = Schema(
+    (
+        positive("altitude_m", "m", "circular target orbit altitude (CW mean motion)"),
+        positive("mass", "kg", "chaser mass"),
+        positive("ts", "s", "sample time (zero-order hold)"),
+        value("Q", "", "state weight: 6 diagonal entries or a (6, 6) PSD matrix", shape="(6, 6)"),
+        value("R", "", "input weight: 3 diagonal entries or a (3, 3) PD matrix", shape="(3, 3)"),
+        positive("u_max", "N", "per-axis thrust bound (one value or 3)", shape="(3,)"),
+        positive("stop_radius", "m", "distance to the target that ends the run"),
+        finite("obstacles", "m, m/s", "obstacle states at t = 0", shape="(k, 6)", default=None),
+        positive("radii", "m", "keep-out radius of each obstacle", shape="(k,)", default=None),
+        value("obstacles_on", "", "false switches every obstacle off", kind="bool", default=True),
+        positive("rho", "per metre", "exact penalty of the keep-out rows", default=1e8),
+        value("x_ref", "m, m/s", "holding state (none: the origin)", shape="(6,)", default=None),
+        value("x0", "m, m/s", "initial state", shape="(6,)", kind="state", default=None),
+        within(
+            "inclination_deg",
+            "deg",
+            0.0,
+            180.0,
+            "target orbit inclination",
+            closed=True,
+            default=0.0,
+        ),
+        value("disturbances", "", "disturbance keyword values", kind="table", default=None),
+    )
+)
+
+
+def _build(v) -> Params:
     """Check physical values and build :class:`Params` (once, before any jit).
 
-    Args:
-        altitude_m: circular target orbit altitude [m] (CW mean motion; nonlinear truth).
-        mass: chaser mass [kg]. ts: sample time [s] (zero-order hold).
-        Q, R: diagonals (6, 3 entries) or full weights; Q_f is the DARE solution.
-        u_max: per-axis thrust bound [N] (scalar or 3).
-        stop_radius: distance to the target that ends the run [m].
-        obstacles: (k, 6) initial obstacle states; radii: (k,) keep-out radii [m].
-        obstacles_on: False keeps the shapes but switches every obstacle off.
-        rho: exact penalty of the keep-out rows [per metre of penetration], one value or one
-            per obstacle.
-        x0: initial state, checked to be finite and outside every zone and the stop radius.
-        inclination_deg: target orbit inclination (nonlinear truths).
-        disturbances: keyword values for :func:`rvdjax.disturbances.disturbances`.
+    Keywords: :data:`SCHEMA` (each value's unit, check and default); ``x0``, when given, is
+    checked to be finite and outside every keep-out zone and the stop radius.
     """
     from rvdjax.dynamics import cw_continuous, dare, discretize_zoh, mean_motion
 
-    checks.positive("altitude_m", altitude_m, "m")
-    checks.positive("mass", mass, "kg")
-    checks.positive("ts", ts, "s")
-    checks.positive("stop_radius", stop_radius, "m")
-    checks.positive("rho", rho, "per metre")
-    checks.in_range("inclination_deg", inclination_deg, 0.0, 180.0, False, False, "deg")
+    Q, R, u_max, obstacles, radii, obstacles_on, x_ref, x0 = (
+        v.Q,
+        v.R,
+        v.u_max,
+        v.obstacles,
+        v.radii,
+        v.obstacles_on,
+        v.x_ref,
+        v.x0,
+    )
     Q = np.diag(np.asarray(Q, float)) if np.ndim(Q) == 1 else np.asarray(Q, float)
     R = np.diag(np.asarray(R, float)) if np.ndim(R) == 1 else np.asarray(R, float)
     checks.shape("Q", Q, (6, 6))
@@ -157,24 +163,21 @@ def make_params(
     checks.pos_semidef("Q", Q)
     checks.pos_def("R", R)
     u_max = np.broadcast_to(np.asarray(u_max, float), (3,)).copy()
-    checks.positive("u_max", u_max, "N")
     if obstacles is None or len(obstacles) == 0:  # one inactive placeholder: fixed shapes
         obstacles, radii, obstacles_on = np.zeros((1, 6)), np.ones(1), False
     obstacles = np.asarray(obstacles, float).reshape(-1, 6)
     radii = np.asarray(radii, float).reshape(-1)
-    checks.finite("obstacles", obstacles, "m, m/s")
     if radii.shape != (len(obstacles),):
         raise ValueError(f"radii must give one radius per obstacle ({len(obstacles)})")
-    checks.positive("radii", radii, "m")
     x_ref = np.zeros(6) if x_ref is None else checks.shape("x_ref", x_ref, (6,))
     if x0 is not None:
         x0 = checks.shape("x0", x0, (6,))
-        checks.outside("the stop radius (it has already arrived)", x0[:3], x_ref[:3], stop_radius)
+        checks.outside("the stop radius (it has already arrived)", x0[:3], x_ref[:3], v.stop_radius)
         if obstacles_on:
             for j, (o, r) in enumerate(zip(obstacles, radii, strict=True)):
                 checks.outside(f"keep-out zone {j + 1}", x0[:3], o[:3], r)
-    n = mean_motion(altitude_m=altitude_m)
-    A, B = discretize_zoh(*cw_continuous(n, mass), ts)
+    n = mean_motion(altitude_m=v.altitude_m)
+    A, B = discretize_zoh(*cw_continuous(n, v.mass), v.ts)
     P = dare(A, B, jnp.asarray(Q), jnp.asarray(R))
     f = jnp.asarray
     return Params(
@@ -188,14 +191,17 @@ def make_params(
         obstacles=f(obstacles),
         radii=f(radii),
         obstacle_mask=f(np.full(len(radii), 1.0 if obstacles_on else 0.0)),
-        rho=f(np.broadcast_to(np.asarray(rho, float), radii.shape).copy()),
-        ts=f(float(ts)),
-        mass=f(float(mass)),
-        stop_radius=f(float(stop_radius)),
-        orbit=circular_orbit(altitude_m, inclination_rad=np.deg2rad(inclination_deg)),
-        disturbances=make_disturbances(**(disturbances or {})),
-        **continuous_fields(*cw_continuous(n, mass)),
+        rho=f(np.broadcast_to(np.asarray(v.rho, float), radii.shape).copy()),
+        ts=f(float(v.ts)),
+        mass=f(float(v.mass)),
+        stop_radius=f(float(v.stop_radius)),
+        orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
+        disturbances=make_disturbances(**(v.disturbances or {})),
+        **continuous_fields(*cw_continuous(n, v.mass)),
     )
+
+
+make_params = make_params_of(SCHEMA, _build)
 
 
 def _centres(p: Params, times):
@@ -242,76 +248,6 @@ def truth_blocks(p: Params, fc, g, x, t):
     return [keep_out.masked(p.obstacle_mask.reshape(1, k))]
 
 
-def plot(path, scenario, params, infos, title: str | None = None):
-    """Draw one rendezvous run: path with keep-out snapshots, thrust, range and margins.
-
-    Args:
-        path: output file.
-        scenario: the :class:`rvdjax.scenarios.Scenario` (for the title).
-        params: its :class:`rvdjax.families.rendezvous.Params`.
-        infos: the run's :class:`rvdjax.loop.StepInfo` (leading axis: step).
-    """
-    from rvdjax.plots import finish_lvlh_axes, pyplot, save_figure
-
-    plt = pyplot()
-
-    active = np.asarray(infos.active)
-    n = int(active.sum()) + 1  # include the state after the last active step
-    x = np.asarray(infos.x)[: min(n, len(active))]
-    u = np.asarray(infos.u)[: n - 1]
-    ts = float(params.ts)
-    t = np.arange(len(x)) * ts
-    obstacles = np.asarray(params.obstacles)
-    radii = np.asarray(params.radii)
-    mask = np.asarray(params.obstacle_mask) > 0
-    d = obstacles.shape[1] // 2
-
-    fig = plt.figure(figsize=(13, 6))
-    ax = fig.add_subplot(1, 2, 1)
-    ax.plot(x[:, 1], x[:, 0], "-", color="tab:red", lw=1.5, label="chaser (truth)")
-    ax.plot(x[0, 1], x[0, 0], "o", color="tab:red")
-    snaps = np.linspace(0, len(x) - 1, 6).astype(int)
-    for j in np.flatnonzero(mask):
-        path_o = obstacles[j, :d][None] + t[:, None] * obstacles[j, d:][None]
-        ax.plot(path_o[:, 1], path_o[:, 0], ":", color="tab:blue", lw=1)
-        for k, s in enumerate(snaps):
-            alpha = 0.15 + 0.7 * k / max(len(snaps) - 1, 1)
-            ax.add_patch(
-                plt.Circle(
-                    (path_o[s, 1], path_o[s, 0]),
-                    radii[j],
-                    color="tab:blue",
-                    fill=False,
-                    alpha=alpha,
-                )
-            )
-            ax.plot(x[s, 1], x[s, 0], ".", color="tab:red", alpha=alpha)
-    if mask.any():
-        ax.plot([], [], color="tab:blue", label="keep-out zones (snapshots, later = darker)")
-    finish_lvlh_axes(ax, title or f"{scenario.name}: closed loop")
-
-    ax_u = fig.add_subplot(2, 2, 2)
-    for i, ls in zip(range(u.shape[1]), ["-", "--", ":"], strict=False):
-        ax_u.step(t[: len(u)], u[:, i], where="post", ls=ls, label=f"u{'xyz'[i]}")
-    ax_u.set_ylabel("thrust [N]")
-    ax_u.grid(alpha=0.3)
-    ax_u.legend(fontsize=8, ncol=3)
-
-    ax_r = fig.add_subplot(2, 2, 4)
-    ax_r.semilogy(t, np.linalg.norm(x[:, :d], axis=1), color="k", label="range to target")
-    margins = np.asarray(infos.margins["keep_out"])[: len(x)]
-    for j in np.flatnonzero(mask):
-        ax_r.semilogy(
-            t, np.maximum(margins[:, j], 1e-3), label=f"keep-out margin {j + 1} (floored at 1 mm)"
-        )
-    ax_r.axhline(float(params.stop_radius), color="gray", ls="--", lw=1, label="holding distance")
-    ax_r.set_xlabel("time [s]")
-    ax_r.set_ylabel("[m]")
-    ax_r.grid(alpha=0.3, which="both")
-    ax_r.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def dock_error(p: Params, fc, g, x, t):
     """Distance beyond ``stop_radius`` of the holding position [m] (where the run ends)."""
     return smooth_excess(smooth_norm(x[:3] - p.x_ref[:3]), p.stop_radius)
@@ -322,24 +258,26 @@ TUNING = Tuning(tunables=weight_tunables(), derive=derive_terminal)
 FAMILY = Family(
     name="rendezvous",
     description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
-    layout=LAYOUT,
-    n_phases=1,
-    config_type=Config,
+    law=Hooks(
+        layout=LAYOUT,
+        n_phases=1,
+        config_type=Config,
+        horizon=lambda fc: fc.N,
+        init=init,
+        initial_plan=initial_plan,
+        observe=observe,
+        ocp=ocp,
+        control=control,
+        sample_time=sample_time,
+        truth_model=truth_model,
+        update=update,
+        truth_blocks=truth_blocks,
+        model=model,
+        dock_error=dock_error,
+    ),
     make_params=make_params,
-    horizon=lambda fc: fc.N,
-    init=init,
-    initial_plan=initial_plan,
-    observe=observe,
-    ocp=ocp,
-    control=control,
-    sample_time=sample_time,
-    truth_model=truth_model,
-    update=update,
-    truth_blocks=truth_blocks,
-    model=model,
     truths=("linear", "two-body", "two-body-j2"),
-    plot=plot,
+    plot=lazy("rvdjax.families.plots.rendezvous:plot"),
     baselines=("nmpc",),
-    dock_error=dock_error,
     tuning=TUNING,
 )

@@ -39,8 +39,11 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any, Protocol, runtime_checkable
 
-__all__ = ["Layout", "Family", "Tunable", "Tuning"]
+from rvdjax.schema import Schema
+
+__all__ = ["Layout", "Family", "GuidanceLaw", "Hooks", "HOOKS", "Tunable", "Tuning", "lazy"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,56 +114,159 @@ class Tuning:
     derive: Callable
 
 
+# ------------------------------------------------------------------ the kernel's hooks
+# Params: the family's NamedTuple of traced arrays; FConfig: its static configuration;
+# Guidance: its guidance state (a NamedTuple of arrays); arrays are JAX arrays.
+
+Array = Any
+Params = Any
+FConfig = Any
+Guidance = Any
+Blocks = list  # constraint blocks (rvdjax.constraints.Block), in the OCP's row order
+
+HorizonFn = Callable[[FConfig], int]
+InitFn = Callable[[Params, FConfig, Array], Guidance]
+InitialPlanFn = Callable[[Params, FConfig, Guidance, Array], Any]  # -> rvdjax.solver.Plan
+ObserveFn = Callable[[Params, FConfig, Guidance, Array, Array, Any], Guidance]
+OcpFn = Callable[[Params, FConfig, Guidance, Array, Array, Any], tuple[Any, Blocks]]
+ControlFn = Callable[[Params, FConfig, Guidance, Any], Array]
+SampleTimeFn = Callable[[Params, Guidance], Array]
+TruthModelFn = Callable[[Params, Guidance], tuple[Array, Array]]
+UpdateFn = Callable[
+    [Params, FConfig, Guidance, Array, Array, Array, Array, Array, Any],
+    tuple[Guidance, Array, Array, Array],
+]
+TruthBlocksFn = Callable[[Params, FConfig, Guidance, Array, Array], Blocks]
+DockErrorFn = Callable[[Params, FConfig, Guidance, Array, Array], Array]
+SubsamplesFn = Callable[[Params, FConfig, Array, Array, Array], tuple[Array, Array]]
+ModelFn = Callable[[Params, FConfig], tuple[Array, Array, Array, Array, Array]]
+
+
+@runtime_checkable
+class GuidanceLaw(Protocol):
+    """What the jitted kernel calls: a family's layout and pure functions of arrays (module
+    docstring). Every hook is traced; none may read host state or import plotting.
+
+    * ``horizon(fconfig) -> N``; ``init(params, fconfig, x0) -> G``;
+      ``initial_plan(params, fconfig, G, x0) -> Plan``;
+    * ``observe(params, fconfig, G, x, t, plan) -> G``;
+      ``ocp(params, fconfig, G, x_meas, t, plan) -> (OCP, blocks)``;
+      ``control(params, fconfig, G, solution) -> u``;
+    * ``sample_time(params, G) -> Ts``; ``truth_model(params, G) -> (A, B)``;
+    * ``update(params, fconfig, G, x, u, x_next, t, Ts, samples) -> (G', docked, dt_flown,
+      sample_mask)``; ``truth_blocks(params, fconfig, G, x, t) -> blocks``;
+    * optional (None when absent): ``dock_error(params, fconfig, G, x, t) -> distance [m]``,
+      ``subsamples(params, fconfig, x, u, dt) -> (taus, states)``,
+      ``model(params, fconfig) -> (A, B, c, Q, R)``.
+    """
+
+    layout: Layout
+    n_phases: int
+    config_type: type
+    horizon: HorizonFn
+    init: InitFn
+    initial_plan: InitialPlanFn
+    observe: ObserveFn
+    ocp: OcpFn
+    control: ControlFn
+    sample_time: SampleTimeFn
+    truth_model: TruthModelFn
+    update: UpdateFn
+    truth_blocks: TruthBlocksFn
+    dock_error: DockErrorFn | None
+    subsamples: SubsamplesFn | None
+    model: ModelFn | None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Hooks:
+    """A :class:`GuidanceLaw` as a record: the kernel's side of a family (typed fields, the
+    signatures of :class:`GuidanceLaw`)."""
+
+    layout: Layout
+    n_phases: int
+    config_type: type
+    horizon: HorizonFn
+    init: InitFn
+    initial_plan: InitialPlanFn
+    observe: ObserveFn
+    ocp: OcpFn
+    control: ControlFn
+    sample_time: SampleTimeFn
+    truth_model: TruthModelFn
+    update: UpdateFn
+    truth_blocks: TruthBlocksFn
+    dock_error: DockErrorFn | None = None
+    subsamples: SubsamplesFn | None = None
+    model: ModelFn | None = None
+
+
+HOOKS = tuple(f.name for f in dataclasses.fields(Hooks))
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Family:
-    """A guidance family: its layout, configuration type and pure functions (module doc).
+    """A guidance family's registry entry: its kernel hooks (``law``, a :class:`GuidanceLaw`)
+    and, apart from them, what the host side reads: the inputs' schema and checks, the run's
+    figure, the tuning, the baselines. Each hook is also an attribute (``family.ocp`` is
+    ``family.law.ocp``).
 
     Attributes:
         name: the family's table name (``rvdjax.families.FAMILIES``).
         description: one line.
-        layout: the state and input :class:`Layout`.
-        n_phases: number of guidance phases (1 for single-phase families).
-        config_type: the static configuration dataclass (horizon, options).
+        law: the kernel's hooks (:class:`Hooks` or any :class:`GuidanceLaw`).
         make_params: physical values (plain numbers) -> checked traced parameters.
-        horizon: fconfig -> N of the OCP (padded to the largest phase horizon).
+        schema: the physical inputs (:class:`rvdjax.schema.Schema`: names, units, checks,
+            defaults, study aliases); by default ``make_params.schema``.
         truths: the truth propagations the family supports ("linear" first).
         check: (params, x0, loop config) -> None: configuration-dependent checks (ValueError).
-        subsamples: optional (params, fconfig, x, u, dt) -> (taus (M,), states (M, nx)): the
-            truth inside a step of ``dt`` seconds at M instants, for docking detection and
-            margins between samples.
-        model: optional (params, fconfig) -> (A, B, c, Q, R) of the OCP (module docstring).
-        plot: (path, scenario, params, infos) -> None, the run's figure.
-        dock_error: optional (params, fconfig, G, x, t) -> distance to docking [m].
+        plot: (path, scenario, params, infos) -> None, the run's figure (its own module:
+            :func:`lazy` imports it when it draws).
+        baselines: the peer baselines the family can compare with.
         tuning: optional :class:`Tuning` (the parameters ``rvdjax tune`` may change).
     """
 
     name: str
     description: str
-    layout: Layout
-    n_phases: int
-    config_type: type
+    law: GuidanceLaw
     make_params: Callable
-    horizon: Callable
-    init: Callable
-    initial_plan: Callable
-    observe: Callable
-    ocp: Callable
-    control: Callable
-    sample_time: Callable
-    truth_model: Callable
-    update: Callable
-    truth_blocks: Callable
+    schema: Schema | None = None
     truths: tuple[str, ...] = ("linear",)
     check: Callable | None = None
-    subsamples: Callable | None = None
-    model: Callable | None = None
     plot: Callable | None = None
     baselines: tuple[str, ...] = ()
-    dock_error: Callable | None = None
     tuning: Tuning | None = None
+
+    def __post_init__(self):
+        if self.schema is None:  # make_params built by rvdjax.schema.make_params_of
+            object.__setattr__(self, "schema", getattr(self.make_params, "schema", None))
 
     def __hash__(self):
         return hash(self.name)
 
     def __eq__(self, other):
         return isinstance(other, Family) and other.name == self.name
+
+
+def _hook(name: str) -> property:
+    return property(lambda self: getattr(self.law, name), doc=f"``law.{name}``")
+
+
+for _name in HOOKS:
+    setattr(Family, _name, _hook(_name))
+del _name
+
+
+def lazy(target: str) -> Callable:
+    """A function that imports ``"module:function"`` when first called (a family's plot: its
+    module imports matplotlib when it draws, and the family's module never imports it)."""
+    module, _, attr = target.partition(":")
+
+    def call(*args, **kwargs):
+        import importlib
+
+        return getattr(importlib.import_module(module), attr)(*args, **kwargs)
+
+    call.__name__ = attr
+    call.__qualname__ = target
+    return call

@@ -287,7 +287,32 @@ def _registry() -> dict[str, Scenario]:
     return out
 
 
-SCENARIOS: dict[str, Scenario] = _registry()
+class _Registry(Mapping):
+    """The built-in scenarios by name, collected on first use: the modules that define them
+    import this package, so collecting them while it loads would import it half-loaded."""
+
+    def __init__(self):
+        self._table: dict[str, Scenario] | None = None
+
+    def _load(self) -> dict[str, Scenario]:
+        if self._table is None:
+            self._table = _registry()
+        return self._table
+
+    def __getitem__(self, name: str) -> Scenario:
+        return self._load()[name]
+
+    def __iter__(self):
+        return iter(self._load())
+
+    def __len__(self) -> int:
+        return len(self._load())
+
+    def __repr__(self) -> str:
+        return repr(self._load())
+
+
+SCENARIOS: Mapping[str, Scenario] = _Registry()
 DEFAULT_SCENARIO = "fastmpc-3d"
 
 

@@ -120,13 +120,20 @@ def _value(v, indent: str = "", flat: bool = False) -> str:
     raise TypeError(f"cannot write {type(v).__name__} {v!r} to TOML")
 
 
-def _table(lines: list, header: str, values: dict, comment: str | None = None) -> None:
-    """``[header]`` with its values in order (a dict value as an inline table)."""
+def _table(
+    lines: list, header: str, values: dict, comment: str | None = None, units: dict | None = None
+) -> None:
+    """``[header]`` with its values in order (a dict value as an inline table); ``units``:
+    {key: unit} written as a comment after the value."""
     lines.append("")
     if comment:
         lines.append(f"# {comment}")
     lines.append(f"[{header}]")
-    lines.extend(f"{_key(k)} = {_value(v)}" for k, v in values.items() if v is not None)
+    units = units or {}
+    for k, v in values.items():
+        if v is not None:
+            unit = units.get(k)
+            lines.append(f"{_key(k)} = {_value(v)}" + (f"  # {unit}" if unit else ""))
 
 
 def scenario_to_toml(scenario: Scenario) -> str:
@@ -155,6 +162,7 @@ def scenario_to_toml(scenario: Scenario) -> str:
         "physical",
         dict(sc.physical),
         f"the {sc.family} family's physical values (make_params; omitted: its defaults)",
+        units=None if fam is None else {i.name: i.unit for i in fam.schema.physical},
     )
     _table(lines, "config", dict(sc.config), "static configuration: horizon, options")
     if sc.solver:
@@ -318,42 +326,29 @@ def _shape(v) -> tuple:
     return ()
 
 
-def _schema_kind(annotation, default=inspect.Parameter.empty) -> str:
-    """The value kind of a make_params / dataclass field annotation (a string under PEP 563)."""
+def _field_kind(annotation, default) -> str:
+    """The value kind of a dataclass field (configuration, solver settings, thruster set)
+    from its annotation (a string under PEP 563) or its default."""
     a = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
     a = a.replace(" ", "")
-    if a in ("bool",):
-        return "bool"
-    if a in ("int",):
-        return "int"
-    if a in ("str",):
-        return "str"
+    if a in ("bool", "int", "str"):
+        return a
     if a.startswith("tuple[int"):
         return "ints"
     if a.startswith("tuple[str"):
         return "strs"
-    if a.startswith("dict"):
-        return "table"
-    if isinstance(default, bool):
-        return "bool"
-    if isinstance(default, int):
-        return "int"
-    if isinstance(default, str):
-        return "str"
+    for kind, t in (("bool", bool), ("int", int), ("str", str)):
+        if isinstance(default, t):
+            return kind
     return "numbers"
 
 
 def _physical_schema(family) -> tuple[dict, tuple]:
-    """({key: kind}, required keys) of a family's make_params (x0 is a top-level key)."""
-    sig = inspect.signature(family.make_params)
-    kinds, required = {}, []
-    for p in sig.parameters.values():
-        if p.name == "x0" or p.kind not in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD):
-            continue
-        kinds[p.name] = _schema_kind(p.annotation, p.default)
-        if p.default is inspect.Parameter.empty:
-            required.append(p.name)
-    return kinds, tuple(required)
+    """({key: kind}, required keys) of a family's ``[physical]`` table: its schema's inputs
+    (:mod:`rvdjax.schema`; x0 is a top-level key)."""
+    inputs = family.schema.physical
+    kinds = {i.name: i.kind for i in inputs}
+    return kinds, tuple(i.name for i in inputs if i.required)
 
 
 def _disturbance_keys() -> tuple[str, ...]:
@@ -364,7 +359,7 @@ def _disturbance_keys() -> tuple[str, ...]:
 
 def _field_schema(cls, exclude=()) -> dict:
     return {
-        f.name: _schema_kind(f.type, f.default)
+        f.name: _field_kind(f.type, f.default)
         for f in dataclasses.fields(cls)
         if f.name not in exclude
     }

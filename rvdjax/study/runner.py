@@ -146,10 +146,10 @@ def _physical_nominal(scenario, base):
 
     if base in THRUSTER_KEYS:
         return scenario.thruster_nominal(base)
-    import inspect
+    from rvdjax.schema import REQUIRED
 
-    default = inspect.signature(scenario.family_.make_params).parameters[base].default
-    if default is inspect.Parameter.empty or default is None:
+    default = scenario.family_.schema[base].default
+    if default is REQUIRED or default is None:
         raise ValueError(f"--vary {base}: scenario {scenario.name!r} gives no value to vary")
     return default
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import inspect
 import itertools
 import json
 import re
@@ -37,19 +36,21 @@ __all__ = [
     "resolve",
     "parse_assignment",
     "study_scenario",
-    "ALIASES",
+    "aliases",
 ]
 
-ALIASES = {
-    "three-phase": {
-        "N1": "N[0]",
-        "N2": "N[1]",
-        "N3": "N[2]",
-        "Ts1": "ts[0]",
-        "Ts2": "ts[1]",
-        "Ts3": "ts[2]",
-    }
-}
+#: Short study names of the static configuration, per family (the physical inputs' short
+#: names come from their schema: :meth:`rvdjax.schema.Schema.aliases`).
+STATIC_ALIASES = {"three-phase": {"N1": "N[0]", "N2": "N[1]", "N3": "N[2]"}}
+
+
+def aliases(family: str) -> dict[str, str]:
+    """A family's short study names: {short name: NAME or NAME[k]}."""
+    from rvdjax.families import get_family
+
+    schema = get_family(family).schema
+    return {**STATIC_ALIASES.get(family, {}), **(schema.aliases() if schema else {})}
+
 
 _NAME_RE = re.compile(r"^([A-Za-z_][A-Za-z_0-9]*)(?:\[(\d+)\])?$")
 
@@ -85,14 +86,15 @@ class ParamRef:
 def resolve(scenario, name: str) -> ParamRef:
     """Resolve ``name`` against ``scenario``'s family (ValueError listing the allowed names)."""
     fam = scenario.family_
-    alias = ALIASES.get(scenario.family, {}).get(name)
+    short = aliases(scenario.family)
+    alias = short.get(name)
     full = alias or name
     m = _NAME_RE.match(full)
     if not m:
         raise ValueError(f"cannot read parameter name {name!r} (use NAME or NAME[k])")
     base, index = m.group(1), None if m.group(2) is None else int(m.group(2))
     static = {f.name for f in dataclasses.fields(fam.config_type)}
-    physical = set(inspect.signature(fam.make_params).parameters) - {"x0", "disturbances"}
+    physical = {i.name for i in fam.schema.physical} - {"disturbances"}
     if getattr(scenario, "thrusters", None) is not None:
         from rvdjax.scenarios import THRUSTER_KEYS
 
@@ -106,11 +108,11 @@ def resolve(scenario, name: str) -> ParamRef:
         return ParamRef(name, "static", base, index)
     if base in physical:
         return ParamRef(name, "physical", base, index)
-    aliases = ", ".join(ALIASES.get(scenario.family, {}))
+    short_names = ", ".join(short)
     raise ValueError(
         f"unknown parameter {name!r} for family {scenario.family!r}; physical: "
         f"{', '.join(sorted(physical))}; static (grid only): {', '.join(sorted(static))}; "
-        f"initial state: x0, x0[k]" + (f"; short names: {aliases}" if aliases else "")
+        f"initial state: x0, x0[k]" + (f"; short names: {short_names}" if short_names else "")
     )
 
 
@@ -336,3 +338,11 @@ def study_scenario(spec: StudySpec, out=None):
         if os.path.exists(local):
             name = local
     return get_scenario(name)
+
+
+def __getattr__(name: str):
+    if name == "ALIASES":  # the short names of every family that has some (read-only)
+        from rvdjax.families import FAMILIES
+
+        return {f: a for f in FAMILIES if (a := aliases(f))}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
