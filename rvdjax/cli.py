@@ -241,38 +241,9 @@ def run_scenario(
 
 def metrics_dict(m) -> dict:
     """A run's metrics as plain JSON values (inf as None)."""
-    import numpy as np
+    from rvdjax.loop.metrics import metrics_row
 
-    from rvdjax.loop import RunStatus
-    from rvdjax.solver import Status
-
-    def val(v):
-        v = float(v)
-        return v if np.isfinite(v) else None
-
-    return {
-        "status": RunStatus.name(int(m.status)),
-        "docked": bool(m.docked),
-        "steps": int(m.steps),
-        "time_to_dock_s": val(m.time_to_dock_s),
-        "delta_v_m_s": val(m.delta_v_m_s),
-        "delta_v_l1_m_s": val(m.delta_v_l1_m_s),
-        "total_impulse_N_s": val(m.total_impulse_N_s),
-        "effort_l1_N_s": val(m.effort_l1_N_s),
-        "torque_l1_N_m_s": val(m.torque_l1_N_m_s),
-        "phase_delta_v_m_s": [float(v) for v in np.asarray(m.phase_delta_v_m_s)],
-        "phase_time_s": [float(v) for v in np.asarray(m.phase_time_s)],
-        "max_violation_m": val(m.max_violation_m),
-        "margins_m": {k: val(v) for k, v in m.margins_m.items()},
-        "solver_status_counts": {
-            Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
-        },
-        "mean_iterations": float(m.mean_iterations),
-        "thruster_impulse_N_s": val(m.thruster_impulse_N_s),
-        "propellant_kg": val(m.propellant_kg),
-        "valve_openings": int(m.valve_openings),
-        "pulses_dropped": int(m.pulses_dropped),
-    }
+    return metrics_row(m)
 
 
 def cmd_tune(args) -> int:
