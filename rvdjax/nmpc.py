@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from rvdjax.families.rendezvous import Params
-from rvdjax.loop.kernel import HIST_BINS, Loop, Metrics, RunStatus
+from rvdjax.loop.kernel import Loop
+from rvdjax.loop.metrics import HIST_BINS, Metrics, RunStatus
 
 __all__ = ["run_nmpc_loop"]
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import tempfile
 
-__all__ = ["check_file", "check_dir", "metrics_row"]
+__all__ = ["check_file", "check_dir"]
 
 
 def _probe(directory: str, option: str, path: str) -> None:
@@ -66,39 +66,3 @@ def check_dir(path: str | None, option: str) -> None:
     if not os.path.isdir(parent):
         raise ValueError(f"{option} {path!r}: {parent!r} is a file, not a directory")
     _probe(parent, option, path)
-
-
-def metrics_row(m) -> dict:
-    """A run's metrics as plain JSON values (inf as None)."""
-    import numpy as np
-
-    from rvdjax.loop import RunStatus
-    from rvdjax.solver import Status
-
-    def val(v):
-        v = float(v)
-        return v if np.isfinite(v) else None
-
-    return {
-        "status": RunStatus.name(int(m.status)),
-        "docked": bool(m.docked),
-        "steps": int(m.steps),
-        "time_to_dock_s": val(m.time_to_dock_s),
-        "delta_v_m_s": val(m.delta_v_m_s),
-        "delta_v_l1_m_s": val(m.delta_v_l1_m_s),
-        "total_impulse_N_s": val(m.total_impulse_N_s),
-        "effort_l1_N_s": val(m.effort_l1_N_s),
-        "torque_l1_N_m_s": val(m.torque_l1_N_m_s),
-        "phase_delta_v_m_s": [float(v) for v in np.asarray(m.phase_delta_v_m_s)],
-        "phase_time_s": [float(v) for v in np.asarray(m.phase_time_s)],
-        "max_violation_m": val(m.max_violation_m),
-        "margins_m": {k: val(v) for k, v in m.margins_m.items()},
-        "solver_status_counts": {
-            Status.name(i): int(c) for i, c in enumerate(np.asarray(m.status_counts))
-        },
-        "mean_iterations": float(m.mean_iterations),
-        "thruster_impulse_N_s": val(m.thruster_impulse_N_s),
-        "propellant_kg": val(m.propellant_kg),
-        "valve_openings": int(m.valve_openings),
-        "pulses_dropped": int(m.pulses_dropped),
-    }

@@ -47,7 +47,7 @@ def main(argv=None) -> None:
 
     def iterate_all(ocp, s):
         return lax.while_loop(
-            lambda s: ~finished(s, settings), lambda s: iterate(ocp, s, settings, sp), s
+            lambda s: ~finished(settings, s), lambda s: iterate(ocp, settings, sp, s), s
         )
 
     @jax.jit
@@ -72,7 +72,7 @@ def main(argv=None) -> None:
 
     @jax.jit
     def fly_on(state, prep, ocp, s):
-        return advance(loop, params, sp, state, prep, finish(ocp, s, settings, sp))[0]
+        return advance(loop, params, sp, state, prep, finish(ocp, settings, sp, s))[0]
 
     state = init(loop, params, x0, jax.random.key(0))
     base, warm = [], {d: [] for d in deltas}

@@ -62,7 +62,7 @@ def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: boo
     def iterations(ocps, solves):
         def one(ocp, s):
             ocp = with_model(ocp)
-            return lax.fori_loop(0, n_iterations, lambda _, st: iterate(ocp, st, settings, sp), s)
+            return lax.fori_loop(0, n_iterations, lambda _, st: iterate(ocp, settings, sp, st), s)
 
         if unbatched:  # the first problem alone, no batch axis
             return one(*jax.tree.map(lambda a: a[0], (ocps, solves)))
@@ -72,7 +72,7 @@ def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: boo
     def step_done(states, nxts, ocps, solves):
         def one(st, nxt, ocp, s):
             ocp = with_model(ocp)
-            sol = finish(ocp, s, settings, sp)
+            sol = finish(ocp, settings, sp, s)
             new, _ = advance(
                 loop, params, sp, st, Prepared(nxt.guidance, ocp, nxt.hard, None, nxt.nav), sol
             )

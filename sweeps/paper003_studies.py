@@ -125,7 +125,7 @@ def ch6(args) -> dict:
         loop = sc.flight(nominal.options, config=dict(N=(n1, 15, 12)), check=False).loop
         settings = loop.config.settings
         prep = jax.jit(lambda s, loop=loop: prepare(loop, params, s))
-        slv = jax.jit(lambda o, w, settings=settings: solve(o, settings, init=w, params=sp))
+        slv = jax.jit(lambda o, w, settings=settings: solve(o, settings, params=sp, init=w))
         adv = jax.jit(lambda s, p, o, loop=loop: advance(loop, params, sp, s, p, o)[0])
         state = init(loop, params, x0)
         times = {0: [], 1: [], 2: []}

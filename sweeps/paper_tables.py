@@ -21,7 +21,7 @@ def main(out: str = "paper_tables.json") -> int:
     check_file(out, "out", (".json",))
     one_thread()
 
-    from rvdjax.outputs import metrics_row
+    from rvdjax.loop.metrics import metrics_row
     from rvdjax.scenarios import SCENARIOS, FlightOptions
 
     results = {}

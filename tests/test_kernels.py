@@ -92,7 +92,7 @@ def test_one_iteration_from_the_same_iterate_agrees_to_rounding():
         oc, st = start(o, xs, params)
 
         def body(st, _):
-            return iterate(oc, st, xs, params), st
+            return iterate(oc, xs, params, st), st
 
         return oc, jax.lax.scan(body, st, length=5)[1]
 
@@ -100,7 +100,7 @@ def test_one_iteration_from_the_same_iterate_agrees_to_rounding():
     ocs = jax.tree.map(lambda a: jnp.repeat(a[:, None], 5, axis=1), ocs)
 
     def step(settings):
-        one = lambda oc, st: iterate(oc, st, settings, params).core  # noqa: E731
+        one = lambda oc, st: iterate(oc, settings, params, st).core  # noqa: E731
         return jax.jit(jax.vmap(jax.vmap(one)))
 
     a = step(xs)(ocs, states)

@@ -73,7 +73,8 @@ def _tuned(flight, path: str | None):
 
 def cmd(args) -> int:
     from rvdjax.disturbances import DISTURBANCE_NOTES
-    from rvdjax.outputs import check_file, metrics_row
+    from rvdjax.loop.metrics import metrics_row
+    from rvdjax.outputs import check_file
     from rvdjax.scenarios import get_scenario
 
     check_file(args.plot, "--plot", PLOT_FORMATS)

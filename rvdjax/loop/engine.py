@@ -70,7 +70,7 @@ from rvdjax.loop.kernel import (
     prepare,
 )
 from rvdjax.ocp import OCP
-from rvdjax.solver import SolverParams, SolveState, finish, finished, iterate, start
+from rvdjax.solver import SolverParams, SolveState, finish, finished, freeze, iterate, start
 from rvdjax.solver.driver import MODEL_FIELDS
 
 __all__ = [
@@ -470,7 +470,7 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
         prep.ocp, loop.config.settings, s, prep.warm, trusted_model=loop.family.model is not None
     )
     ocp = _strip_model(loop, ocp)
-    solve_state = solve_state._replace(core=solve_state.core._replace(done=jnp.asarray(True)))
+    solve_state = freeze(solve_state)
     return Slot(
         run=jnp.asarray(-1, jnp.int32),
         live=jnp.asarray(False),
@@ -531,7 +531,7 @@ def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs
     def step_done(slot, solved):
         params, sp = ctx.params_of(slot)
         ocp = ctx.ocp_of(slot, params, shared_model)
-        sol = finish(ocp, slot.solve, settings, sp)
+        sol = finish(ocp, settings, sp, slot.solve)
         prep = Prepared(slot.guidance, ocp, slot.hard, None, slot.nav)
         stepped, _ = advance(loop, params, sp, slot.state, prep, sol)
         state = _where(solved, stepped, slot.state)
@@ -571,11 +571,7 @@ def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs
         )
 
     slots = lax.cond(jnp.any(need), lambda s: jax.vmap(prepare_solve)(s, need), lambda s: s, slots)
-    # a free slot's solve stays frozen
-    core = slots.solve.core
-    slots = slots._replace(
-        solve=slots.solve._replace(core=core._replace(done=core.done | ~slots.live))
-    )
+    slots = slots._replace(solve=freeze(slots.solve, ~slots.live))  # a free slot idles
     return slots, ended, result
 
 
@@ -590,7 +586,7 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
         ocp = ctx.ocp_of(slot, params, shared_model)
 
         def body(_, st):
-            return iterate(ocp, st, settings, sp)
+            return iterate(ocp, settings, sp, st)
 
         return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
 
@@ -680,7 +676,7 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
             # reserve the ring entries of the new runs
             ring_run = eng.ring_run.at[jnp.where(assign, seq % R, R)].set(seq, mode="drop")
 
-            solved = jax.vmap(lambda s: s.live & finished(s.solve, loop.config.settings))(slots)
+            solved = jax.vmap(lambda s: s.live & finished(loop.config.settings, s.solve))(slots)
             todo = solved | assign
 
             @jax.named_scope("ring")

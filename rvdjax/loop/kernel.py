@@ -1,4 +1,4 @@
-"""The closed-loop kernel shared by every guidance family: ``init``, ``step``, ``fly``, metrics.
+"""The closed-loop kernel shared by every guidance family: ``init``, ``step``, ``fly``.
 
 One ``step`` is one MPC decision (DESIGN §4): the family observes the truth (cone
 activation), the guidance sees the measured state (navigation noise; with ``nav_filter``
@@ -15,7 +15,9 @@ the step index, so a run is reproducible from its key whatever batch it is flown
 ``step`` is :func:`prepare` (observe, measure, build the OCP and the warm start), a solve and
 :func:`advance` (command, actuator, plant, guidance update, accumulation); the batch engine
 (:mod:`rvdjax.loop.engine`) runs the same two halves with the solver iterations in between
-spread over several calls.
+spread over several calls. The actuator path of ``advance`` is :mod:`rvdjax.loop.actuation`;
+the figures of merit (``Accumulator``, ``Metrics``, ``metrics``) are
+:mod:`rvdjax.loop.metrics`, re-exported here.
 """
 
 from __future__ import annotations
@@ -28,13 +30,21 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from rvdjax.actuators.fire import fire
 from rvdjax.actuators.modulation import Pulses
-from rvdjax.actuators.response import pulse_states
-from rvdjax.actuators.thrusters import G0, Actuation
+from rvdjax.actuators.thrusters import Actuation
 from rvdjax.constraints import hard_mask, margins
-from rvdjax.disturbances import gm_init, gm_step, measure, minimum_impulse_bit, thrust_factor
+from rvdjax.disturbances import gm_init, measure
+from rvdjax.loop.actuation import actuate, truth_path
 from rvdjax.loop.family import Family
+from rvdjax.loop.metrics import (
+    HIST_BINS,
+    Accumulator,
+    Metrics,
+    RunStatus,
+    accumulate,
+    empty_accumulator,
+    metrics,
+)
 from rvdjax.loop.navigation import (
     NavState,
     measurement_covariance,
@@ -44,7 +54,7 @@ from rvdjax.loop.navigation import (
     process_noise,
     thrust_error_fraction,
 )
-from rvdjax.loop.plant import TRUTHS, impulse_per_unit, truth_step, truth_step_pulses
+from rvdjax.loop.plant import TRUTHS
 from rvdjax.ocp import OCP
 from rvdjax.solver import (
     Plan,
@@ -52,9 +62,9 @@ from rvdjax.solver import (
     SolverParams,
     SolverSettings,
     Status,
-    drift_plan,
     shift_solution,
     solve_if,
+    warm_start,
 )
 
 __all__ = [
@@ -72,23 +82,8 @@ __all__ = [
     "step",
     "fly",
     "metrics",
+    "HIST_BINS",
 ]
-
-HIST_BINS = 32  # per-step solver iteration histogram: bins 0 .. 30 and >= 31
-
-
-class RunStatus:
-    """How a run ended (``Metrics.status``)."""
-
-    DOCKED = 0
-    TIMEOUT = 1  # out of MPC steps (or past LoopConfig.time_limit_s) without docking
-    FAILED = 2  # the truth became non-finite (the run stops; its figures stay finite)
-
-    names = ("docked", "timeout", "failed")
-
-    @classmethod
-    def name(cls, code: int) -> str:
-        return cls.names[int(code)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,29 +170,6 @@ class Loop:
         return Loop(self.family, dataclasses.replace(self.config, **changes))
 
 
-class Accumulator(NamedTuple):
-    """Running figures of a run (reduced by :func:`metrics`)."""
-
-    steps: jnp.ndarray  # () MPC steps flown
-    time_s: jnp.ndarray  # () time flown [s]
-    impulse_l2: jnp.ndarray  # () sum ||impulse||_2 [N s] (force axes)
-    impulse_l1: jnp.ndarray  # () sum ||impulse||_1 [N s]
-    dv_l2: jnp.ndarray  # () sum ||dv||_2 [m/s]
-    dv_l1: jnp.ndarray  # () sum ||dv||_1 [m/s]
-    torque_l1: jnp.ndarray  # () sum |torque| dt [N m s]
-    phase_dv: jnp.ndarray  # (P,) L2 delta-v per phase [m/s]
-    phase_time: jnp.ndarray  # (P,) time per phase [s]
-    phase_impulse_l1: jnp.ndarray  # (P,) sum ||impulse||_1 per phase [N s]
-    phase_thrust_impulse: jnp.ndarray  # (P,) thruster impulse per phase [N s]
-    margins: dict  # name -> () smallest truth margin so far [m]
-    status_counts: jnp.ndarray  # (4,) solver statuses
-    iterations: jnp.ndarray  # () solver iterations
-    histogram: jnp.ndarray  # (HIST_BINS,) MPC steps per iteration count
-    thrust_impulse: jnp.ndarray  # () sum over thrusters of thrust x on-time [N s]
-    openings: jnp.ndarray  # () valve openings
-    dropped: jnp.ndarray  # () pulses dropped by the minimum on-time
-
-
 class LoopState(NamedTuple):
     """State of one run between MPC steps.
 
@@ -270,71 +242,7 @@ class StepInfo(NamedTuple):
     pulses: Pulses | None = None  # with thrusters: the valve pulses of the step (T, P) [s]
 
 
-class Metrics(NamedTuple):
-    """Per-run figures of merit (DESIGN §4), one definition for every family.
-
-    Impulses count the translational axes (``Layout.force``): a force F acting dt gives F dt,
-    a delta-v dv gives m dv; delta-v is impulse / m.
-    """
-
-    status: jnp.ndarray  # RunStatus code
-    docked: jnp.ndarray
-    steps: jnp.ndarray  # MPC steps flown
-    time_to_dock_s: jnp.ndarray  # time flown until docking [s] (inf if not docked)
-    total_impulse_N_s: jnp.ndarray  # sum_k ||impulse_k||_2
-    effort_l1_N_s: jnp.ndarray  # sum_k ||impulse_k||_1 (paper 001 Eq. 14)
-    delta_v_m_s: jnp.ndarray  # sum_k ||dv_k||_2
-    delta_v_l1_m_s: jnp.ndarray  # sum_k ||dv_k||_1
-    torque_l1_N_m_s: jnp.ndarray  # sum_k |torque_k| dt (planar 3-DOF)
-    phase_delta_v_m_s: jnp.ndarray  # (P,) L2 delta-v per phase
-    phase_time_s: jnp.ndarray  # (P,) time per phase [s]
-    phase_effort_l1_N_s: jnp.ndarray  # (P,) effort_l1_N_s per phase
-    phase_thruster_impulse_N_s: jnp.ndarray  # (P,) thruster_impulse_N_s per phase
-    max_violation_m: jnp.ndarray  # largest violation of a hard constraint by the truth
-    margins_m: dict  # name -> smallest truth margin of that block over the run
-    status_counts: jnp.ndarray  # (4,) solver statuses over the steps flown
-    mean_iterations: jnp.ndarray
-    iteration_histogram: jnp.ndarray  # (HIST_BINS,) steps per solver iteration count
-    thruster_impulse_N_s: jnp.ndarray  # sum_i F_i t_on,i over every thruster (paper 002 Eq. 11)
-    propellant_kg: jnp.ndarray  # thruster impulse / (Isp g0)
-    valve_openings: jnp.ndarray  # number of pulses fired
-    pulses_dropped: jnp.ndarray  # pulses under the minimum on-time not fired
-    contact_speed_m_s: jnp.ndarray  # translational speed of the truth at docking (inf if not)
-
-
 # --------------------------------------------------------------------------------------------
-
-
-def _truth_kinds(loop: Loop, params, g, x, t) -> dict:
-    """{name: kind} of the family's truth blocks (static; the arrays are dead code)."""
-    blocks = loop.family.truth_blocks(params, loop.config.family, g, x, t)
-    return {b.name: b.kind for b in blocks}
-
-
-def _empty_acc(loop: Loop, params, x0, g, dtype) -> Accumulator:
-    P = loop.family.n_phases
-    zero = jnp.zeros((), dtype)
-    names = _truth_kinds(loop, params, g, x0, zero)
-    return Accumulator(
-        steps=jnp.zeros((), jnp.int32),
-        time_s=zero,
-        impulse_l2=zero,
-        impulse_l1=zero,
-        dv_l2=zero,
-        dv_l1=zero,
-        torque_l1=zero,
-        phase_dv=jnp.zeros(P, dtype),
-        phase_time=jnp.zeros(P, dtype),
-        phase_impulse_l1=jnp.zeros(P, dtype),
-        phase_thrust_impulse=jnp.zeros(P, dtype),
-        margins={n: jnp.asarray(jnp.inf, dtype) for n in names},
-        status_counts=jnp.zeros(4, jnp.int32),
-        iterations=jnp.zeros((), jnp.int32),
-        histogram=jnp.zeros(HIST_BINS, jnp.int32),
-        thrust_impulse=zero,
-        openings=jnp.zeros((), jnp.int32),
-        dropped=jnp.zeros((), jnp.int32),
-    )
 
 
 def init(loop: Loop, params, x0, key=None) -> LoopState:
@@ -348,7 +256,7 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
     act = loop.config.actuation
     mod = None
     if act is not None:
-        thr = getattr(params, "thrusters", None)
+        thr = params.thrusters
         if thr is None or thr.thrust.shape != (act.n,):
             raise ValueError(
                 f"a loop with thrusters needs params.thrusters of {act.n} thrusters "
@@ -383,7 +291,7 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
         orbit=orbit,
         gm=gm,
         key=key,
-        acc=_empty_acc(loop, params, x0, g, dtype),
+        acc=empty_accumulator(loop, params, x0, g, dtype),
         nav=nav,
         mod=mod,
     )
@@ -420,12 +328,7 @@ def prepare(loop: Loop, params, state: LoopState) -> Prepared:
             )
             x_meas = nav.x_hat
     ocp, blocks = fam.ocp(params, fc, g, x_meas, state.t, state.plan)
-    settings = loop.config.settings
-    if settings.mode == "paper" and settings.paper_start != "feasible":
-        cold = drift_plan(ocp.A, ocp.x0, ocp.N, ocp.nu)  # these starts use the plan's states
-    else:  # the solver starts from the drift of the inputs: zero inputs and multipliers
-        cold = Plan(jnp.zeros_like(state.plan.u), state.plan.x, jnp.zeros_like(state.plan.nu))
-    warm = jax.tree.map(lambda a, b: jnp.where(state.fresh, a, b), cold, state.plan)
+    warm = warm_start(ocp, loop.config.settings, state.plan, cold=state.fresh)
     return Prepared(g, ocp, hard_mask(blocks), warm, nav)
 
 
@@ -458,45 +361,11 @@ def advance(
     active = state.active
     u_cmd = jnp.where(active, fam.control(params, fc, g, sol), 0.0)
     dt = fam.sample_time(params, g)
-    u = u_cmd
-    gm = state.gm
-    u_believed = u_cmd  # the input the navigation filter predicts with
-    fired = None
-    if cfg.actuation is not None:
-        factor = None
-        if cfg.disturbed:
-            _, k_act = _keys(state)
-            factor = thrust_factor(gm)
-            gm = gm_step(k_act, gm, params.disturbances, dt, k=state.k)
-        fired = fire(
-            cfg.actuation,
-            params.thrusters,
-            lay,
-            state.x,
-            u_cmd,
-            dt,
-            params.mass,
-            state.t,
-            state.mod,
-            factor,
-        )
-        u = jnp.where(active, fired.u_applied, 0.0)
-        # the modulation is on-board logic (known to the filter), the thrust errors are not
-        u_believed = fired.u_nominal
-    elif cfg.disturbed:
-        _, k_act = _keys(state)
-        d = params.disturbances
-        per_u = impulse_per_unit(lay, params.mass, dt)
-        idx = jnp.asarray(lay.force, int)
-        u = u.at[idx].set(minimum_impulse_bit(u[idx] * per_u, d) / per_u)
-        # the minimum impulse bit is on-board logic (known to the filter); the thrust factor
-        # (1 + w / 100) is not: the filter predicts with the command after the former only
-        u_believed = u
-        u = u * thrust_factor(gm)
-        gm = gm_step(k_act, gm, d, dt, k=state.k)
-    scale = _input_scale(params)
-    if scale is not None and cfg.actuation is None:  # a truth-only mass / inertia error
-        u = u * scale
+    k_act = _keys(state)[1] if cfg.disturbed else None
+    act = actuate(
+        cfg, lay, params, state.x, state.t, state.k, k_act, state.gm, state.mod, u_cmd, dt, active
+    )
+    u, fired = act.u, act.fired
 
     # INFEASIBLE from the solver means "a soft row is violated at the optimum"; penalty rows
     # (external costs of the paper) are not constraints, so only hard rows count.
@@ -512,41 +381,11 @@ def advance(
     if cfg.nav_filter:  # prediction to the next step on the guidance's model of this step
         d = params.disturbances
         R = measurement_covariance(lay, d, dtype)
-        Qp = process_noise(B, u_believed, thrust_error_fraction(d, dt), R)
-        nav_next = nav_predict(prep.nav, A, B, u_believed, Qp)
-    if fired is None:
-        x_next, orbit_next = truth_step(
-            lay, cfg.truth, cfg.truth_substeps, A, B, params, state.orbit, state.x, u, dt
-        )
-    else:
-        g_fired = jnp.where(active, fired.g, 0.0)
-        x_next, orbit_next = truth_step_pulses(
-            cfg.truth,
-            cfg.truth_substeps,
-            A,
-            params,
-            state.orbit,
-            state.x,
-            fired.pulses,
-            g_fired,
-            dt,
-            grid=cfg.actuation.modulator == "delta-sigma",
-            from_start=cfg.actuation.align == "start",
-        )
-    if fam.subsamples is not None:
-        taus, subs = fam.subsamples(params, fc, state.x, u, dt)
-        if fired is not None and cfg.truth == "linear":  # the pulses' path, not the mean input's
-            subs = pulse_states(
-                params.Ac,
-                params.Bc,
-                state.x,
-                taus,
-                fired.pulses,
-                g_fired,
-                grid=cfg.actuation.modulator == "delta-sigma",
-            )
-    else:
-        taus, subs = jnp.zeros((0,), dtype), jnp.zeros((0, lay.nx), dtype)
+        Qp = process_noise(B, act.u_believed, thrust_error_fraction(d, dt), R)
+        nav_next = nav_predict(prep.nav, A, B, act.u_believed, Qp)
+    x_next, orbit_next, taus, subs = truth_path(
+        loop, params, A, B, state.orbit, state.x, act, dt, active
+    )
     t_next = state.t + dt
     g_next, docked, dt_flown, sub_mask = fam.update(
         params, fc, g, state.x, u, x_next, state.t, dt, (taus, subs)
@@ -580,7 +419,7 @@ def advance(
         if fired is None
         else jax.tree.map(lambda a: jnp.where(active, a, 0.0), fired.pulses),
     )
-    acc = _accumulate(loop, params, state.acc, info, fired)
+    acc = accumulate(loop, params, state.acc, info, fired)
     k_next = state.k + 1
     ended = docked | ~finite | (k_next >= cfg.n_steps)
     if cfg.time_limit_s is not None:
@@ -596,7 +435,7 @@ def advance(
         docked=state.docked | docked,
         failed=state.failed | ~finite,
         orbit=orbit_next,
-        gm=gm,
+        gm=act.gm,
         key=state.key,
         acc=acc,
         nav=nav_next,
@@ -608,119 +447,11 @@ def advance(
     return nxt, info
 
 
-def _accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo, fired=None) -> Accumulator:
-    lay = loop.family.layout
-    act = info.active
-    idx = jnp.asarray(lay.force, int)
-    dv = info.u[idx] * (info.dt / params.mass if lay.input == "force" else 1.0)
-    imp = dv * params.mass if lay.input == "delta-v" else info.u[idx] * info.dt
-    dv2 = jnp.linalg.norm(dv)
-    tq = jnp.asarray(lay.torque, int)
-    torque = jnp.sum(jnp.abs(info.u[tq])) * info.dt if lay.torque else 0.0
-    P = loop.family.n_phases
-    in_phase = (info.phase == jnp.arange(P)) & act
-    hist_bin = jnp.minimum(info.iterations, HIST_BINS - 1)
-    imp_l1 = jnp.sum(jnp.abs(imp))
-    thrust_imp = 0.0 if fired is None else fired.thrust_impulse
-    return Accumulator(
-        steps=acc.steps + act.astype(jnp.int32),
-        time_s=acc.time_s + info.dt,
-        impulse_l2=acc.impulse_l2 + jnp.where(act, jnp.linalg.norm(imp), 0.0),
-        impulse_l1=acc.impulse_l1 + jnp.where(act, imp_l1, 0.0),
-        dv_l2=acc.dv_l2 + jnp.where(act, dv2, 0.0),
-        dv_l1=acc.dv_l1 + jnp.where(act, jnp.sum(jnp.abs(dv)), 0.0),
-        torque_l1=acc.torque_l1 + jnp.where(act, torque, 0.0),
-        phase_dv=acc.phase_dv + jnp.where(in_phase, dv2, 0.0),
-        phase_time=acc.phase_time + jnp.where(in_phase, info.dt, 0.0),
-        phase_impulse_l1=acc.phase_impulse_l1 + jnp.where(in_phase, imp_l1, 0.0),
-        phase_thrust_impulse=acc.phase_thrust_impulse + jnp.where(in_phase, thrust_imp, 0.0),
-        margins={
-            n: jnp.minimum(low, jnp.where(act, jnp.min(info.margins[n]), jnp.inf))
-            for n, low in acc.margins.items()
-        },
-        status_counts=acc.status_counts + Status.counts(info.status, act).astype(jnp.int32),
-        iterations=acc.iterations + jnp.where(act, info.iterations, 0).astype(jnp.int32),
-        histogram=acc.histogram.at[hist_bin].add(act.astype(jnp.int32)),
-        thrust_impulse=acc.thrust_impulse + jnp.where(act, thrust_imp, 0.0),
-        openings=acc.openings
-        + (0 if fired is None else jnp.where(act, fired.openings, 0).astype(jnp.int32)),
-        dropped=acc.dropped
-        + (0 if fired is None else jnp.where(act, fired.dropped, 0).astype(jnp.int32)),
-    )
-
-
-def metrics(loop: Loop, params, state: LoopState) -> Metrics:
-    """The run's :class:`Metrics` from its final state (the one reduction for every family)."""
-    acc = state.acc
-    kinds = _truth_kinds(loop, params, state.guidance, state.x, state.t)
-    judged = [acc.margins[n] for n, kind in kinds.items() if kind == "hard"]
-    worst = jnp.min(jnp.stack([*judged, jnp.asarray(jnp.inf, state.x.dtype)]))
-    docked = state.docked
-    # a NaN anywhere in the figures (a non-finite truth) fails the run; no NaN is returned
-    nan = jnp.any(jnp.stack([jnp.any(jnp.isnan(a)) for a in jax.tree.leaves(acc)]))
-    failed = state.failed | nan
-    status = jnp.where(
-        docked & ~failed,
-        RunStatus.DOCKED,
-        jnp.where(failed, RunStatus.FAILED, RunStatus.TIMEOUT),
-    )
-    mass = params.mass
-
-    def clean(a):  # NaN -> +inf ("unknown"), never NaN in a batch's results
-        return jnp.where(jnp.isnan(a), jnp.inf, a)
-
-    out = Metrics(
-        status=status.astype(jnp.int32),
-        docked=docked & ~failed,
-        steps=acc.steps,
-        time_to_dock_s=jnp.where(docked & ~failed, acc.time_s, jnp.inf),
-        total_impulse_N_s=acc.impulse_l2,
-        effort_l1_N_s=acc.impulse_l1,
-        delta_v_m_s=acc.impulse_l2 / mass if loop.family.layout.input == "force" else acc.dv_l2,
-        delta_v_l1_m_s=acc.dv_l1,
-        torque_l1_N_m_s=acc.torque_l1,
-        phase_delta_v_m_s=acc.phase_dv,
-        phase_time_s=acc.phase_time,
-        phase_effort_l1_N_s=acc.phase_impulse_l1,
-        phase_thruster_impulse_N_s=acc.phase_thrust_impulse,
-        max_violation_m=jnp.maximum(0.0, -worst),
-        margins_m=acc.margins,
-        status_counts=acc.status_counts,
-        mean_iterations=acc.iterations / jnp.maximum(acc.steps, 1),
-        iteration_histogram=acc.histogram,
-        thruster_impulse_N_s=acc.thrust_impulse,
-        propellant_kg=acc.thrust_impulse / (_isp(params) * G0),
-        valve_openings=acc.openings,
-        pulses_dropped=acc.dropped,
-        contact_speed_m_s=jnp.where(docked & ~failed, _speed(loop, state.x), jnp.inf),
-    )
-    return jax.tree.map(lambda a: clean(a) if jnp.issubdtype(a.dtype, jnp.floating) else a, out)
-
-
-def _input_scale(params):
-    """The truth's input multiplier of a verification's dispersion (Draws.input_scale)."""
-    d = getattr(params, "disturbances", None)
-    draws = None if d is None else d.draws
-    return None if draws is None else draws.input_scale
-
-
-def _speed(loop: Loop, x):
-    """Translational speed of state ``x`` [m/s] (the velocities of the position axes)."""
-    lay = loop.family.layout
-    v = x[jnp.asarray(lay.vel[: len(lay.pos)], int)]
-    return jnp.sqrt(jnp.sum(v * v))
-
-
-def _isp(params):
-    thr = getattr(params, "thrusters", None)
-    return jnp.asarray(1.0) if thr is None else thr.isp_s
-
-
 def step(loop: Loop, params, sp: SolverParams, state: LoopState):
     """One MPC decision: :func:`prepare`, a solve (skipped once the run has finished: a
     single run takes the cheap branch of ``lax.cond``), :func:`advance`."""
     prep = prepare(loop, params, state)
-    sol = solve_if(state.active, prep.ocp, loop.config.settings, init=prep.warm, params=sp)
+    sol = solve_if(state.active, prep.ocp, loop.config.settings, params=sp, init=prep.warm)
     return advance(loop, params, sp, state, prep, sol)
 
 

@@ -31,6 +31,7 @@ else:  # pragma: no cover - Python 3.10
 
 from rvdjax.actuators.thrusters import MODULATORS, ThrusterSet
 from rvdjax.families import FAMILIES
+from rvdjax.loop.metrics import FIGURES
 from rvdjax.scenarios import PAPER_KAPPA, Scenario
 
 __all__ = ["scenario_to_toml", "scenario_from_toml", "load_scenario_file", "scenario_summary"]
@@ -53,22 +54,8 @@ TOP_KEYS = (
 )
 REQUIRED = ("family", "x0", "n_steps")
 
-#: Metrics a published figure may name (scalar fields of :class:`rvdjax.loop.Metrics`).
-METRICS = (
-    "time_to_dock_s",
-    "total_impulse_N_s",
-    "effort_l1_N_s",
-    "delta_v_m_s",
-    "delta_v_l1_m_s",
-    "torque_l1_N_m_s",
-    "max_violation_m",
-    "mean_iterations",
-    "steps",
-    "thruster_impulse_N_s",
-    "propellant_kg",
-    "valve_openings",
-    "pulses_dropped",
-)
+#: Metrics a published figure may name (the per-run figures of :class:`rvdjax.loop.Metrics`).
+METRICS = FIGURES
 
 HEADER = """\
 # rvdjax scenario file, written by `rvdjax scenario show {name} --toml`.

@@ -24,6 +24,12 @@ points and warm starts), :mod:`.newton` and :mod:`.primal_dual` (iterations), :m
 (start / iterate / finish and :func:`solve`), :mod:`.implicit` (the implicit derivative),
 :mod:`.clarabel` (the Clarabel backend).
 
+One argument order for every public function: the problem, the static settings, the traced
+parameters, then the warm start or the solve's state — ``solve(ocp, settings, params, init)``,
+``start(ocp, settings, params, init)``, ``iterate(ocp, settings, params, state)``,
+``finish(ocp, settings, params, state)``, ``finished(settings, state)``,
+``warm_start(ocp, settings, plan, cold)``. Keywords are safest at call sites.
+
 Stopping tests are relative to the problem's scale (the RVD costs are ~1e7 with Riccati
 velocity weights ~1e6, so absolute tolerances never trigger). Every loop has a fixed iteration
 cap and a per-problem "done" mask, so ``jax.vmap`` of :func:`solve` runs one program for a
@@ -35,6 +41,7 @@ from rvdjax.solver.driver import (
     SolveState,
     finish,
     finished,
+    freeze,
     iterate,
     solve,
     solve_batch,
@@ -42,7 +49,7 @@ from rvdjax.solver.driver import (
     start,
     with_objective,
 )
-from rvdjax.solver.start import drift_plan, shift_solution
+from rvdjax.solver.start import drift_plan, shift_solution, warm_start
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
 __all__ = [
@@ -55,6 +62,7 @@ __all__ = [
     "drift_plan",
     "finish",
     "finished",
+    "freeze",
     "iterate",
     "max_violation",
     "objective",
@@ -63,5 +71,6 @@ __all__ = [
     "solve_batch",
     "solve_if",
     "start",
+    "warm_start",
     "with_objective",
 ]

@@ -49,6 +49,7 @@ __all__ = [
     "iterate",
     "finished",
     "finish",
+    "freeze",
     "solve",
     "solve_batch",
     "solve_if",
@@ -153,12 +154,20 @@ def start(
     return ocp, SolveState(core, x_scale)
 
 
-def finished(state: SolveState, settings: SolverSettings):
+def finished(settings: SolverSettings, state: SolveState):
     """() bool: the solve has met its stopping test, failed, or used its iterations."""
     return state.core.done | (state.core.it >= settings.max_iter)
 
 
-def iterate(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
+def freeze(state: SolveState, where=True) -> SolveState:
+    """``state`` marked finished where ``where`` (a traced bool; default: always), so that
+    :func:`iterate` leaves it unchanged; :func:`finish` still reports its status and
+    iterations as they are. A batch engine freezes the solves of its free slots."""
+    core = state.core
+    return state._replace(core=core._replace(done=core.done | where))
+
+
+def iterate(ocp: OCP, settings: SolverSettings, params: SolverParams, state: SolveState):
     """One iteration from ``state`` on the OCP returned by :func:`start`; a finished state is
     returned unchanged."""
     params = _prepared(params, ocp.B.dtype)
@@ -167,12 +176,12 @@ def iterate(ocp: OCP, state: SolveState, settings: SolverSettings, params: Solve
         new = pd_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     else:
         new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
-    stop = finished(state, settings)
+    stop = finished(settings, state)
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
 
 
-def finish(ocp: OCP, state: SolveState, settings: SolverSettings, params: SolverParams):
+def finish(ocp: OCP, settings: SolverSettings, params: SolverParams, state: SolveState):
     """The :class:`Solution` of a finished state (its objective is left at 0: see
     :func:`with_objective`)."""
     params = _prepared(params, ocp.B.dtype)
@@ -229,13 +238,13 @@ def _forward_state(ocp, params, init, settings):
     ocp_safe, state = start(ocp, settings, params, init)
 
     def cond(st):
-        return ~finished(st, settings)
+        return ~finished(settings, st)
 
     def body(st):
-        return iterate(ocp_safe, st, settings, params)
+        return iterate(ocp_safe, settings, params, st)
 
     state = lax.while_loop(cond, body, state)
-    return finish(ocp_safe, state, settings, params), ocp_safe, state
+    return finish(ocp_safe, settings, params, state), ocp_safe, state
 
 
 def _forward(ocp, params, init, settings):
@@ -280,7 +289,7 @@ def _solve_core_fwd(ocp, params, init, settings):
 _solve_core.defvjp(_solve_core_fwd, implicit_bwd)
 
 
-def _solve(ocp: OCP, settings: SolverSettings, init: Plan | None, params: SolverParams):
+def _solve(ocp: OCP, settings: SolverSettings, params: SolverParams, init: Plan | None):
     if settings.backend != "rvdjax":
         sol = solve_clarabel_backend(ocp, settings.backend)
     elif settings.mode == "dual":  # paper 001's PQP, a fixed number of iterations
@@ -296,8 +305,8 @@ _solve_jit = jax.jit(_solve, static_argnums=(1,))
 def solve(
     ocp: OCP,
     settings: SolverSettings = SolverSettings(),
-    init: Plan | None = None,
     params: SolverParams | None = None,
+    init: Plan | None = None,
 ) -> Solution:
     """Solve one OCP by the barrier / infeasible-start Newton method.
 
@@ -305,10 +314,10 @@ def solve(
         ocp: the problem (one, unbatched; batch with ``jax.vmap``).
         settings: static :class:`SolverSettings` (``SolverSettings.paper()`` for paper 000's
             algorithm, the default for the accurate mode).
-        init: optional warm start (e.g. :func:`shift_solution` of the previous step's
-            solution). Its inputs are pulled strictly inside the input rows if needed.
         params: traced :class:`SolverParams` (kappa, alpha, beta, tolerances); default: the
             defaults of ``settings.mode``. Changing them does not recompile.
+        init: optional warm start (e.g. :func:`shift_solution` of the previous step's
+            solution). Its inputs are pulled strictly inside the input rows if needed.
 
     Returns:
         :class:`Solution` (plan, multipliers, objective, iterations, residual, status). Never
@@ -327,10 +336,10 @@ def solve(
         params = SolverParams.for_settings(settings)
     else:
         params.checked()
-    return _solve_jit(ocp, settings, init, params)
+    return _solve_jit(ocp, settings, params, init)
 
 
-def solve_if(active, ocp: OCP, settings: SolverSettings, init=None, params=None):
+def solve_if(active, ocp: OCP, settings: SolverSettings, params=None, init=None):
     """``solve`` when ``active`` (a traced bool), else the warm start returned untouched.
 
     For closed loops whose finished runs idle under a mask: a single run skips the solve
@@ -341,7 +350,7 @@ def solve_if(active, ocp: OCP, settings: SolverSettings, init=None, params=None)
     params = SolverParams.for_settings(settings) if params is None else params
 
     def fly(ocp):
-        return solve(ocp, settings, init=init, params=params)
+        return solve(ocp, settings, params=params, init=init)
 
     def idle(ocp):
         shapes = jax.eval_shape(fly, ocp)
@@ -354,9 +363,9 @@ def solve_if(active, ocp: OCP, settings: SolverSettings, init=None, params=None)
 def solve_batch(
     ocps: OCP,
     settings: SolverSettings = SolverSettings(),
+    params: SolverParams | None = None,
     init: Plan | None = None,
     chunk=32,
-    params: SolverParams | None = None,
 ):
     """Solve a batch of OCPs (leading axis on every field) in vmapped chunks of ``chunk``.
 
@@ -369,5 +378,5 @@ def solve_batch(
     if init is None:
         return lax.map(lambda o: solve(o, settings, params=params), ocps, batch_size=chunk)
     return lax.map(
-        lambda a: solve(a[0], settings, a[1], params=params), (ocps, init), batch_size=chunk
+        lambda a: solve(a[0], settings, params=params, init=a[1]), (ocps, init), batch_size=chunk
     )

@@ -7,6 +7,7 @@ fu > 0), and a warm start is pulled towards 0 until it is one.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -14,9 +15,9 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import Rows
 from rvdjax.solver.kkt import KKT_SOLVERS
-from rvdjax.solver.types import Plan, Solution
+from rvdjax.solver.types import Plan, Solution, SolverSettings
 
-__all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan"]
+__all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan", "warm_start"]
 
 
 def drift(ocp: OCP, u):
@@ -60,6 +61,22 @@ def shift_solution(sol: Solution | Plan) -> Plan:
         return jnp.concatenate([a[1:], a[-1:]], axis=0)
 
     return Plan(shift(sol.u), shift(sol.x), shift(sol.nu))
+
+
+def warm_start(ocp: OCP, settings: SolverSettings, plan: Plan, cold) -> Plan:
+    """The ``init`` of a solve of ``ocp``: ``plan`` (the previous plan, shifted), or where
+    ``cold`` (a traced bool: the first step, a phase change) a cold start.
+
+    The cold start suits the way ``settings`` starts: paper mode with ``paper_start`` "warm"
+    or "track" reads the plan's states, so it gets the unforced drift of ``ocp``; the other
+    starts use only the inputs and multipliers (the states are the drift of the inputs), so
+    they get zeros and ``plan``'s states, which they ignore.
+    """
+    if settings.mode == "paper" and settings.paper_start != "feasible":
+        cold_plan = drift_plan(ocp.A, ocp.x0, ocp.N, ocp.nu)
+    else:
+        cold_plan = Plan(jnp.zeros_like(plan.u), plan.x, jnp.zeros_like(plan.nu))
+    return jax.tree.map(lambda a, b: jnp.where(cold, a, b), cold_plan, plan)
 
 
 def pull_inside(rows: Rows, u, margin=0.99):

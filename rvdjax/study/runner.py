@@ -46,7 +46,7 @@ from rvdjax.loop.engine import (
     run_stream,
     slot_bytes,
 )
-from rvdjax.solver import Status
+from rvdjax.loop.metrics import metrics_columns
 from rvdjax.study import samplers
 from rvdjax.study.spec import ParamRef, StudySpec, resolve, study_scenario
 from rvdjax.study.table import PartWriter, done_runs, read_config, write_config
@@ -281,20 +281,6 @@ def _apply_value(ref: ParamRef, nominal, value):
 # ---------------------------------------------------------------------------------- rows
 
 
-_FLOAT_METRICS = (
-    "time_to_dock_s",
-    "total_impulse_N_s",
-    "effort_l1_N_s",
-    "delta_v_m_s",
-    "delta_v_l1_m_s",
-    "torque_l1_N_m_s",
-    "max_violation_m",
-    "mean_iterations",
-    "thruster_impulse_N_s",
-    "propellant_kg",
-)
-
-
 def _strings(n: int, value) -> pa.Array:
     return pa.array(np.full(n, value, dtype=object), pa.string())
 
@@ -327,27 +313,16 @@ def _table(spec, runs, point_values, point_ts, x0, drawn, m, effort) -> pa.Table
     for j in range(x0.shape[1]):
         cols[f"x0_{j}"] = np.asarray(x0[:, j], np.float64)
     status = np.asarray(m.status)
-    cols["status"] = pa.array(np.asarray(RunStatus.names, dtype=object)[status], pa.string())
-    cols["docked"] = np.asarray(m.docked, bool)
-    cols["steps"] = np.asarray(m.steps, np.int64)
-    for f in _FLOAT_METRICS:
-        cols[f] = np.asarray(getattr(m, f), np.float64)
-    cols["valve_openings"] = np.asarray(m.valve_openings, np.int64)
-    cols["pulses_dropped"] = np.asarray(m.pulses_dropped, np.int64)
+    for group in metrics_columns(m).values():
+        cols.update(group)
+    cols["status"] = pa.array(cols["status"], pa.string())
     cols["effort"] = cols[effort]
-    dv, t = np.asarray(m.phase_delta_v_m_s, np.float64), np.asarray(m.phase_time_s, np.float64)
-    for ph in range(dv.shape[1]):
-        cols[f"phase{ph}_delta_v_m_s"] = dv[:, ph]
-        cols[f"phase{ph}_time_s"] = t[:, ph]
-        if point_ts is not None:
+    if point_ts is not None:
+        t = np.asarray(m.phase_time_s, np.float64)
+        for ph in range(t.shape[1]):
             cols[f"phase{ph}_intervals"] = np.ceil(t[:, ph] / point_ts[point, ph] - 1e-9).astype(
                 np.int64
             )
-    for name, v in m.margins_m.items():
-        cols[f"margin_{name}_m"] = np.asarray(v, np.float64)
-    counts = np.asarray(m.status_counts, np.int64)
-    for k in range(counts.shape[1]):
-        cols[f"solves_{Status.name(k)}"] = counts[:, k]
     cols["failure"] = pa.array(_failures(spec, status, cols), pa.string())
     return pa.table(cols)
 
