@@ -56,7 +56,7 @@ print(
 )
 assert bool(m.docked) and float(m.max_violation_m) == 0.0
 OUT = Path(tempfile.mkdtemp(prefix="rvdjax-closed-loop-"))  # the figures' files
-sc.family_.plot(OUT / "rotating_target_b.png", sc, params, infos)  # trajectory, thrust, r_hold
+sc.guidance_family.plot(OUT / "rotating_target_b.png", sc, params, infos)  # path, thrust, r_hold
 fig, ax = plt.subplots(figsize=(9, 6))
 ax.imshow(plt.imread(OUT / "rotating_target_b.png"))
 ax.set_axis_off()

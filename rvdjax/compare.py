@@ -94,7 +94,7 @@ def compare_solvers(
     if options.disturbed or options.truth != "linear":
         progress("note: the NMPC and IDVD baselines fly the noiseless linear truth only: skipped")
         nmpc = False
-    baselines = sc.family_.baselines if nmpc else ()
+    baselines = sc.guidance_family.baselines if nmpc else ()
     if "nmpc" in baselines:
         try:
             from rvdjax.nmpc import run_nmpc_loop

@@ -175,8 +175,9 @@ def canonical(obj, small: int = SMALL_ARRAY):
     if isinstance(obj, Path):
         return str(obj)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        # a renamed field keeps the name stored definitions know it by ("stored_as")
         return {
-            f.name: canonical(getattr(obj, f.name), small)
+            f.metadata.get("stored_as", f.name): canonical(getattr(obj, f.name), small)
             for f in dataclasses.fields(obj)
             if not callable(getattr(obj, f.name)) or dataclasses.is_dataclass(getattr(obj, f.name))
         }

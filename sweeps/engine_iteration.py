@@ -44,7 +44,7 @@ def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: boo
     sp = sc.solver_params("accurate")
     settings = loop.config.settings
     shared = loop.family.model is not None
-    model = loop.family.model(params, loop.config.family) if shared else None
+    model = loop.family.model(params, loop.config.family_config) if shared else None
 
     def with_model(ocp):
         return _with_model(loop, ocp, model) if shared else ocp

@@ -470,7 +470,7 @@ def cmd_gradcheck(args) -> dict:
             "zeroed_fd_points": r["zeroed"].reshape(len(centres), -1).max(axis=1),
             "margin": r["margin"][:: 2 * d + 1],
         }
-        x0, p = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
+        x0, p = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.guidance_family.layout)
         infos, m = jax.jit(lambda p, x, pb=pb: fly(pb.loop, p, x, pb.key, pb.sp))(p, x0)
         act = np.asarray(infos.active)
         it = np.asarray(infos.iterations)[act]

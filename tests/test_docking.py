@@ -118,7 +118,7 @@ def test_spot_2d_cases_dock_safely():
     """Paper 000 Sec. IV.B (Table 2): rotating and translating target, moving obstacles.
     The four variants share shapes (obstacles masked off), so one vmapped program flies all."""
     loop, _, infos, m = flight(SPOT)
-    assert loop.config.family.logic == "holding-radius"
+    assert loop.config.family_config.logic == "holding-radius"
     assert np.all(m.docked), m.docked
     assert np.all(m.max_violation_m <= 1e-6)  # target and obstacle keep-out zones
     counts = m.status_counts

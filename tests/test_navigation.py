@@ -28,7 +28,7 @@ from rvdjax.scenarios import get_scenario
 VBAR = get_scenario("thesis-vbar")
 PARAMS, X0 = VBAR.build()
 D = PARAMS.disturbances  # paper 003: 5 cm, 1 mm/s per axis
-LAYOUT = VBAR.family_.layout
+LAYOUT = VBAR.guidance_family.layout
 
 
 def _spd(rng, n, scale=1.0):
@@ -73,7 +73,7 @@ def test_noise_models():
     np.testing.assert_allclose(np.diag(R), [0.05**2] * 3 + [1e-3**2] * 3, rtol=1e-14)
     assert np.count_nonzero(R - np.diag(np.diag(R))) == 0
     # planar layout: (x, y, theta, vx, vy, omega); omega is not measured with noise
-    planar = get_scenario("spot-2d-a").family_.layout
+    planar = get_scenario("spot-2d-a").guidance_family.layout
     d = disturbances(sigma_att=0.01)
     np.testing.assert_allclose(
         np.diag(measurement_covariance(planar, d)),
@@ -144,7 +144,7 @@ def test_nav_filter_needs_disturbed():
     with pytest.raises(ValueError, match="nav_filter"):
         VBAR.loop(nav_filter=True)
     with pytest.raises(ValueError, match="nav_filter"):
-        LoopConfig(family=None, nav_filter=True)
+        LoopConfig(family_config=None, nav_filter=True)
     assert VBAR.loop(disturbed=True, nav_filter=True).config.nav_filter
 
 

@@ -28,7 +28,7 @@ DI = _module()
 
 def test_the_guide_family_flies_to_the_origin():
     params = DI.make_params(u_max=0.5)
-    loop = Loop(DI.FAMILY, LoopConfig(family=DI.Config(N=8), n_steps=30))
+    loop = Loop(DI.FAMILY, LoopConfig(family_config=DI.Config(N=8), n_steps=30))
     x0 = np.array([2.0, 0.0])
     infos, m = fly(loop, params, x0)
     active = np.asarray(infos.active)

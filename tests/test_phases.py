@@ -253,7 +253,7 @@ def test_scenario_records():
         assert len(SCENARIOS[name].assumptions) > len(SCENARIOS["thesis-vbar"].assumptions)
     assert float(SCENARIOS["thesis-vbar-nosetpoint"].build()[0].setpoint) == 0.0
     lp = SCENARIOS["thesis-vbar-lp"]
-    assert lp.loop().config.family.rendezvous_cost == "lp"
+    assert lp.loop().config.family_config.rendezvous_cost == "lp"
     assert lp.loop().config.settings.max_iter == 300
     sc = SCENARIOS["thesis-vbar"]
     assert sc.published == {"delta_v_m_s": {"thesis": 13.28}, "time_to_dock_s": {"thesis": 1744.0}}

@@ -135,3 +135,14 @@ def test_evaluation_store_marks_rows_of_another_code(tmp_path, other_code):
     assert df["code_changed"].tolist() == [False] * 3 + [True] * 2
     s = store.provenance_summary()
     assert s["rows_code_changed"] == 2 and sum(s["rows_used"].values()) == 5
+
+
+def test_a_renamed_field_keeps_its_stored_name():
+    """LoopConfig.family_config is stored as "family", so stores written before the rename
+    keep their definition (and resume)."""
+    from rvdjax.provenance import canonical
+    from rvdjax.scenarios import SCENARIOS
+
+    stored = canonical(SCENARIOS["thesis-vbar"].loop().config)
+    assert "family" in stored and "family_config" not in stored
+    assert stored["family"]["between_samples"] is True

@@ -34,7 +34,7 @@ def test_signature_and_toml_keys_come_from_the_schema(name):
 
 def test_every_builtin_scenario_names_only_schema_inputs():
     for sc in SCENARIOS.values():
-        assert set(sc.physical) <= set(sc.family_.schema.names), sc.name
+        assert set(sc.physical) <= set(sc.guidance_family.schema.names), sc.name
 
 
 def test_unknown_and_missing_inputs_are_type_errors():

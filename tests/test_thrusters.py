@@ -302,7 +302,7 @@ def _planar_set(**kw):
 
 @pytest.fixture(scope="module")
 def docking_layout():
-    return get_scenario("rotating-target-a").family_.layout
+    return get_scenario("rotating-target-a").guidance_family.layout
 
 
 def test_fire_delivers_the_command_in_a_rotated_body(docking_layout):
@@ -587,7 +587,7 @@ def test_pair_groups_equal_the_lp_without_torque():
     sc = get_scenario("poseidyn-lqmpc")
     tset = sc.thrusters.replace(valve_s=1e-9, min_on_s=0.0, modulator="pwm")
     thr, act = tset.build(), tset.actuation()
-    lay = sc.family_.layout
+    lay = sc.guidance_family.layout
     M = effectiveness(thr.position, thr.direction)[jnp.asarray(act.rows)]
     demands = jnp.asarray(RNG.uniform(-0.45, 0.45, (200, 2)))  # up to 1.5x the 0.3 N per axis
 

@@ -218,10 +218,10 @@ def test_keep_out_margin_against_an_stl_monitor(poseidyn):
     pb = poseidyn
     xis = np.random.default_rng(0).standard_normal((3, pb.dim))
     res = pb.gradient(xis)
-    fc = pb.loop.config.family
+    fc = pb.loop.config.family_config
     M = fc.substeps
     for i, xi in enumerate(xis):
-        x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
+        x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.guidance_family.layout)
         infos, m = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))(params, x0)
         infos = jax.tree.map(np.asarray, infos)
         centre, r_obs = np.asarray(params.obstacle), float(params.r_obs)
@@ -276,7 +276,7 @@ def test_draws_replace_the_prng_exactly():
     params, x0 = sc.build()
     loop = sc.loop("accurate", disturbed=True, n_steps=20)
     key = jax.random.key(7)
-    lay = sc.family_.layout
+    lay = sc.guidance_family.layout
     steps = jax.random.fold_in(key, 1)
     ks = [jax.random.split(jax.random.fold_in(steps, k)) for k in range(20)]
     nav = jnp.stack([jax.random.normal(k[0], (lay.nx,)) for k in ks])

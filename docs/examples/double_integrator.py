@@ -37,6 +37,7 @@ class Params(NamedTuple):
     orbit: None = None
     drag: None = None
     disturbances: Disturbances | None = None
+    thrusters: None = None  # no thruster set: the truth applies the command exactly
 
 
 # 3. The static configuration: what shapes the program (a change recompiles).

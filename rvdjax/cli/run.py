@@ -153,7 +153,7 @@ def cmd(args) -> int:
     else:
         _print(sc.description, result, comparisons, notes, ideal is not None, ms_per_step)
     if args.plot:
-        sc.family_.plot(args.plot, sc, flight.params, infos)
+        sc.guidance_family.plot(args.plot, sc, flight.params, infos)
         print(f"plot written to {args.plot}", file=sys.stderr if args.json else sys.stdout)
         if args.thrusters:
             from rvdjax.plots import firing_timeline

@@ -386,7 +386,7 @@ make_params = make_params_of(SCHEMA, _build)
 
 def check(params: Params, x0, config) -> None:
     """The LP rendezvous cost needs a diagonal rendezvous R (||R u||_1 = sum R_ii |u_i|)."""
-    if config.family.rendezvous_cost == "lp":
+    if config.family_config.rendezvous_cost == "lp":
         R0 = np.asarray(params.R[0], dtype=float)
         if not np.array_equal(R0, np.diag(np.diag(R0))) or np.any(np.diag(R0) <= 0):
             raise ValueError(

@@ -99,7 +99,7 @@ def truth_path(loop: Loop, params, A, B, orbit, x, act: Actuated, dt, active):
     ``taus`` (S,) [s] and ``subs`` (S, nx) are the family's sub-samples of the step (the
     pulses' path with thrusters on the linear truth; empty for a family without them).
     """
-    fam, fc, cfg, lay = loop.family, loop.config.family, loop.config, loop.family.layout
+    fam, fc, cfg, lay = loop.family, loop.config.family_config, loop.config, loop.family.layout
     fired = act.fired
     if fired is None:
         x_next, orbit_next = truth_step(

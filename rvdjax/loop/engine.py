@@ -505,7 +505,7 @@ class _Ctx(NamedTuple):
         if fam.model is None:
             return slot.ocp
         if shared_model is None:
-            shared_model = fam.model(params, self.loop.config.family)
+            shared_model = fam.model(params, self.loop.config.family_config)
         model = shared_model
         return _with_model(self.loop, slot.ocp, model)
 
@@ -515,7 +515,7 @@ class _Ctx(NamedTuple):
         fam = self.loop.family
         if fam.model is None or self.per_run_params:
             return None
-        return fam.model(self.shared_params, self.loop.config.family)
+        return fam.model(self.shared_params, self.loop.config.family_config)
 
 
 @jax.named_scope("refresh")

@@ -35,7 +35,7 @@ from rvdjax.actuators.thrusters import Actuation
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, measure
 from rvdjax.loop.actuation import actuate, truth_path
-from rvdjax.loop.family import Family
+from rvdjax.loop.family import PLANT_FIELDS, Family
 from rvdjax.loop.metrics import (
     HIST_BINS,
     Accumulator,
@@ -91,7 +91,8 @@ class LoopConfig:
     """Static configuration of a closed loop (a change recompiles).
 
     Attributes:
-        family: the family's own static configuration (horizon, options).
+        family_config: the family's own static configuration (horizon, options); stored in
+            provenance records under its former name, ``family``.
         n_steps: MPC steps per run at most; a run not docked by then ends as TIMEOUT.
         settings: solver settings (mode, method, iteration caps).
         truth: "linear" or a nonlinear truth (:data:`rvdjax.loop.plant.TRUTHS`).
@@ -112,7 +113,7 @@ class LoopConfig:
             minimum impulse bit. None: the truth applies the command exactly (ideal forces).
     """
 
-    family: Any
+    family_config: Any = dataclasses.field(metadata={"stored_as": "family"})
     n_steps: int = 200
     settings: SolverSettings = SolverSettings()
     truth: str = "linear"
@@ -163,7 +164,7 @@ class Loop:
 
     @property
     def N(self) -> int:
-        return self.family.horizon(self.config.family)
+        return self.family.horizon(self.config.family_config)
 
     def replace(self, **changes) -> Loop:
         """A copy with LoopConfig fields changed (``settings=..., truth=..., n_steps=...``)."""
@@ -247,7 +248,13 @@ class StepInfo(NamedTuple):
 
 def init(loop: Loop, params, x0, key=None) -> LoopState:
     """The state at the start of a run from ``x0`` (the PRNG ``key`` drives disturbances)."""
-    fam, fc = loop.family, loop.config.family
+    fam, fc = loop.family, loop.config.family_config
+    missing = [f for f in PLANT_FIELDS if not hasattr(params, f)]
+    if missing:  # the contract of rvdjax.loop.family, checked while tracing
+        raise TypeError(
+            f"the {fam.name} family's parameters lack the plant field(s) {', '.join(missing)}"
+            f" (rvdjax.loop.family.PLANT_FIELDS; None where not used)"
+        )
     dtype = jnp.result_type(float)
     x0 = jnp.asarray(x0, dtype)
     key = jax.random.key(0) if key is None else key
@@ -307,7 +314,7 @@ def _keys(state: LoopState):
 def prepare(loop: Loop, params, state: LoopState) -> Prepared:
     """First half of a step: observe, measure (and filter), build the OCP and the warm
     start."""
-    fam, fc, lay = loop.family, loop.config.family, loop.family.layout
+    fam, fc, lay = loop.family, loop.config.family_config, loop.family.layout
     # observe: the mode decisions the loop takes on the truth (entry-cone activation by the
     # true distance to the port; a no-op for the three-phase family, whose phase switches are
     # in update, also on the truth). Not the measured-state path: it keeps the true state
@@ -342,7 +349,7 @@ def _hard_violation(prep: Prepared, sol: Solution):
 
 def _truth_margins(loop: Loop, params, g, xs, ts, mask):
     """{name: (m,)} smallest slack over the masked samples of each truth block."""
-    fam, fc = loop.family, loop.config.family
+    fam, fc = loop.family, loop.config.family_config
 
     def one(x, t):
         return margins(fam.truth_blocks(params, fc, g, x, t), x)
@@ -355,7 +362,7 @@ def advance(
     loop: Loop, params, sp: SolverParams, state: LoopState, prep: Prepared, sol: Solution
 ) -> tuple[LoopState, StepInfo]:
     """Second half of a step: command, actuator, plant, guidance update, accumulation."""
-    fam, fc, cfg, lay = loop.family, loop.config.family, loop.config, loop.family.layout
+    fam, fc, cfg, lay = loop.family, loop.config.family_config, loop.config, loop.family.layout
     g = prep.guidance
     dtype = state.x.dtype
     active = state.active

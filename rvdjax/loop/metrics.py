@@ -190,7 +190,7 @@ CARRIED = tuple(n for n in Accumulator._fields if n in Metrics._fields)
 
 def truth_kinds(loop: Loop, params, g, x, t) -> dict:
     """{name: kind} of the family's truth blocks (static; the arrays are dead code)."""
-    blocks = loop.family.truth_blocks(params, loop.config.family, g, x, t)
+    blocks = loop.family.truth_blocks(params, loop.config.family_config, g, x, t)
     return {b.name: b.kind for b in blocks}
 
 

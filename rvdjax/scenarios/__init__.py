@@ -101,7 +101,8 @@ class Scenario:
     thruster_metrics: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     @property
-    def family_(self) -> Family:
+    def guidance_family(self) -> Family:
+        """The :class:`~rvdjax.loop.family.Family` record named by :attr:`family`."""
         return get_family(self.family)
 
     def build(self, thrusters: bool | ThrusterSet = False, **overrides):
@@ -112,7 +113,7 @@ class Scenario:
         physical = {**self.physical, **overrides}
         x0 = np.asarray(physical.pop("x0", self.x0), dtype=float)
         thr_keys = {k: physical.pop(k) for k in list(physical) if k in THRUSTER_KEYS}
-        params = self.family_.make_params(**physical, x0=x0)
+        params = self.guidance_family.make_params(**physical, x0=x0)
         tset = self.thruster_set(thrusters)
         if thr_keys and tset is None:
             raise ValueError(
@@ -189,7 +190,7 @@ class Scenario:
         ``time_limit_s`` and ``nav_filter``: :class:`~rvdjax.loop.kernel.LoopConfig`;
         ``thrusters``: fly the scenario's thruster set (True) or the one given; ``faults``:
         apply the thrusters' faults, :attr:`~rvdjax.actuators.Actuation.faults`)."""
-        fam = self.family_
+        fam = self.guidance_family
         tset = self.thruster_set(thrusters)
         config = {**self.config, **config}
         fields = {f.name for f in dataclasses.fields(fam.config_type)}
@@ -203,7 +204,7 @@ class Scenario:
         return Loop(
             fam,
             LoopConfig(
-                family=fconfig,
+                family_config=fconfig,
                 n_steps=self.n_steps if n_steps is None else n_steps,
                 settings=self.settings(mode) if settings is None else settings,
                 truth=truth,
@@ -243,8 +244,8 @@ class Scenario:
             raise ValueError(f"truth={loop.config.truth!r} needs the target's orbit")
         if loop.config.disturbed and params.disturbances is None:
             raise ValueError("a disturbed run needs disturbance parameters")
-        if self.family_.check is not None:
-            self.family_.check(params, x0, loop.config)
+        if self.guidance_family.check is not None:
+            self.guidance_family.check(params, x0, loop.config)
 
     def notes(self, mode: str, thrusters: bool | ThrusterSet = False) -> tuple[str, ...]:
         """The assumptions printed with a run in ``mode`` (and its thruster set's)."""

@@ -563,7 +563,7 @@ def _check_build(r: _Reader, sc: Scenario) -> None:
 
     """The family's own checks (make_params, the configuration-dependent check), host-side:
     arrays are built, nothing is compiled."""
-    kinds, _ = _physical_schema(sc.family_)
+    kinds, _ = _physical_schema(sc.guidance_family)
     subs = {"disturbances": _disturbance_keys()}
     plants = (False, True) if sc.thrusters is not None else (False,)
     for thrusters in plants:
@@ -603,7 +603,7 @@ def _fmt(v) -> str:
 
 def scenario_summary(sc: Scenario) -> str:
     """A readable multi-line description of a scenario (``rvdjax scenario show NAME``)."""
-    fam = sc.family_
+    fam = sc.guidance_family
     names = fam.layout.names or tuple(f"x{i}" for i in range(len(sc.x0)))
     lines = [
         f"{sc.name}: {sc.description}",

@@ -114,7 +114,7 @@ def _point_overrides(spec: StudySpec, scenario, point):
         ref = resolve(scenario, name)
         if ref.kind == "static":
             nominal = {**scenario.config}.get(
-                ref.base, getattr(scenario.family_.config_type(**scenario.config), ref.base)
+                ref.base, getattr(scenario.guidance_family.config_type(**scenario.config), ref.base)
             )
             nominal = static.get(ref.base, nominal)
             static[ref.base] = ref.apply(
@@ -148,7 +148,7 @@ def _physical_nominal(scenario, base):
         return scenario.thruster_nominal(base)
     from rvdjax.schema import REQUIRED
 
-    default = scenario.family_.schema[base].default
+    default = scenario.guidance_family.schema[base].default
     if default is REQUIRED or default is None:
         raise ValueError(f"--vary {base}: scenario {scenario.name!r} gives no value to vary")
     return default
@@ -206,7 +206,7 @@ def _aligned_inputs(spec: StudySpec, scenario, runs) -> RunSet:
     runs = np.asarray(runs, dtype=np.int64)
     point, ic, rep = spec.decompose(runs)
     points = spec.points
-    nx = scenario.family_.layout.nx
+    nx = scenario.guidance_family.layout.nx
     # initial states: sampler, then the point's x0 overrides
     if spec.initial == "nominal":
         x0 = np.broadcast_to(np.asarray(scenario.x0, float), (len(runs), nx)).copy()

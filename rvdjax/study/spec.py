@@ -85,7 +85,7 @@ class ParamRef:
 
 def resolve(scenario, name: str) -> ParamRef:
     """Resolve ``name`` against ``scenario``'s family (ValueError listing the allowed names)."""
-    fam = scenario.family_
+    fam = scenario.guidance_family
     short = aliases(scenario.family)
     alias = short.get(name)
     full = alias or name
@@ -306,7 +306,7 @@ class StudySpec:
                 raise ValueError(
                     f"--fault {i}: thruster index must be in [0, {scenario.thrusters.n - 1}]"
                 )
-        if self.initial == "paper003" and scenario.family_.layout.nx != 6:
+        if self.initial == "paper003" and scenario.guidance_family.layout.nx != 6:
             raise ValueError("initial 'paper003' draws 3-D CW states (6 components)")
 
     def to_json(self) -> str:

@@ -121,13 +121,13 @@ def _effort(loop: Loop, params, infos: StepInfo, effort_key: str):
 
 def _hard_names(loop: Loop, params, infos: StepInfo) -> list[str]:
     g0 = jax.tree.map(lambda a: a[0], infos.guidance)
-    blocks = loop.family.truth_blocks(params, loop.config.family, g0, infos.x[0], infos.t[0])
+    blocks = loop.family.truth_blocks(params, loop.config.family_config, g0, infos.x[0], infos.t[0])
     return [b.name for b in blocks if b.kind == "hard"]
 
 
 def run_terms(loop: Loop, params, infos: StepInfo, effort_key: str):
     """(E, T, M) of one run from its step records (module docstring; leading axis = step)."""
-    fam, fc = loop.family, loop.config.family
+    fam, fc = loop.family, loop.config.family_config
     if fam.dock_error is None:
         raise ValueError(f"family {fam.name!r} has no dock_error: it cannot be tuned")
     d = jax.vmap(lambda g, x, t: fam.dock_error(params, fc, g, x, t))(

@@ -34,7 +34,7 @@ KAPPA = Tunable(
 
 def tunables_of(scenario, mode: str) -> dict[str, Tunable]:
     """{name: Tunable} the scenario's family offers in solver ``mode``."""
-    fam = scenario.family_
+    fam = scenario.guidance_family
     if fam.tuning is None:
         raise ValueError(f"family {fam.name!r} of {scenario.name!r} declares no tunable values")
     out = dict(fam.tuning.tunables)
@@ -99,7 +99,7 @@ class ParameterSpace:
         names = parse_names(names, scenario, mode)
         tun = {n: offered[n] for n in names}
         hand = {n: np.asarray(t.get(sp if n == "kappa" else params), float) for n, t in tun.items()}
-        return cls(names, tun, hand, scenario.family_.tuning.derive)
+        return cls(names, tun, hand, scenario.guidance_family.tuning.derive)
 
     # ------------------------------------------------------------------ transforms
 

@@ -128,7 +128,7 @@ class TuneSpec:
 
 
 def _default_vary(scenario) -> tuple:
-    pos = scenario.family_.layout.pos
+    pos = scenario.guidance_family.layout.pos
     return tuple((f"x0[{i}]", f"*normal(1,{DEFAULT_VARY_SD:g})") for i in pos)
 
 

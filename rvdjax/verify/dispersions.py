@@ -189,7 +189,7 @@ def parse_dispersion(text: str, scenario, loop, thrusters: bool) -> Dispersion:
     ValueError names the component and the allowed values. Nothing is compiled."""
     from rvdjax.dynamics import mean_motion
 
-    lay = scenario.family_.layout
+    lay = scenario.guidance_family.layout
     S = loop.config.n_steps
     comps = []
     n_motion = None

@@ -107,8 +107,8 @@ class Problem:
         self.flight = flight
         loop, params, x0 = flight.loop, flight.params, flight.x0
         self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
-        fam = sc.family_
-        fc = loop.config.family
+        fam = sc.guidance_family
+        fc = loop.config.family_config
         g0 = fam.init(params, fc, jnp.asarray(self.x0))
         blocks = fam.truth_blocks(params, fc, g0, jnp.asarray(self.x0), jnp.asarray(0.0))
         self.requirement: Composite = parse_requirement(
@@ -164,7 +164,7 @@ class Problem:
         req = self.requirement
         between = (
             "at the samples and between them"
-            if self.scenario.family_.subsamples is not None
+            if self.scenario.guidance_family.subsamples is not None
             else f"at the samples (family {self.scenario.family!r} has no sub-samples)"
         )
         out = [
@@ -182,7 +182,7 @@ class Problem:
 
     @functools.cached_property
     def _inputs(self):
-        disp, lay = self.dispersion, self.scenario.family_.layout
+        disp, lay = self.dispersion, self.scenario.guidance_family.layout
         x0, params = jnp.asarray(self.x0), self.params
 
         def f(xis):
@@ -235,7 +235,7 @@ class Problem:
     def _vg(self):
         loop, sp, req, ek, tau = self.loop, self.sp, self.requirement, self.effort_key, self.tau
         remat = self.spec.remat
-        disp, lay = self.dispersion, self.scenario.family_.layout
+        disp, lay = self.dispersion, self.scenario.guidance_family.layout
         x0n, params = jnp.asarray(self.x0), self.params
 
         def one(xi, probe, key):
@@ -285,7 +285,7 @@ class Problem:
         """Exact margins of a batch by ``vmap`` of :func:`rvdjax.loop.fly` (every run pays
         every step, as in :meth:`gradient`): the forward side of the fair cost."""
         loop, sp, req, ek = self.loop, self.sp, self.requirement, self.effort_key
-        disp, lay = self.dispersion, self.scenario.family_.layout
+        disp, lay = self.dispersion, self.scenario.guidance_family.layout
         x0n, params = jnp.asarray(self.x0), self.params
 
         def one(xi, key):

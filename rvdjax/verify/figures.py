@@ -117,7 +117,7 @@ def worst_runs(out_dir, pb, xis, runs) -> list[str]:
     from rvdjax.loop import fly
 
     paths = []
-    fam = pb.scenario.family_
+    fam = pb.scenario.guidance_family
     if fam.plot is None:
         return paths
     lay = fam.layout

@@ -29,7 +29,7 @@ def replay(out, run: int):
         raise ValueError(f"run must be one of the runs in {out} (0 .. {int(df['run'].max())})")
     xi = np.asarray(row["xi"].iloc[0], float)
     pb = Problem(pspec)
-    x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.family_.layout)
+    x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.guidance_family.layout)
     return pspec, pb.flight.replace(params=params, x0=x0, solver_params=pb.sp)
 
 

@@ -149,7 +149,7 @@ class Requirement:
 
 
 def _dock_distances(loop, params, infos):
-    fam, fc = loop.family, loop.config.family
+    fam, fc = loop.family, loop.config.family_config
     return jax.vmap(lambda g, x, t: fam.dock_error(params, fc, g, x, t))(
         infos.guidance, infos.x, infos.t
     )
