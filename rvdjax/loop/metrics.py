@@ -326,7 +326,7 @@ def metrics_row(m: Metrics) -> dict:
     :attr:`MetricField.row_key`: status by name, solver statuses as {status name: count},
     per-phase figures and the histogram as lists, margins as {block: value}."""
     out = {}
-    for f in (f for f in FIELDS if f.in_table):
+    for f in FIELDS:
         v = getattr(m, f.name)
         if f.dtype == "status":
             v = RunStatus.name(int(v))
