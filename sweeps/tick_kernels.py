@@ -168,8 +168,9 @@ def program(scenario: str, slots: int, chunk: int, refresh: str, platform: str |
     source = E.arrays_source(perturbed_states(x0, 8))
     if hasattr(E, "segment_program"):  # this engine
         cfg = E.EngineConfig(slots=slots, chunk=chunk, refresh=refresh, platform=platform)
+        abstract = getattr(E, "_abstract_args", None) or E.stream._abstract_args
         lowered = E.segment_program(loop, cfg, source.fn).lower(
-            *E._abstract_args(loop, cfg, source, params, sp)
+            *abstract(loop, cfg, source, params, sp)
         )
     else:  # the engine before the refresh (one argument list, no refresh setting)
         cfg = E.EngineConfig(slots=slots, chunk=chunk)
