@@ -447,22 +447,15 @@ FAMILY = Family(
     name="planar-docking",
     description="planar 3-DOF docking to a rotating, translating target: holding radius, "
     "entry cone, moving obstacles (papers 000, 002)",
-    law=Hooks(
+    law=Hooks.of(
+        globals(),
+        control=control,  # the shared hooks of rvdjax.families.common
+        sample_time=sample_time,
+        truth_model=truth_model,
         layout=LAYOUT,
         n_phases=2,
         config_type=Config,
         horizon=lambda fc: fc.N,
-        init=init,
-        initial_plan=initial_plan,
-        observe=observe,
-        ocp=ocp,
-        control=control,
-        sample_time=sample_time,
-        truth_model=truth_model,
-        update=update,
-        truth_blocks=truth_blocks,
-        model=model,
-        dock_error=dock_error,
     ),
     make_params=make_params,
     plot=lazy("rvdjax.families.plots.docking:plot"),

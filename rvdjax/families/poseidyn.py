@@ -419,23 +419,15 @@ FAMILY = Family(
     name="poseidyn",
     description="planar double-integrator LQ-MPC docking with a rotating-hyperplane keep-out "
     "and entry cone (paper 001)",
-    law=Hooks(
+    law=Hooks.of(
+        globals(),
+        control=control,  # the shared hooks of rvdjax.families.common
+        sample_time=sample_time,
+        truth_model=truth_model,
         layout=LAYOUT,
         n_phases=1,
         config_type=Config,
         horizon=lambda fc: fc.N,
-        init=init,
-        initial_plan=initial_plan,
-        observe=observe,
-        ocp=ocp,
-        control=control,
-        sample_time=sample_time,
-        truth_model=truth_model,
-        update=update,
-        truth_blocks=truth_blocks,
-        model=model,
-        subsamples=subsamples,
-        dock_error=dock_error,
     ),
     make_params=make_params,
     plot=lazy("rvdjax.families.plots.poseidyn:plot"),

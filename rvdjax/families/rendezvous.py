@@ -258,22 +258,15 @@ TUNING = Tuning(tunables=weight_tunables(), derive=derive_terminal)
 FAMILY = Family(
     name="rendezvous",
     description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
-    law=Hooks(
+    law=Hooks.of(
+        globals(),
+        control=control,  # the shared hooks of rvdjax.families.common
+        sample_time=sample_time,
+        truth_model=truth_model,
         layout=LAYOUT,
         n_phases=1,
         config_type=Config,
         horizon=lambda fc: fc.N,
-        init=init,
-        initial_plan=initial_plan,
-        observe=observe,
-        ocp=ocp,
-        control=control,
-        sample_time=sample_time,
-        truth_model=truth_model,
-        update=update,
-        truth_blocks=truth_blocks,
-        model=model,
-        dock_error=dock_error,
     ),
     make_params=make_params,
     truths=("linear", "two-body", "two-body-j2"),

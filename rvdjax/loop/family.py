@@ -215,6 +215,15 @@ class Hooks:
     subsamples: SubsamplesFn | None = None
     model: ModelFn | None = None
 
+    @classmethod
+    def of(cls, namespace: dict, **given) -> Hooks:
+        """The hooks a family module defines under the hooks' own names (``namespace``: its
+        ``globals()``), with ``given`` (the layout, the phases, the configuration type, the
+        horizon, or a hook under another name). A name the module does not define is None
+        (an optional hook absent) or, for a required one, a TypeError naming it."""
+        found = {n: namespace[n] for n in HOOKS if n in namespace and callable(namespace[n])}
+        return cls(**{**found, **given})
+
 
 HOOKS = tuple(f.name for f in dataclasses.fields(Hooks))
 
