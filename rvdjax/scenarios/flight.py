@@ -175,8 +175,7 @@ def make_flight(
 
     options = FlightOptions() if options is None else options
     tset = scenario.thruster_set(options.thrusters)  # ValueError when it has none
-    params, x0 = scenario.build(thrusters=options.thrusters, **physical)
-    loop = scenario.loop(
+    loop = scenario.loop(  # first: its checks need no arrays (nothing computed yet)
         options.mode,
         truth=options.truth,
         disturbed=options.disturbed,
@@ -188,6 +187,7 @@ def make_flight(
         faults=options.faults,
         **(config or {}),
     )
+    params, x0 = scenario.build(thrusters=options.thrusters, **physical)
     if check:
         scenario.check(params, x0, loop)
     return Flight(

@@ -301,6 +301,14 @@ class StudySpec:
                 raise ValueError("--grid x0 needs a component: x0[k]")
         if self.thrusters and scenario.thrusters is None:
             raise ValueError(f"thrusters: scenario {scenario.name!r} has no thruster set")
+        from rvdjax.scenarios import THRUSTER_KEYS
+
+        for option, name in [("--vary", n) for n, _ in self.vary] + [
+            ("--grid", n) for n, _ in self.grid
+        ]:
+            base = resolve(scenario, name).base
+            if base in THRUSTER_KEYS and not self.thrusters:
+                raise ValueError(f"{option} {name}: a thruster value, only with --thrusters")
         for i, _, _ in self.faults:
             if self.thrusters and not 0 <= i < scenario.thrusters.n:
                 raise ValueError(
