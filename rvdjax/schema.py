@@ -29,6 +29,7 @@ from rvdjax import checks
 
 __all__ = [
     "REQUIRED",
+    "disturbance_table",
     "Input",
     "Schema",
     "KINDS",
@@ -313,6 +314,12 @@ def within(name: str, unit: str, lo, hi, description: str, closed: bool = False,
         hi_open=not closed,
         **options,
     )
+
+
+def disturbance_table(description: str = "disturbance keyword values") -> Input:
+    """The ``disturbances`` table every family takes (:func:`rvdjax.disturbances.disturbances`
+    keywords over the family's defaults; None: undisturbed)."""
+    return value("disturbances", "", description, kind="table", default=None)
 
 
 def make_params_of(schema: Schema, build, name: str = "make_params", doc: str | None = None):

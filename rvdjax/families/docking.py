@@ -59,7 +59,16 @@ from rvdjax.families.common import (
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
-from rvdjax.schema import Schema, finite, make_params_of, nonnegative, positive, value, within
+from rvdjax.schema import (
+    Schema,
+    disturbance_table,
+    finite,
+    make_params_of,
+    nonnegative,
+    positive,
+    value,
+    within,
+)
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
@@ -211,13 +220,7 @@ SCHEMA = Schema(
             kind="state",
             default=None,
         ),
-        value(
-            "disturbances",
-            "",
-            "disturbance keyword values over the lab's",
-            kind="table",
-            default=None,
-        ),
+        disturbance_table("disturbance keyword values over the lab's"),
     )
 )
 

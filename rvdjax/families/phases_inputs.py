@@ -19,7 +19,16 @@ from rvdjax.families.common import (
 )
 from rvdjax.loop.family import Layout
 from rvdjax.propagate import Drag, Orbit, circular_orbit
-from rvdjax.schema import Input, Schema, finite, make_params_of, positive, value, within
+from rvdjax.schema import (
+    Input,
+    Schema,
+    disturbance_table,
+    finite,
+    make_params_of,
+    positive,
+    value,
+    within,
+)
 
 __all__ = [
     "LAYOUT",
@@ -240,13 +249,7 @@ SCHEMA = Schema(
         positive("cd_target", "", "target drag coefficient", default=2.0),
         positive("target_mass", "kg", "target mass (none: mass)", default=None),
         positive("target_area_m2", "m^2", "target drag area (none: drag_area_m2)", default=None),
-        value(
-            "disturbances",
-            "",
-            "disturbance keyword values over paper 003 Ch. 5's",
-            kind="table",
-            default=None,
-        ),
+        disturbance_table("disturbance keyword values over paper 003 Ch. 5's"),
     ),
     n_phases=N_PHASES,
 )

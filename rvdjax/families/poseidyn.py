@@ -55,6 +55,7 @@ from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.schema import (
     Input,
     Schema,
+    disturbance_table,
     finite,
     make_params_of,
     nonnegative,
@@ -214,13 +215,7 @@ SCHEMA = Schema(
             kind="state",
             default=(3.5, 3.5, 0.0, 0.0),
         ),
-        value(
-            "disturbances",
-            "",
-            "disturbance keyword values over the lab's",
-            kind="table",
-            default=None,
-        ),
+        disturbance_table("disturbance keyword values over the lab's"),
     )
 )
 

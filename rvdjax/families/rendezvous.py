@@ -37,7 +37,7 @@ from rvdjax.families.common import (
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
 from rvdjax.propagate import Drag, Orbit, circular_orbit
-from rvdjax.schema import Schema, finite, make_params_of, positive, value, within
+from rvdjax.schema import Schema, disturbance_table, finite, make_params_of, positive, value, within
 from rvdjax.solver import drift_plan
 
 __all__ = ["Params", "Config", "SCHEMA", "make_params", "FAMILY"]
@@ -133,7 +133,7 @@ SCHEMA = Schema(
             closed=True,
             default=0.0,
         ),
-        value("disturbances", "", "disturbance keyword values", kind="table", default=None),
+        disturbance_table(),
     )
 )
 

@@ -11,6 +11,7 @@ compiled.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -129,8 +130,10 @@ class Flight:
         return dataclasses.replace(self, **changes)
 
     def fly(self, remat: bool = False):
-        """Fly it once, jitted: (StepInfo with a leading step axis, Metrics)."""
-        return self.compile(remat)(self.params, self.x0, self.key, self.solver_params)
+        """Fly it once, jitted: (StepInfo with a leading step axis, Metrics). Compiled once
+        per loop (the static part): flights that share it, and later calls, reuse the
+        program."""
+        return _fly()(self.loop, self.params, self.x0, self.key, self.solver_params, remat=remat)
 
     def fly_timed(self):
         """Compile, then fly once: (infos, metrics, wall time per MPC step [ms], the compiled
@@ -149,12 +152,10 @@ class Flight:
 
     def compile(self, remat: bool = False):
         """The compiled flight: a function of (params, x0, key, solver params)."""
-        import jax
-
-        from rvdjax.loop import fly
-
-        run = jax.jit(lambda p, x, k, s: fly(self.loop, p, x, k, s, remat=remat))
-        return run.lower(self.params, self.x0, self.key, self.solver_params).compile()
+        lowered = _fly().lower(
+            self.loop, self.params, self.x0, self.key, self.solver_params, remat=remat
+        )
+        return lowered.compile()
 
     def notes(self) -> tuple[str, ...]:
         """The assumptions printed with this flight's results."""
@@ -187,7 +188,7 @@ def make_flight(
         faults=options.faults,
         **(config or {}),
     )
-    params, x0 = scenario.build(thrusters=options.thrusters, **physical)
+    params, x0 = scenario.build(thrusters=False if tset is None else tset, **physical)
     if check:
         scenario.check(params, x0, loop)
     return Flight(
@@ -200,3 +201,13 @@ def make_flight(
         key=jax.random.key(int(options.seed)),
         physical=dict(physical),
     )
+
+
+@functools.cache
+def _fly():
+    """:func:`rvdjax.loop.fly` jitted with the loop static (one program per loop)."""
+    import jax
+
+    from rvdjax.loop import fly
+
+    return jax.jit(fly, static_argnames=("loop", "remat"))
