@@ -356,7 +356,7 @@ def plan_idvd(
         axis=float(p.cone_axis),
         half=float(p.half_angle),
         cone_range=float(p.cone_range),
-        mass=float(p.mass),
+        mass=float(p.plant.mass),
         dock_tol=float(p.dock_tol),
         dock_speed_tol=float(p.dock_speed_tol),
         u_max=float(cfg["u_max"]),

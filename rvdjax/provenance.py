@@ -182,7 +182,13 @@ def canonical(obj, small: int = SMALL_ARRAY):
             if not callable(getattr(obj, f.name)) or dataclasses.is_dataclass(getattr(obj, f.name))
         }
     if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # NamedTuple
-        return {k: canonical(v, small) for k, v in zip(obj._fields, obj, strict=True)}
+        out = {}
+        for k, v in zip(obj._fields, obj, strict=True):
+            if getattr(type(v), "STORED_FLAT", False):  # a record stored as its parent's fields
+                out.update(canonical(v, small))
+            else:
+                out[k] = canonical(v, small)
+        return out
     if isinstance(obj, dict):
         return {str(k): canonical(obj[k], small) for k in sorted(obj, key=str)}
     if isinstance(obj, (list, tuple)):

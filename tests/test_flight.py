@@ -57,7 +57,7 @@ def test_the_flight_flies_what_the_scenario_parts_fly():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # a run dispersed around the flight keeps its overrides and thrusters
     p2, _ = flight.build(x0=np.asarray(x0) + 1.0)
-    np.testing.assert_array_equal(np.asarray(p2.mass), np.asarray(params.mass))
+    np.testing.assert_array_equal(np.asarray(p2.plant.mass), np.asarray(params.plant.mass))
 
 
 def _leaves(parser: argparse.ArgumentParser):

@@ -27,7 +27,7 @@ from rvdjax.scenarios import get_scenario
 
 VBAR = get_scenario("thesis-vbar")
 PARAMS, X0 = VBAR.build()
-D = PARAMS.disturbances  # paper 003: 5 cm, 1 mm/s per axis
+D = PARAMS.plant.disturbances  # paper 003: 5 cm, 1 mm/s per axis
 LAYOUT = VBAR.guidance_family.layout
 
 

@@ -274,7 +274,7 @@ def test_nonlinear_truth_with_j2_and_drag():
     loop, params, infos, m = flight(("thesis-vbar",), n_steps=200, truth="two-body-j2-drag")
     params, infos, m = jax.tree.map(lambda a: a[0], (params, infos, m))
     assert bool(m.docked) and float(m.max_violation_m) == 0.0
-    orbit, x = params.orbit, np.asarray(infos.x[0])
+    orbit, x = params.plant.orbit, np.asarray(infos.x[0])
     for k in range(3):
         dv, ts = np.asarray(infos.u[k]), float(infos.dt[k])
         x_kick = x.copy()
@@ -287,7 +287,7 @@ def test_nonlinear_truth_with_j2_and_drag():
             ts,
             loop.config.truth_substeps,
             j2=True,
-            drag=params.drag,
+            drag=params.plant.drag,
         )
         x = np.asarray(x)
         np.testing.assert_allclose(np.asarray(infos.x[k + 1]), x, rtol=0, atol=1e-9)
@@ -326,8 +326,8 @@ def test_keep_out_rows_between_samples_are_the_coasted_states():
     from rvdjax.constraints import between_samples, block_margin, keep_out_plane
 
     p, _ = SCENARIOS["thesis-vbar"].build()
-    Ac, ts = np.asarray(p.Ac), float(p.ts[0])
-    back = np.asarray(ph._coast_back(p.Ac, p.ts[0]))
+    Ac, ts = np.asarray(p.plant.Ac), float(p.ts[0])
+    back = np.asarray(ph._coast_back(p.plant.Ac, p.ts[0]))
     taus = ts * np.arange(1, ph.SUBSAMPLES) / ph.SUBSAMPLES
     for j, tau in enumerate(taus):
         np.testing.assert_allclose(back[j], expm(-Ac * (ts - tau)), rtol=0, atol=1e-12)

@@ -43,7 +43,7 @@ def test_unknown_names_are_clear_errors():
 def test_build_overrides_are_checked():
     sc = SCENARIOS["fastmpc-3d"]
     p, _ = sc.build(mass=5000.0)
-    assert float(p.mass) == 5000.0
+    assert float(p.plant.mass) == 5000.0
     with pytest.raises(ValueError, match=r"mass must be finite and in \(0, inf\) kg"):
         sc.build(mass=-1.0)
     with pytest.raises(ValueError, match="x0 must have shape"):
@@ -67,8 +67,8 @@ def test_the_example_scenario_docks():
     constraint."""
     sc = SCENARIOS["vbar-400km-heavy-target"]
     params, _ = sc.build()
-    assert float(params.drag.b_target) == pytest.approx(2.2 * 0.5 / 180.0)  # C_D A / m
-    assert float(params.drag.b_chaser) == pytest.approx(1.4 * 0.0366 / 14.0)
+    assert float(params.plant.drag.b_target) == pytest.approx(2.2 * 0.5 / 180.0)  # C_D A / m
+    assert float(params.plant.drag.b_chaser) == pytest.approx(1.4 * 0.0366 / 14.0)
     _, _, infos, m = flight((sc.name,), n_steps=200)
     m = first(m)
     assert bool(m.docked) and float(m.max_violation_m) == 0.0

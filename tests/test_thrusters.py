@@ -21,7 +21,7 @@ from rvdjax.actuators.response import pulse_response, pulse_segments
 from rvdjax.actuators.thrusters import G0, ThrusterSet
 from rvdjax.dynamics import cw_continuous, discretize_zoh, mean_motion, planar3dof_continuous
 from rvdjax.loop import fly
-from rvdjax.loop.plant import truth_step_pulses
+from rvdjax.loop.plant import truth_step_pulses, with_plant
 from rvdjax.propagate import circular_orbit, inertial_to_lvlh, lvlh_basis, lvlh_to_inertial
 from rvdjax.scenarios import get_scenario
 
@@ -228,8 +228,8 @@ def test_finite_burn_model_predicts_the_burn():
         dv = jnp.asarray(dv)
         B, c = ph.finite_burn(p, p.A[k], ts, dv[None])
         model = np.asarray(p.A[k] @ x + B[0] @ dv + c[0])
-        out = _fire(act, p.thrusters, LAYOUT, x, dv, ts, p.mass, 0.0, jnp.zeros(6))
-        truth, _ = truth_step_pulses("linear", 1, p.A[k], p, None, x, out.pulses, out.g, ts)
+        out = _fire(act, p.plant.thrusters, LAYOUT, x, dv, ts, p.plant.mass, 0.0, jnp.zeros(6))
+        truth, _ = truth_step_pulses("linear", 1, p.A[k], p.plant, None, x, out.pulses, out.g, ts)
         np.testing.assert_allclose(model, np.asarray(truth), atol=1e-5)
         impulsive = np.asarray(p.A[k] @ x + p.B[k] @ dv)
         lag = float(np.max(np.abs(impulsive - np.asarray(truth))[:3]))
@@ -399,7 +399,7 @@ def rotating_flights():
     p_ok, x0 = sc.build(thrusters=True)
     fault = np.zeros(8, int)
     fault[0] = 1
-    p_bad = p_ok._replace(thrusters=sc.thrusters.build(fault=fault))
+    p_bad = with_plant(p_ok, thrusters=sc.thrusters.build(fault=fault))
     params = jax.tree.map(lambda a, b: jnp.stack([a, b]), p_ok, p_bad)
     run = jax.jit(jax.vmap(lambda p: fly(loop, p, x0)))
     infos, m = run(params)
@@ -411,7 +411,7 @@ def test_closed_loop_with_thrusters_docks_and_counts_its_pulses(rotating_flights
     assert m.docked[0]
     active = infos.active[0]
     width = infos.pulses.width[0][active]  # (steps, T, P)
-    thrust = np.asarray(p.thrusters.thrust)
+    thrust = np.asarray(p.plant.thrusters.thrust)
     # the figures recomputed from the step records
     assert m.thruster_impulse_N_s[0] == pytest.approx((width.sum(-1) * thrust).sum(), rel=1e-12)
     assert m.valve_openings[0] == int((width > 0).sum())

@@ -18,6 +18,7 @@ from scipy.stats import norm
 from rvdjax.cli import main
 from rvdjax.disturbances import Draws
 from rvdjax.loop import fly
+from rvdjax.loop.plant import with_plant
 from rvdjax.scenarios import get_scenario
 from rvdjax.verify.evaluate import ProblemSpec, problem_for
 from rvdjax.verify.probability import ProbabilitySpec, estimate
@@ -225,7 +226,7 @@ def test_keep_out_margin_against_an_stl_monitor(poseidyn):
         infos, m = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))(params, x0)
         infos = jax.tree.map(np.asarray, infos)
         centre, r_obs = np.asarray(params.obstacle), float(params.r_obs)
-        Ac, Bc = np.asarray(params.Ac), np.asarray(params.Bc)
+        Ac, Bc = np.asarray(params.plant.Ac), np.asarray(params.plant.Bc)
         d = []
         for k in np.flatnonzero(infos.active):
             x, u, dt = infos.x[k], infos.u[k], float(infos.dt[k])
@@ -282,10 +283,10 @@ def test_draws_replace_the_prng_exactly():
     nav = jnp.stack([jax.random.normal(k[0], (lay.nx,)) for k in ks])
     gm = jnp.stack([jax.random.normal(k[1], (lay.nu, 2)) for k in ks])
     gm0 = jax.random.normal(jax.random.fold_in(key, 0), (lay.nu,))
-    d = params.disturbances._replace(draws=Draws(nav=nav, gm0=gm0, gm=gm))
+    d = params.plant.disturbances._replace(draws=Draws(nav=nav, gm0=gm0, gm=gm))
     run = jax.jit(lambda p, k: fly(loop, p, x0, k))
     a, _ = run(params, key)
-    b, _ = run(params._replace(disturbances=d), jax.random.key(99))
+    b, _ = run(with_plant(params, disturbances=d), jax.random.key(99))
     np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
     np.testing.assert_array_equal(np.asarray(a.u), np.asarray(b.u))
 

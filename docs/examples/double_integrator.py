@@ -11,10 +11,10 @@ import numpy as np
 
 from rvdjax import checks
 from rvdjax.constraints import thrust_box, velocity_bound
-from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
 from rvdjax.loop.family import Family, Hooks, Layout
+from rvdjax.loop.plant import Plant
 from rvdjax.schema import Schema, make_params_of, positive, value
 from rvdjax.solver import drift_plan
 
@@ -22,7 +22,7 @@ from rvdjax.solver import drift_plan
 LAYOUT = Layout(nx=2, nu=1, pos=(0,), vel=(1,), force=(0,), names=("x", "vx"))
 
 
-# 2. The traced parameters: arrays only (the kernel needs mass, orbit, drag, disturbances).
+# 2. The traced parameters: arrays only, the plant (what the kernel flies) in one field.
 class Params(NamedTuple):
     A: jnp.ndarray  # (2, 2) discrete model (zero-order hold)
     B: jnp.ndarray  # (2, 1)
@@ -32,12 +32,8 @@ class Params(NamedTuple):
     u_max: jnp.ndarray  # (1,) thrust bound [N]
     v_max: jnp.ndarray  # () speed limit [m/s] (soft)
     ts: jnp.ndarray  # () sample time [s]
-    mass: jnp.ndarray  # () [kg]
     arrive_tol: jnp.ndarray  # () the run ends when |x| <= arrive_tol [m]
-    orbit: None = None
-    drag: None = None
-    disturbances: Disturbances | None = None
-    thrusters: None = None  # no thruster set: the truth applies the command exactly
+    plant: Plant  # mass, disturbances, continuous model; no orbit, drag or thrusters
 
 
 # 3. The static configuration: what shapes the program (a change recompiles).
@@ -88,9 +84,13 @@ def _build(v) -> Params:
         u_max=f(np.full(1, float(v.u_max))),
         v_max=f(float(v.v_max)),
         ts=f(float(v.ts)),
-        mass=f(float(v.mass)),
         arrive_tol=f(float(v.arrive_tol)),
-        disturbances=make_disturbances(**(v.disturbances or {})),
+        plant=Plant(
+            mass=f(float(v.mass)),
+            disturbances=make_disturbances(**(v.disturbances or {})),
+            Ac=f(Ac),
+            Bc=f(Bc),
+        ),
     )
 
 

@@ -100,7 +100,7 @@ def cmd(args) -> int:
     if args.params is not None:
         notes.append(f"tuned values from {args.params} replace the scenario's (rvdjax tune)")
     if opts.disturbed:
-        d = flight.params.disturbances
+        d = flight.params.plant.disturbances
         notes.append(
             DISTURBANCE_NOTES[0].format(
                 sigma_pos=float(d.sigma_pos), sigma_vel=float(d.sigma_vel), mib_s=float(d.mib_s)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from rvdjax.constraints import Block, stack
+from rvdjax.loop.plant import Plant
 from rvdjax.ocp import OCP, time_invariant_model
 
 
@@ -130,7 +131,9 @@ def field_tunable(field: str, description: str, **options):
     )
 
 
-def continuous_fields(Ac, Bc) -> dict:
-    """Params fields ``Ac``, ``Bc``: the continuous model with its force input [N, N m], which
-    the truth integrates under thruster pulses (:mod:`rvdjax.actuators.response`)."""
-    return dict(Ac=jnp.asarray(Ac), Bc=jnp.asarray(Bc))
+def make_plant(mass, Ac, Bc, **fields) -> Plant:
+    """The :class:`~rvdjax.loop.plant.Plant` of a family's parameters: the mass [kg], the
+    continuous model with its force input [N, N m] (the truth integrates it under thruster
+    pulses, :mod:`rvdjax.actuators.response`) and the other plant fields (``orbit``, ``drag``,
+    ``disturbances``; the thrusters are attached by the scenario)."""
+    return Plant(mass=jnp.asarray(mass), Ac=jnp.asarray(Ac), Bc=jnp.asarray(Bc), **fields)

@@ -35,7 +35,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
     entry_cone,
     holding_radius,
@@ -43,13 +42,13 @@ from rvdjax.constraints import (
     sphere_keep_out,
     thrust_box,
 )
-from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
+from rvdjax.disturbances import LAB_DISTURBANCES
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    continuous_fields,
     control,
     derive_terminal,
     field_tunable,
+    make_plant,
     model,
     sample_time,
     smooth_excess,
@@ -59,6 +58,7 @@ from rvdjax.families.common import (
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
+from rvdjax.loop.plant import Plant
 from rvdjax.schema import (
     Schema,
     disturbance_table,
@@ -110,7 +110,8 @@ class Params(NamedTuple):
         half_angle: () entry-cone half angle [rad].
         rho: () exact penalty of the soft state rows [per metre].
         ts: () sample time [s]; dock_tol: () docked position tolerance [m].
-        mass: () chaser mass [kg].
+        plant: the vehicle and its surroundings (:class:`~rvdjax.loop.plant.Plant`: mass [kg],
+            orbit, drag, disturbances, continuous model, thrusters).
     """
 
     A: jnp.ndarray
@@ -138,13 +139,7 @@ class Params(NamedTuple):
     rho: jnp.ndarray
     ts: jnp.ndarray
     dock_tol: jnp.ndarray
-    mass: jnp.ndarray
-    orbit: None = None
-    drag: None = None
-    disturbances: Disturbances | None = None
-    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
-    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
-    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
+    plant: Plant  # the vehicle and its surroundings (rvdjax.loop.plant)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,9 +290,11 @@ def _build(v) -> Params:
         rho=f(float(v.rho)),
         ts=f(float(v.ts)),
         dock_tol=f(float(v.dock_tol)),
-        mass=f(float(v.mass)),
-        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
-        **continuous_fields(*planar3dof_continuous(v.mass, v.inertia)),
+        plant=make_plant(
+            float(v.mass),
+            *planar3dof_continuous(v.mass, v.inertia),
+            disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
+        ),
     )
 
 

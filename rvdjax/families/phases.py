@@ -211,7 +211,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     per_phase = [
         [keep_out, cone_penalty]
         + (
-            [between_samples(keep_out, _coast_back(p.Ac, ts), "keep_out_between")]
+            [between_samples(keep_out, _coast_back(p.plant.Ac, ts), "keep_out_between")]
             if fc.between_samples
             else []
         ),
@@ -227,7 +227,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     eye = jnp.eye(6, dtype=dtype)
     A = jnp.where(real[:, None, None], p.A[phase], eye)
     B_phase, c = p.B[phase], jnp.zeros((N, 6), dtype)
-    if p.thrusters is not None and fc.finite_burn:  # the vehicle's burns, not impulses
+    if p.plant.thrusters is not None and fc.finite_burn:  # the vehicle's burns, not impulses
         B_phase, c = finite_burn(p, p.A[phase], ts, _plan_dv(fc, g, plan))
         c = jnp.where(real[:, None], c, 0.0)
     B = jnp.where(real[:, None, None], B_phase, 0.0)
@@ -344,12 +344,12 @@ def finite_burn(p: Params, A, ts, dv_bar):
     m (|dv| - |dv_bar|)^2 / (2 F) per axis otherwise). With ideal impulses (no thrusters)
     the family keeps Eq. 3.1 exactly.
     """
-    plus, minus = axis_thrust(p.thrusters)
+    plus, minus = axis_thrust(p.plant.thrusters)
     F = jnp.where(dv_bar >= 0.0, plus, minus)
-    w = jnp.minimum(p.mass * jnp.abs(dv_bar) / jnp.maximum(F, 1e-12), ts)  # (N, 3)
+    w = jnp.minimum(p.plant.mass * jnp.abs(dv_bar) / jnp.maximum(F, 1e-12), ts)  # (N, 3)
     b = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3)]).astype(A.dtype)  # unit delta-v columns
-    Ab = p.Ac @ b  # (6, 3)
-    AAb = p.Ac @ Ab
+    Ab = p.plant.Ac @ b  # (6, 3)
+    AAb = p.plant.Ac @ Ab
     B = jnp.einsum(
         "ij,tjk->tik", A, b[None] - Ab[None] * w[:, None, :] + 0.5 * AAb[None] * (w**2)[:, None, :]
     )
@@ -408,7 +408,9 @@ def subsamples(p: Params, fc: Config, x, u, dt):
     taus = dt * jnp.arange(1, SUBSAMPLES, dtype=x.dtype) / SUBSAMPLES
     x = jnp.asarray(x)
     x_plus = x.at[3:].add(u[:3])
-    return taus, zoh_states(p.Ac, p.Bc, x_plus, jnp.zeros(p.Bc.shape[1], x.dtype), taus)
+    return taus, zoh_states(
+        p.plant.Ac, p.plant.Bc, x_plus, jnp.zeros(p.plant.Bc.shape[1], x.dtype), taus
+    )
 
 
 def truth_blocks(p: Params, fc: Config, g: Guidance, x, t):
@@ -441,7 +443,7 @@ def _derive(p: Params, names) -> Params:
     from rvdjax.dynamics import cw_continuous, dare, discretize_impulsive
 
     if "ts" in names:
-        Ac, _ = cw_continuous(p.n, p.mass)
+        Ac, _ = cw_continuous(p.n, p.plant.mass)
         A, B = jax.vmap(lambda ts: discretize_impulsive(Ac, ts))(p.ts)
         p = p._replace(A=A, B=B)
     if not names:

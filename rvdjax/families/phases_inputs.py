@@ -11,14 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.actuators.thrusters import Thrusters
-from rvdjax.disturbances import THESIS_DISTURBANCES, Disturbances
+from rvdjax.disturbances import THESIS_DISTURBANCES
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    continuous_fields,
+    make_plant,
 )
 from rvdjax.loop.family import Layout
-from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.loop.plant import Plant
+from rvdjax.propagate import Drag, circular_orbit
 from rvdjax.schema import (
     Input,
     Schema,
@@ -80,7 +80,6 @@ class Params(NamedTuple):
         half_angle: (3,) LoS cone half angle [rad] (phases 0, 1: approach cone at the centre
             of mass; phase 2: docking cone at the port).
         n: () mean motion [rad/s] (cap on the keep-out plane rotation rate).
-        mass: () chaser mass [kg] (for the impulse figures).
         r1, r2, r3: () keep-out radius / approach-to-docking switch / docked distance [m].
         v_max: () soft-docking velocity bound [m/s].
         port_body: (3,) docking port in the target body frame [m].
@@ -91,9 +90,8 @@ class Params(NamedTuple):
         switch_tol: () relative tolerance on r1 and r2 for the phase switches.
         setpoint: () rendezvous reference: 1.0 the set point at r1 on the approach-cone axis
             (Eq. 3.2), 0.0 the target's centre of mass (Table 3.6 "QP without set point").
-        orbit: the target's inertial state at t = 0 (nonlinear truths).
-        drag: ballistic coefficients of chaser and target (truth "two-body-j2-drag").
-        disturbances: navigation noise, thrust error and minimum impulse bit.
+        plant: the vehicle and its surroundings (:class:`~rvdjax.loop.plant.Plant`: mass [kg],
+            orbit, drag, disturbances, continuous model, thrusters).
     """
 
     A: jnp.ndarray
@@ -106,7 +104,6 @@ class Params(NamedTuple):
     lam: jnp.ndarray
     half_angle: jnp.ndarray
     n: jnp.ndarray
-    mass: jnp.ndarray
     r1: jnp.ndarray
     r2: jnp.ndarray
     r3: jnp.ndarray
@@ -118,12 +115,7 @@ class Params(NamedTuple):
     rho: jnp.ndarray
     switch_tol: jnp.ndarray
     setpoint: jnp.ndarray
-    orbit: Orbit | None = None
-    drag: Drag | None = None
-    disturbances: Disturbances | None = None
-    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
-    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
-    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
+    plant: Plant  # the vehicle and its surroundings (rvdjax.loop.plant)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,7 +134,7 @@ class Config:
             only; a chord between two samples outside the 100 m sphere can cut into it
             (by centimetres where the plan rides the sphere). rvdjax's choice, on by
             default: the keep-out sphere is judged between samples.
-        finite_burn: with the thrusters flying (``params.thrusters``), the model has their
+        finite_burn: with the thrusters flying (``params.plant.thrusters``), the model has their
             finite burns (:func:`finite_burn`); False keeps the thesis' impulsive model
             (Eq. 3.1) while the thrusters burn for up to 5 s from each period's start, as the
             thesis' own formulation does: its truth then lags the plans by up to
@@ -313,7 +305,6 @@ def _build(v) -> Params:
         lam=f(lam),
         half_angle=f(np.deg2rad(los)),
         n=f(n),
-        mass=f(float(v.mass)),
         r1=f(float(v.r1)),
         r2=f(float(v.r2)),
         r3=f(float(v.r3)),
@@ -325,13 +316,16 @@ def _build(v) -> Params:
         rho=f(float(v.rho)),
         switch_tol=f(float(v.switch_tol)),
         setpoint=f(1.0 if v.setpoint else 0.0),
-        orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
-        drag=Drag(
-            b_chaser=f(v.cd_chaser * v.drag_area_m2 / v.mass),
-            b_target=f(v.cd_target * target_area_m2 / target_mass),
+        plant=make_plant(
+            float(v.mass),
+            *cw_continuous(n, v.mass),
+            orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
+            drag=Drag(
+                b_chaser=f(v.cd_chaser * v.drag_area_m2 / v.mass),
+                b_target=f(v.cd_target * target_area_m2 / target_mass),
+            ),
+            disturbances=make_disturbances(**{**THESIS_DISTURBANCES, **(v.disturbances or {})}),
         ),
-        disturbances=make_disturbances(**{**THESIS_DISTURBANCES, **(v.disturbances or {})}),
-        **continuous_fields(*cw_continuous(n, v.mass)),
     )
 
 

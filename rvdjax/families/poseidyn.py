@@ -34,15 +34,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out, thrust_box
-from rvdjax.disturbances import LAB_DISTURBANCES, Disturbances
+from rvdjax.disturbances import LAB_DISTURBANCES
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    continuous_fields,
     control,
     derive_terminal,
     field_tunable,
+    make_plant,
     model,
     sample_time,
     smooth_excess,
@@ -52,6 +51,7 @@ from rvdjax.families.common import (
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
+from rvdjax.loop.plant import Plant
 from rvdjax.schema import (
     Input,
     Schema,
@@ -93,7 +93,8 @@ class Params(NamedTuple):
         ts: () sample time [s].
         dock_tol: () docked when within this distance of the docking point [m] ...
         dock_speed_tol: () ... and slower than this [m/s].
-        mass: () chaser mass [kg].
+        plant: the vehicle and its surroundings (:class:`~rvdjax.loop.plant.Plant`: mass [kg],
+            orbit, drag, disturbances, continuous model, thrusters).
     """
 
     A: jnp.ndarray
@@ -116,13 +117,7 @@ class Params(NamedTuple):
     ts: jnp.ndarray
     dock_tol: jnp.ndarray
     dock_speed_tol: jnp.ndarray
-    mass: jnp.ndarray
-    orbit: None = None
-    drag: None = None
-    disturbances: Disturbances | None = None
-    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
-    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
-    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
+    plant: Plant  # the vehicle and its surroundings (rvdjax.loop.plant)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -278,9 +273,11 @@ def _build(v) -> Params:
         ts=f(float(v.ts)),
         dock_tol=f(float(v.dock_tol)),
         dock_speed_tol=f(float(v.dock_speed_tol)),
-        mass=f(float(v.mass)),
-        disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
-        **continuous_fields(*planar2dof_continuous(v.mass)),
+        plant=make_plant(
+            float(v.mass),
+            *planar2dof_continuous(v.mass),
+            disturbances=make_disturbances(**{**LAB_DISTURBANCES, **(v.disturbances or {})}),
+        ),
     )
 
 
@@ -344,7 +341,7 @@ def subsamples(p: Params, fc: Config, x, u, dt=None):
     integrator, constant force): taus (M,) [s] and states (M, 4). ``dt`` is ``p.ts`` here."""
     M = fc.substeps
     tau = p.ts * jnp.arange(1, M + 1, dtype=x.dtype) / M
-    a = u / p.mass
+    a = u / p.plant.mass
     r = x[None, :2] + tau[:, None] * x[None, 2:] + 0.5 * tau[:, None] ** 2 * a
     v = x[None, 2:] + tau[:, None] * a
     return tau, jnp.concatenate([r, v], axis=-1)
@@ -387,7 +384,7 @@ def _derive(p: Params, names) -> Params:
     from rvdjax.dynamics import discretize_zoh, planar2dof_continuous
 
     if "ts" in names:
-        A, B = discretize_zoh(*planar2dof_continuous(p.mass), p.ts)
+        A, B = discretize_zoh(*planar2dof_continuous(p.plant.mass), p.ts)
         p = p._replace(A=A, B=B)
     return derive_terminal(p, names, p.terminal_scale)
 

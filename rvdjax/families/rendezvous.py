@@ -19,14 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax import checks
-from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import sphere_keep_out, thrust_box
-from rvdjax.disturbances import Disturbances
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    continuous_fields,
     control,
     derive_terminal,
+    make_plant,
     model,
     sample_time,
     smooth_excess,
@@ -36,7 +34,8 @@ from rvdjax.families.common import (
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
-from rvdjax.propagate import Drag, Orbit, circular_orbit
+from rvdjax.loop.plant import Plant
+from rvdjax.propagate import circular_orbit
 from rvdjax.schema import Schema, disturbance_table, finite, make_params_of, positive, value, within
 from rvdjax.solver import drift_plan
 
@@ -66,11 +65,9 @@ class Params(NamedTuple):
         obstacle_mask: (k,) 1.0 for an obstacle that exists, 0.0 to switch it off.
         rho: (k,) exact penalty of each obstacle's keep-out rows [per metre of penetration].
         ts: () sample time [s].
-        mass: () chaser mass [kg].
         stop_radius: () the run ends when |r| <= stop_radius [m].
-        orbit: the target's inertial state (nonlinear truths).
-        drag: unused (no drag model for this family).
-        disturbances: navigation noise, thrust error, minimum impulse bit (disturbed runs).
+        plant: the vehicle and its surroundings (:class:`~rvdjax.loop.plant.Plant`: mass [kg],
+            orbit, drag, disturbances, continuous model, thrusters).
     """
 
     A: jnp.ndarray
@@ -85,14 +82,8 @@ class Params(NamedTuple):
     obstacle_mask: jnp.ndarray
     rho: jnp.ndarray
     ts: jnp.ndarray
-    mass: jnp.ndarray
     stop_radius: jnp.ndarray
-    orbit: Orbit | None = None
-    drag: Drag | None = None
-    disturbances: Disturbances | None = None
-    Ac: jnp.ndarray | None = None  # continuous model (the truth under thruster pulses)
-    Bc: jnp.ndarray | None = None  # ... its force input [N, N m] -> state rate
-    thrusters: Thrusters | None = None  # the vehicle's thrusters (None: ideal forces)
+    plant: Plant  # the vehicle and its surroundings (rvdjax.loop.plant)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,11 +184,13 @@ def _build(v) -> Params:
         obstacle_mask=f(np.full(len(radii), 1.0 if obstacles_on else 0.0)),
         rho=f(np.broadcast_to(np.asarray(v.rho, float), radii.shape).copy()),
         ts=f(float(v.ts)),
-        mass=f(float(v.mass)),
         stop_radius=f(float(v.stop_radius)),
-        orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
-        disturbances=make_disturbances(**(v.disturbances or {})),
-        **continuous_fields(*cw_continuous(n, v.mass)),
+        plant=make_plant(
+            float(v.mass),
+            *cw_continuous(n, v.mass),
+            orbit=circular_orbit(v.altitude_m, inclination_rad=np.deg2rad(v.inclination_deg)),
+            disturbances=make_disturbances(**(v.disturbances or {})),
+        ),
     )
 
 

@@ -45,13 +45,14 @@ class Actuated(NamedTuple):
     fired: Fired | None
 
 
-def actuate(config: LoopConfig, layout, params, x, t, k, key, gm, mod, u_cmd, dt, active):
+def actuate(config: LoopConfig, layout, plant, x, t, k, key, gm, mod, u_cmd, dt, active):
     """The command ``u_cmd`` over a step of ``dt`` [s] through the actuators.
 
     Args:
         config: the loop's static configuration (``actuation``, ``disturbed``).
         layout: the family's :class:`~rvdjax.loop.family.Layout`.
-        params: the family's parameters (``thrusters``, ``disturbances``, ``mass`` [kg]).
+        plant: the :class:`~rvdjax.loop.plant.Plant` (``thrusters``, ``disturbances``,
+            ``mass`` [kg]).
         x: (nx,) true state at the step's start; t: () its time [s]; k: () the step index.
         key: the step's actuator PRNG key (used only when ``config.disturbed``).
         gm: (n, 2) Gauss-Markov thrust-error states; mod: (T,) modulator state or None.
@@ -67,16 +68,15 @@ def actuate(config: LoopConfig, layout, params, x, t, k, key, gm, mod, u_cmd, dt
         factor = None
         if config.disturbed:
             factor = thrust_factor(gm)
-            gm = gm_step(key, gm, params.disturbances, dt, k=k)
-        fired = fire(
-            config.actuation, params.thrusters, layout, x, u_cmd, dt, params.mass, t, mod, factor
-        )
+            gm = gm_step(key, gm, plant.disturbances, dt, k=k)
+        thr = plant.thrusters
+        fired = fire(config.actuation, thr, layout, x, u_cmd, dt, plant.mass, t, mod, factor)
         u = jnp.where(active, fired.u_applied, 0.0)
         # the modulation is on-board logic (known to the filter), the thrust errors are not
         u_believed = fired.u_nominal
     elif config.disturbed:
-        d = params.disturbances
-        per_u = impulse_per_unit(layout, params.mass, dt)
+        d = plant.disturbances
+        per_u = impulse_per_unit(layout, plant.mass, dt)
         idx = jnp.asarray(layout.force, int)
         u = u.at[idx].set(minimum_impulse_bit(u[idx] * per_u, d) / per_u)
         # the minimum impulse bit is on-board logic (known to the filter); the thrust factor
@@ -84,7 +84,7 @@ def actuate(config: LoopConfig, layout, params, x, t, k, key, gm, mod, u_cmd, dt
         u_believed = u
         u = u * thrust_factor(gm)
         gm = gm_step(key, gm, d, dt, k=k)
-    scale = _input_scale(params)
+    scale = _input_scale(plant)
     if scale is not None and config.actuation is None:  # a truth-only mass / inertia error
         u = u * scale
     return Actuated(u, u_believed, gm, fired)
@@ -103,7 +103,7 @@ def truth_path(loop: Loop, params, A, B, orbit, x, act: Actuated, dt, active):
     fired = act.fired
     if fired is None:
         x_next, orbit_next = truth_step(
-            lay, cfg.truth, cfg.truth_substeps, A, B, params, orbit, x, act.u, dt
+            lay, cfg.truth, cfg.truth_substeps, A, B, params.plant, orbit, x, act.u, dt
         )
     else:
         g_fired = jnp.where(active, fired.g, 0.0)
@@ -111,7 +111,7 @@ def truth_path(loop: Loop, params, A, B, orbit, x, act: Actuated, dt, active):
             cfg.truth,
             cfg.truth_substeps,
             A,
-            params,
+            params.plant,
             orbit,
             x,
             fired.pulses,
@@ -124,8 +124,8 @@ def truth_path(loop: Loop, params, A, B, orbit, x, act: Actuated, dt, active):
         taus, subs = fam.subsamples(params, fc, x, act.u, dt)
         if fired is not None and cfg.truth == "linear":  # the pulses' path, not the mean input's
             subs = pulse_states(
-                params.Ac,
-                params.Bc,
+                params.plant.Ac,
+                params.plant.Bc,
                 x,
                 taus,
                 fired.pulses,
@@ -137,8 +137,8 @@ def truth_path(loop: Loop, params, A, B, orbit, x, act: Actuated, dt, active):
     return x_next, orbit_next, taus, subs
 
 
-def _input_scale(params):
+def _input_scale(plant):
     """The truth's input multiplier of a verification's dispersion (Draws.input_scale)."""
-    d = params.disturbances
+    d = plant.disturbances
     draws = None if d is None else d.draws
     return None if draws is None else draws.input_scale

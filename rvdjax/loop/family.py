@@ -1,9 +1,10 @@
 """What a guidance family supplies to the closed-loop kernel: pure functions and a layout.
 
 A family (one module under :mod:`rvdjax.families`) describes one kind of guidance problem: its
-traced parameters (a NamedTuple pytree with at least the :data:`PLANT_FIELDS`: ``mass``,
-``orbit``, ``drag``, ``disturbances`` and ``thrusters``, the last four possibly None), its
-static configuration (horizon and options), and these pure functions of arrays:
+traced parameters (a NamedTuple pytree with a field ``plant``, the
+:class:`~rvdjax.loop.plant.Plant` the kernel flies: mass, orbit, drag, disturbances, continuous
+model and thrusters), its static configuration (horizon and options), and these pure functions
+of arrays:
 
 * ``init(params, fconfig, x0) -> G``: the guidance state at the start (phase, holding radius,
   cone activation: a NamedTuple of arrays);
@@ -52,13 +53,7 @@ __all__ = [
     "Tunable",
     "Tuning",
     "lazy",
-    "PLANT_FIELDS",
 ]
-
-#: The plant's fields every family's traced parameters carry (the kernel reads them): the mass
-#: [kg], the target's orbit and the drag model (nonlinear truths), the disturbance parameters
-#: (disturbed runs) and the thruster set (runs with thrusters); None where not used.
-PLANT_FIELDS = ("mass", "orbit", "drag", "disturbances", "thrusters")
 
 
 @dataclasses.dataclass(frozen=True)

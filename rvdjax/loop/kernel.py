@@ -35,7 +35,7 @@ from rvdjax.actuators.thrusters import Actuation
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, measure
 from rvdjax.loop.actuation import actuate, truth_path
-from rvdjax.loop.family import PLANT_FIELDS, Family
+from rvdjax.loop.family import Family
 from rvdjax.loop.metrics import (
     HIST_BINS,
     Accumulator,
@@ -54,7 +54,7 @@ from rvdjax.loop.navigation import (
     process_noise,
     thrust_error_fraction,
 )
-from rvdjax.loop.plant import TRUTHS
+from rvdjax.loop.plant import TRUTHS, Plant
 from rvdjax.ocp import OCP
 from rvdjax.solver import (
     Plan,
@@ -99,14 +99,14 @@ class LoopConfig:
         truth_substeps: RK4 steps per sample time for the nonlinear truths.
         disturbed: the guidance sees a noisy state and the thrusters apply (1 + w) u with the
             Gauss-Markov error w, dropping pulses shorter than the minimum impulse bit
-            (``params.disturbances``).
+            (``params.plant.disturbances``).
         time_limit_s: a run also ends (TIMEOUT unless docked) after the first step whose end
             time reaches this limit [s] (paper 003 Ch. 4: 200 minutes per maneuver); None: no
             limit.
         nav_filter: the guidance sees the estimate of a Kalman filter fed by the noisy
             measurements instead of the measurements (:mod:`rvdjax.loop.navigation`; rvdjax's
             choice, the thesis has no filter). Needs ``disturbed``.
-        actuation: fly the vehicle's thrusters (``params.thrusters``): the command is
+        actuation: fly the vehicle's thrusters (``params.plant.thrusters``): the command is
             allocated, modulated into valve pulses and the truth integrates the pulses
             (:mod:`rvdjax.actuators`); with ``disturbed`` the Gauss-Markov thrust error acts
             per thruster and the thrusters' own minimum on-time replaces the disturbances'
@@ -249,11 +249,11 @@ class StepInfo(NamedTuple):
 def init(loop: Loop, params, x0, key=None) -> LoopState:
     """The state at the start of a run from ``x0`` (the PRNG ``key`` drives disturbances)."""
     fam, fc = loop.family, loop.config.family_config
-    missing = [f for f in PLANT_FIELDS if not hasattr(params, f)]
-    if missing:  # the contract of rvdjax.loop.family, checked while tracing
+    plant = getattr(params, "plant", None)
+    if not isinstance(plant, Plant):  # the contract of rvdjax.loop.family, checked while tracing
         raise TypeError(
-            f"the {fam.name} family's parameters lack the plant field(s) {', '.join(missing)}"
-            f" (rvdjax.loop.family.PLANT_FIELDS; None where not used)"
+            f"the {fam.name} family's parameters need a field plant: rvdjax.loop.plant.Plant"
+            f" (got {type(plant).__name__})"
         )
     dtype = jnp.result_type(float)
     x0 = jnp.asarray(x0, dtype)
@@ -263,23 +263,25 @@ def init(loop: Loop, params, x0, key=None) -> LoopState:
     act = loop.config.actuation
     mod = None
     if act is not None:
-        thr = params.thrusters
+        thr = plant.thrusters
         if thr is None or thr.thrust.shape != (act.n,):
             raise ValueError(
-                f"a loop with thrusters needs params.thrusters of {act.n} thrusters "
+                f"a loop with thrusters needs params.plant.thrusters of {act.n} thrusters "
                 "(Scenario.build(thrusters=True))"
             )
         mod = jnp.zeros(act.n, dtype)
     n_axes = fam.layout.nu if act is None else act.n  # thrust errors per axis / per thruster
     if loop.config.disturbed:
-        if params.disturbances is None:
-            raise ValueError("a disturbed run needs params.disturbances")
-        gm = gm_init(jax.random.fold_in(key, 0), params.disturbances, n_axes)
+        if plant.disturbances is None:
+            raise ValueError("a disturbed run needs params.plant.disturbances")
+        gm = gm_init(jax.random.fold_in(key, 0), plant.disturbances, n_axes)
     else:
         gm = jnp.zeros((n_axes, 2), dtype)
-    orbit = params.orbit if loop.config.truth != "linear" else None
+    orbit = plant.orbit if loop.config.truth != "linear" else None
     if loop.config.truth != "linear" and orbit is None:
-        raise ValueError(f"truth={loop.config.truth!r} needs params.orbit (the target's orbit)")
+        raise ValueError(
+            f"truth={loop.config.truth!r} needs params.plant.orbit (the target's orbit)"
+        )
     false = jnp.asarray(False)
     nav = None
     if loop.config.nav_filter:  # replaced by the first measurement (prepare, k = 0)
@@ -324,9 +326,10 @@ def prepare(loop: Loop, params, state: LoopState) -> Prepared:
     nav = None
     if loop.config.disturbed:
         k_nav, _ = _keys(state)
-        x_meas = measure(k_nav, state.x, params.disturbances, lay.pos, lay.vel, lay.att, k=state.k)
+        d = params.plant.disturbances
+        x_meas = measure(k_nav, state.x, d, lay.pos, lay.vel, lay.att, k=state.k)
         if loop.config.nav_filter:
-            R = measurement_covariance(lay, params.disturbances, x_meas.dtype)
+            R = measurement_covariance(lay, d, x_meas.dtype)
             first = state.k == 0
             nav = jax.tree.map(
                 lambda a, b: jnp.where(first, a, b),
@@ -369,8 +372,9 @@ def advance(
     u_cmd = jnp.where(active, fam.control(params, fc, g, sol), 0.0)
     dt = fam.sample_time(params, g)
     k_act = _keys(state)[1] if cfg.disturbed else None
+    plant = params.plant
     act = actuate(
-        cfg, lay, params, state.x, state.t, state.k, k_act, state.gm, state.mod, u_cmd, dt, active
+        cfg, lay, plant, state.x, state.t, state.k, k_act, state.gm, state.mod, u_cmd, dt, active
     )
     u, fired = act.u, act.fired
 
@@ -386,7 +390,7 @@ def advance(
     A, B = fam.truth_model(params, g)
     nav_next = state.nav
     if cfg.nav_filter:  # prediction to the next step on the guidance's model of this step
-        d = params.disturbances
+        d = plant.disturbances
         R = measurement_covariance(lay, d, dtype)
         Qp = process_noise(B, act.u_believed, thrust_error_fraction(d, dt), R)
         nav_next = nav_predict(prep.nav, A, B, act.u_believed, Qp)

@@ -227,8 +227,8 @@ def accumulate(loop: Loop, params, acc: Accumulator, info: StepInfo, fired=None)
     lay = loop.family.layout
     act = info.active
     idx = jnp.asarray(lay.force, int)
-    dv = info.u[idx] * (info.dt / params.mass if lay.input == "force" else 1.0)
-    imp = dv * params.mass if lay.input == "delta-v" else info.u[idx] * info.dt
+    dv = info.u[idx] * (info.dt / params.plant.mass if lay.input == "force" else 1.0)
+    imp = dv * params.plant.mass if lay.input == "delta-v" else info.u[idx] * info.dt
     dv2 = jnp.linalg.norm(dv)
     tq = jnp.asarray(lay.torque, int)
     torque = jnp.sum(jnp.abs(info.u[tq])) * info.dt if lay.torque else 0.0
@@ -280,7 +280,7 @@ def metrics(loop: Loop, params, state: LoopState) -> Metrics:
         RunStatus.DOCKED,
         jnp.where(failed, RunStatus.FAILED, RunStatus.TIMEOUT),
     )
-    mass = params.mass
+    mass = params.plant.mass
 
     def clean(a):  # NaN -> +inf ("unknown"), never NaN in a batch's results
         return jnp.where(jnp.isnan(a), jnp.inf, a)
@@ -309,7 +309,7 @@ def _speed(loop: Loop, x):
 
 def _isp(params):
     """Specific impulse [s] of the thrusters (1 without thrusters: no propellant is used)."""
-    thr = params.thrusters
+    thr = params.plant.thrusters
     return jnp.asarray(1.0) if thr is None else thr.isp_s
 
 

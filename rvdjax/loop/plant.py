@@ -13,13 +13,57 @@ axes, then the Gauss-Markov thrust-amplitude error on every axis.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, NamedTuple
+
 import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.actuators.response import pulse_response, pulse_segments
 from rvdjax.propagate import propagate_step
 
-__all__ = ["TRUTHS", "truth_step", "truth_step_pulses", "impulse_per_unit"]
+if TYPE_CHECKING:
+    from rvdjax.actuators.thrusters import Thrusters
+    from rvdjax.disturbances import Disturbances
+    from rvdjax.propagate import Drag, Orbit
+
+__all__ = ["Plant", "with_plant", "TRUTHS", "truth_step", "truth_step_pulses", "impulse_per_unit"]
+
+
+class Plant(NamedTuple):
+    """The vehicle and its surroundings as the truth flies them: one field of every guidance
+    family's traced parameters (``params.plant``), the only part of them the loop kernel reads.
+
+    Attributes:
+        mass: the chaser's mass [kg] (impulse <-> delta-v, the nonlinear truths' accelerations).
+        orbit: the target's inertial orbit (:class:`~rvdjax.propagate.Orbit`, the nonlinear
+            truths' initial condition); None for a family flown on its linear model only.
+        drag: differential drag (:class:`~rvdjax.propagate.Drag`, truth
+            ``two-body-j2-drag``); None without.
+        disturbances: navigation noise, thrust error and minimum impulse bit
+            (:class:`~rvdjax.disturbances.Disturbances`, disturbed runs); None without.
+        Ac, Bc: the continuous model and its force input [N, N m] -> state rate: the linear
+            truth's response to thruster pulses (:mod:`rvdjax.actuators.response`).
+        thrusters: the vehicle's thrusters (:class:`~rvdjax.actuators.thrusters.Thrusters`,
+            runs with thrusters); None: ideal forces.
+    """
+
+    mass: jnp.ndarray
+    orbit: Orbit | None = None
+    drag: Drag | None = None
+    disturbances: Disturbances | None = None
+    Ac: jnp.ndarray | None = None
+    Bc: jnp.ndarray | None = None
+    thrusters: Thrusters | None = None
+
+    # provenance (rvdjax.provenance.canonical) stores these fields as the parameters' own, as
+    # they were before the record, so that stored definitions of runs keep their meaning
+    STORED_FLAT = True
+
+
+def with_plant(params, **fields):
+    """``params`` with the named :class:`Plant` fields replaced (``thrusters=...``)."""
+    return params._replace(plant=params.plant._replace(**fields))
+
 
 TRUTHS = ("linear", "two-body", "two-body-j2", "two-body-j2-drag")
 
@@ -29,7 +73,7 @@ def impulse_per_unit(layout, mass, dt):
     return dt if layout.input == "force" else mass
 
 
-def truth_step(layout, truth: str, substeps: int, A, B, params, orbit, x, u, dt):
+def truth_step(layout, truth: str, substeps: int, A, B, plant, orbit, x, u, dt):
     """(x_next, orbit_next) of the truth after applying ``u`` for one step of ``dt`` [s].
 
     Args:
@@ -37,19 +81,19 @@ def truth_step(layout, truth: str, substeps: int, A, B, params, orbit, x, u, dt)
         truth: one of :data:`TRUTHS` (static).
         substeps: RK4 steps per sample for the nonlinear truths (static).
         A, B: the discrete model of the step (linear truth).
-        params: the family parameters (``mass``, ``drag``).
+        plant: the :class:`Plant` (``mass``, ``drag``).
         orbit: the target's inertial state (nonlinear truths) or None.
     """
     if truth == "linear":
         return A @ x + B @ u, orbit
     j2 = truth != "two-body"
-    drag = params.drag if truth == "two-body-j2-drag" else None
+    drag = plant.drag if truth == "two-body-j2-drag" else None
     if layout.input == "force":
-        orbit_next, x_next = propagate_step(orbit, x, u, params.mass, dt, substeps, j2, drag)
+        orbit_next, x_next = propagate_step(orbit, x, u, plant.mass, dt, substeps, j2, drag)
     else:  # impulse at the step start (paper 003 Eq. 3.1), then both bodies coast for Ts
         vel = jnp.asarray(layout.vel)
         orbit_next, x_next = propagate_step(
-            orbit, x.at[vel].add(u), jnp.zeros_like(u), params.mass, dt, substeps, j2, drag
+            orbit, x.at[vel].add(u), jnp.zeros_like(u), plant.mass, dt, substeps, j2, drag
         )
     return x_next, orbit_next
 
@@ -58,7 +102,7 @@ def truth_step_pulses(
     truth: str,
     substeps: int,
     A,
-    params,
+    plant,
     orbit,
     x,
     pulses,
@@ -70,8 +114,8 @@ def truth_step_pulses(
     """(x_next, orbit_next) of the truth under valve pulses (:mod:`rvdjax.actuators`).
 
     Linear truth: A x plus the exact forced response of the pulses
-    (:func:`rvdjax.actuators.response.pulse_response`, continuous model ``params.Ac``,
-    ``params.Bc``). Nonlinear truths: RK4 over the constant-thrust segments between valve
+    (:func:`rvdjax.actuators.response.pulse_response`, continuous model ``plant.Ac``,
+    ``plant.Bc``). Nonlinear truths: RK4 over the constant-thrust segments between valve
     closings (``substeps`` RK4 steps each), the force held in the LVLH frame.
 
     Args:
@@ -82,15 +126,15 @@ def truth_step_pulses(
             the nonlinear truths then cut it at the valve closings only.
     """
     if truth == "linear":
-        return A @ x + pulse_response(params.Ac, params.Bc, dt, pulses, g, grid), orbit
+        return A @ x + pulse_response(plant.Ac, plant.Bc, dt, pulses, g, grid), orbit
     j2 = truth != "two-body"
-    drag = params.drag if truth == "two-body-j2-drag" else None
+    drag = plant.drag if truth == "two-body-j2-drag" else None
     durations, forces = pulse_segments(pulses, g, dt, from_start)
 
     def seg(carry, piece):
         o, xc = carry
         h, f = piece
-        o2, x2 = propagate_step(o, xc, f, params.mass, h, substeps, j2, drag)
+        o2, x2 = propagate_step(o, xc, f, plant.mass, h, substeps, j2, drag)
         return (o2, x2), None
 
     (orbit_next, x_next), _ = lax.scan(seg, (orbit, x), (durations, forces))

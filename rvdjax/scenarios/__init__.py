@@ -23,6 +23,7 @@ from rvdjax.actuators.thrusters import ThrusterSet
 from rvdjax.families import get_family
 from rvdjax.loop.family import Family
 from rvdjax.loop.kernel import Loop, LoopConfig
+from rvdjax.loop.plant import with_plant
 from rvdjax.scenarios.flight import Flight, FlightOptions
 from rvdjax.solver import SolverParams, SolverSettings
 
@@ -108,7 +109,7 @@ class Scenario:
     def build(self, thrusters: bool | ThrusterSet = False, **overrides):
         """(params, x0): the family's checked traced parameters and the initial state.
         ``overrides`` change physical values (and ``x0``) before the checks. ``thrusters``:
-        attach the scenario's thruster set (True) or the given one (``params.thrusters``);
+        attach the scenario's thruster set (True) or the given one (``params.plant.thrusters``);
         overrides named in :data:`THRUSTER_KEYS` change the set's values and dispersions."""
         physical = {**self.physical, **overrides}
         x0 = np.asarray(physical.pop("x0", self.x0), dtype=float)
@@ -129,11 +130,11 @@ class Scenario:
                 disp["misalignment"] = disp["misalignment"].reshape(tset.n, 3)
             if "fault" in disp:
                 disp["fault"] = disp["fault"].astype(int)
-            params = params._replace(thrusters=tset.build(**disp))
-            if params.Ac is not None:
+            params = with_plant(params, thrusters=tset.build(**disp))
+            if params.plant.Ac is not None:
                 from rvdjax.actuators.response import check_series
 
-                check_series(params.Ac, params.ts)
+                check_series(params.plant.Ac, params.ts)
         return params, x0
 
     def thruster_nominal(self, key: str):
@@ -240,9 +241,9 @@ class Scenario:
 
     def check(self, params, x0, loop: Loop) -> None:
         """Configuration-dependent checks of the family (ValueError before anything runs)."""
-        if loop.config.truth != "linear" and params.orbit is None:
+        if loop.config.truth != "linear" and params.plant.orbit is None:
             raise ValueError(f"truth={loop.config.truth!r} needs the target's orbit")
-        if loop.config.disturbed and params.disturbances is None:
+        if loop.config.disturbed and params.plant.disturbances is None:
             raise ValueError("a disturbed run needs disturbance parameters")
         if self.guidance_family.check is not None:
             self.guidance_family.check(params, x0, loop.config)

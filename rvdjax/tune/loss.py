@@ -102,12 +102,12 @@ def _effort(loop: Loop, params, infos: StepInfo, effort_key: str):
     act = infos.active[:, None]
     if lay.input == "force":
         imp = u * infos.dt[:, None]
-        dv = imp / params.mass
+        dv = imp / params.plant.mass
     else:  # impulsive: u is a delta-v applied at the step start
         dv = jnp.where(act, u, 0.0)
-        imp = dv * params.mass
+        imp = dv * params.plant.mass
     if effort_key == "delta_v_m_s":
-        per = _smooth_l2(imp) / params.mass if lay.input == "force" else _smooth_l2(dv)
+        per = _smooth_l2(imp) / params.plant.mass if lay.input == "force" else _smooth_l2(dv)
     elif effort_key == "effort_l1_N_s":
         per = _smooth_l1(imp)
     elif effort_key == "total_impulse_N_s":

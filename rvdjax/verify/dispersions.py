@@ -38,6 +38,7 @@ import numpy as np
 from jax.scipy.stats import norm
 
 from rvdjax.disturbances import Draws
+from rvdjax.loop.plant import with_plant
 
 __all__ = ["Component", "Dispersion", "parse_dispersion", "COMPONENTS"]
 
@@ -104,7 +105,7 @@ class Dispersion:
         x0 = jnp.asarray(x0, xi.dtype)
         draws = {}
         scale = None
-        thr = getattr(params, "thrusters", None)
+        thr = params.plant.thrusters
         i = 0
         for c in self.components:
             z = xi[i : i + c.dim]
@@ -151,10 +152,10 @@ class Dispersion:
         if scale is not None:
             draws["input_scale"] = scale
         if draws:
-            d = params.disturbances._replace(draws=Draws(**draws))
-            params = params._replace(disturbances=d)
-        if thr is not None and thr is not getattr(params, "thrusters", None):
-            params = params._replace(thrusters=thr)
+            d = params.plant.disturbances._replace(draws=Draws(**draws))
+            params = with_plant(params, disturbances=d)
+        if thr is not None and thr is not params.plant.thrusters:
+            params = with_plant(params, thrusters=thr)
         return x0, params
 
     def batch_apply(self, xis, x0, params, layout):
