@@ -41,3 +41,20 @@ def test_the_guide_family_checks_its_inputs():
     with pytest.raises(ValueError, match=r"u_max must be finite and in \(0, inf\) N"):
         DI.make_params(u_max=-1.0)
     assert DI.FAMILY.schema.names[:3] == ("mass", "ts", "u_max")
+
+
+def test_a_family_without_a_plant_is_refused_when_traced():
+    """The kernel reads only params.plant: parameters without a Plant are refused by name."""
+    from typing import NamedTuple
+
+    from rvdjax.loop.kernel import init
+
+    params = DI.make_params()
+
+    class NoPlant(NamedTuple):
+        A: object
+        mass: object
+
+    loop = Loop(DI.FAMILY, LoopConfig(family_config=DI.Config(N=8), n_steps=3))
+    with pytest.raises(TypeError, match=r"need a field plant: rvdjax\.loop\.plant\.Plant"):
+        init(loop, NoPlant(params.A, params.plant.mass), np.zeros(2))

@@ -146,3 +146,25 @@ def test_a_renamed_field_keeps_its_stored_name():
     stored = canonical(SCENARIOS["thesis-vbar"].loop().config)
     assert "family" in stored and "family_config" not in stored
     assert stored["family"]["between_samples"] is True
+
+
+def test_the_plant_record_is_stored_as_the_parameters_own_fields():
+    """Params.plant (rvdjax.loop.plant.Plant) is stored flat, as the fields were before the
+    record, so definitions stored before it keep their digest: the nested parameters hash as
+    a flat record of the same values built here by hand."""
+    from collections import namedtuple
+
+    from rvdjax.provenance import canonical, digest
+    from rvdjax.scenarios import SCENARIOS
+
+    params, _ = SCENARIOS["thesis-vbar"].build(thrusters=True)
+    stored = canonical(params)
+    assert "plant" not in stored
+    assert {"mass", "orbit", "drag", "disturbances", "Ac", "Bc", "thrusters"} <= set(stored)
+    names = [n for n in params._fields if n != "plant"] + list(params.plant._fields)
+    Flat = namedtuple("Flat", names)
+    flat = Flat(*[getattr(params, n) for n in params._fields if n != "plant"], *params.plant)
+    assert digest(params) == digest(flat)
+    # and the stored values are the plant's: another mass is another definition
+    other = params._replace(plant=params.plant._replace(mass=params.plant.mass + 1.0))
+    assert digest(other) != digest(params)

@@ -7,7 +7,7 @@ on an H100 where its ~30 KB of traffic needs 10-20 ns (DESIGN §8a). Here the wh
 is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU solvers do
 (GATO, CusADi: one instance per thread, the stages in a loop inside the kernel):
 
-* the batch is the minor axis: every array is laid out [stage][entry][problem] and a program
+* the batch is the minor axis: every array is laid out `[stage][entry][problem]` and a program
   owns a tile of ``BLOCK`` consecutive problems, so each load of one matrix entry is one
   coalesced vector load across the tile;
 * the 6x6, 6x3 and 3x3 algebra is written out entry by entry over those lane vectors
