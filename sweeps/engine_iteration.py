@@ -26,7 +26,7 @@ import numpy as np
 from jax import lax
 
 from rvdjax.bench import perturbed_states
-from rvdjax.loop.engine.program import _strip_model, _with_model
+from rvdjax.loop.engine.slots import _strip_model, _with_model
 from rvdjax.loop.kernel import Prepared, advance, init, metrics, prepare
 from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver.driver import finish, iterate, start

@@ -165,7 +165,7 @@ def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
     ]
     out = run_stream(
         LOOP,
-        E.program._pick_arrays,
+        E.slots._pick_arrays,
         blocks,
         len(X0S),
         params=PARAMS,
@@ -177,10 +177,10 @@ def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
     # the lanes, segment by segment (the program of test_same_bits_whatever_the_batching)
     cfg = EngineConfig(slots=12, chunk=CHUNK, iterations=2, ticks_per_segment=7)
     source = arrays_source(X0S)
-    eng = E.program._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
+    eng = E.slots._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
     seg = E.program._build(LOOP, cfg, source.fn)
     block = Block(None, 0, len(X0S))
-    limit = jnp.asarray(E.program._block_limit(cfg, block, [3, 3, 3, 3], len(X0S)))
+    limit = jnp.asarray(E.segment._block_limit(cfg, block, [3, 3, 3, 3], len(X0S)))
     one, zero = jnp.int32(1), jnp.int32(0)
     seen = set()
     for _ in range(30):
@@ -195,7 +195,7 @@ def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
 def test_a_deadline_stops_the_engine_between_segments():
     out = run_stream(
         LOOP,
-        E.program._pick_arrays,
+        E.slots._pick_arrays,
         [Block(arrays_source(X0S).data, 0, len(X0S))],
         len(X0S),
         params=PARAMS,

@@ -42,8 +42,10 @@ as every run of the current block has been handed out.
 on an accelerator the slots from its memory, one chunk, the compacted refresh); its
 :attr:`EngineConfig.chosen` says what it chose and why.
 
-The modules: :mod:`.config` (the settings and their defaults per device), :mod:`.program`
-(the device program: slots, ticks, segments) and :mod:`.stream` (the host's loop around it).
+The modules: :mod:`.config` (the settings and their defaults per device), :mod:`.slots`
+(the slots, the engine's state and the queue's inputs), :mod:`.segment` (the ticks of a
+segment on a device), :mod:`.program` (the compiled programs) and :mod:`.stream` (the host's
+loop around them).
 """
 
 from __future__ import annotations
@@ -65,13 +67,13 @@ from rvdjax.loop.engine.config import (
     auto_config,
     default_platform,
 )
-from rvdjax.loop.engine.program import (
+from rvdjax.loop.engine.program import segment_program
+from rvdjax.loop.engine.slots import (
     Block,
     EngineState,
     Slot,
     Source,
     arrays_source,
-    segment_program,
     slot_bytes,
 )
 from rvdjax.loop.engine.stream import (

@@ -14,20 +14,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax.loop.engine.config import EngineConfig, auto_config
-from rvdjax.loop.engine.program import (
+from rvdjax.loop.engine.program import _build, _compact_jit, _gather, segment_program
+from rvdjax.loop.engine.segment import _block_limit, _local_end, _positions
+from rvdjax.loop.engine.slots import (
     Block,
     Source,
-    _block_limit,
-    _build,
-    _compact_jit,
     _devices,
-    _gather,
     _initial_state,
     _initial_state_one,
-    _local_end,
-    _positions,
     arrays_source,
-    segment_program,
     slot_bytes,
 )
 from rvdjax.loop.kernel import (
