@@ -14,7 +14,7 @@ options"):
   threshold is compiled into one function instead. 100 MB hoists every loop rvdjax runs.
   The hoisted code contracts multiplies and adds into FMAs in other places than the
   dispatched kernels do, which moved the last bits of the Riccati recursion's triangular
-  solves; the solver is written to be insensitive to that (:mod:`rvdjax.solver.kkt`).
+  solves; the solver is written to be insensitive to that (:mod:`rvdjax.solver.riccati`).
 - ``--xla_cpu_prefer_vector_width=512``, on CPUs with AVX-512 only. LLVM's default for x86
   is 256-bit vectors; a chunk's arrays carry 32 slots on their last axis, four 512-bit
   vectors of float64.

@@ -5,7 +5,7 @@ batch sizes on random stage data of ``fastmpc-3d``'s size (N = 30, nx = 6, nu = 
 * ``dot``: matrix products (``dot_general``), the batch first under ``vmap``;
 * ``elementwise``: every product a broadcast multiply and a sum over the contracted axis, the
   batch first under ``vmap``;
-* ``rvdjax``: :func:`rvdjax.solver.kkt.riccati_factor` / ``riccati_apply`` as the solver
+* ``rvdjax``: :func:`rvdjax.solver.riccati.riccati_factor` / ``riccati_apply`` as the solver
   calls them: the elementwise form unbatched and, under ``vmap``, with the batch moved last
   (up to ``BATCH_LAST_MAX`` problems) or the elementwise form with the batch first (more).
 
@@ -23,25 +23,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rvdjax.solver import kkt as K
+from rvdjax.solver import riccati as R
 
 
 def _form(products):
     def solve(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-        f = K._factor(A, B, Phi_u, Phi_x, products)
-        s1 = K._apply(f, g_u, g_x, rp, products)
-        return K._apply(f, g_u + s1.du, g_x, rp, products)
+        f = R._factor(A, B, Phi_u, Phi_x, products)
+        s1 = R._apply(f, g_u, g_x, rp, products)
+        return R._apply(f, g_u + s1.du, g_x, rp, products)
 
     return solve
 
 
 def rvdjax_form(A, B, Phi_u, Phi_x, g_u, g_x, rp):
-    f = K.riccati_factor(A, B, Phi_u, Phi_x)
-    s1 = K.riccati_apply(f, g_u, g_x, rp)
-    return K.riccati_apply(f, g_u + s1.du, g_x, rp)
+    f = R.riccati_factor(A, B, Phi_u, Phi_x)
+    s1 = R.riccati_apply(f, g_u, g_x, rp)
+    return R.riccati_apply(f, g_u + s1.du, g_x, rp)
 
 
-FORMS = {"dot": _form(K._DOT), "elementwise": _form(K._ELEMENTWISE), "rvdjax": rvdjax_form}
+FORMS = {"dot": _form(R._DOT), "elementwise": _form(R._ELEMENTWISE), "rvdjax": rvdjax_form}
 
 
 def problems(batch: int, N=30, nx=6, nu=3, seed=0):

@@ -12,6 +12,7 @@ import pytest
 
 from rvdjax.solver import kkt as K
 from rvdjax.solver import lanes
+from rvdjax.solver.riccati import BATCH_LAST_MAX
 
 N, NX, NU = 6, 4, 2
 
@@ -77,9 +78,7 @@ def _compiled(kernel):
 FORMS = {"xla": _compiled("xla"), "pallas": _compiled("pallas")}
 
 
-@pytest.mark.parametrize(
-    "kernel, batch", [("xla", 3), ("xla", K.BATCH_LAST_MAX + 5), ("pallas", 11)]
-)
+@pytest.mark.parametrize("kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas", 11)])
 def test_every_form_solves_the_kkt_system(kernel, batch):
     """Unbatched, a small batch (XLA: batch last) and a large one (XLA: batch first, above
     BATCH_LAST_MAX; the GPU kernels, interpreted: more than one tile of lanes, the last

@@ -3,7 +3,7 @@
 Paper 000 Sec. III (after Wang & Boyd, "Fast model predictive control using online
 optimization"): the inequalities are replaced by a log barrier weighted by kappa (Eq. 17) and
 the equality-constrained barrier problem is solved by the infeasible-start Newton method
-(Eqs. 18-23, Algorithm 1) with a structured step (Eqs. 24-26, :mod:`rvdjax.solver.kkt`).
+(Eqs. 18-23, Algorithm 1) with a structured step (Eqs. 24-26, :mod:`rvdjax.solver.riccati`).
 
 Three modes (DESIGN §3):
 
@@ -19,7 +19,8 @@ Three modes (DESIGN §3):
   (:mod:`.newton`).
 
 Modules: :mod:`.types` (settings, traced parameters, results), :mod:`.barrier` (cost, barrier
-and residuals), :mod:`.kkt` (the structured and dense Newton step), :mod:`.start` (starting
+and residuals), :mod:`.kkt` (the Newton step: its interface and the dense solve),
+:mod:`.riccati` (the structured Newton step and its batching rules), :mod:`.start` (starting
 points and warm starts), :mod:`.newton` and :mod:`.primal_dual` (iterations), :mod:`.driver`
 (start / iterate / finish and :func:`solve`), :mod:`.implicit` (the implicit derivative),
 :mod:`.clarabel` (the Clarabel backend).

@@ -1,6 +1,6 @@
 """The Riccati factorisation and solves of the Newton step as GPU kernels, one problem per lane.
 
-On a GPU the XLA form of the recursion (:mod:`rvdjax.solver.kkt`) is a ``lax.scan`` over the
+On a GPU the XLA form of the recursion (:mod:`rvdjax.solver.riccati`) is a ``lax.scan`` over the
 horizon whose body becomes several small kernels per stage, every stage's blocks passing
 through device memory between them: at 65 536 problems an iteration took ~717 ns per problem
 on an H100 where its ~30 KB of traffic needs 10-20 ns (DESIGN §8a). Here the whole recursion
@@ -19,7 +19,7 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
 Three kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
 right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
-compute the recursion of :mod:`rvdjax.solver.kkt` in the same order (the Joseph form, the
+compute the recursion of :mod:`rvdjax.solver.riccati` in the same order (the Joseph form, the
 refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
 runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``:
 on one H100 (jax 0.11.2, CUDA 13) Triton did not finish compiling them within 165 s, so the
@@ -93,7 +93,7 @@ def configured(**changes):
 #
 # A matrix is a list of rows, each a list of entries; an entry is anything that broadcasts
 # (a lane vector, a scalar of a shared model, a traced array with trailing batch axes). Sums
-# run left to right from 0, as the elementwise products of :mod:`rvdjax.solver.kkt` do.
+# run left to right from 0, as the elementwise products of :mod:`rvdjax.solver.riccati` do.
 
 
 def _dot(xs, ys):
@@ -172,7 +172,7 @@ def _split(M, nu):
 
 
 def _factor_stage(P, M, Phu, Phx_prev):
-    """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.kkt.riccati_factor`'s stage.
+    """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.riccati.riccati_factor`'s stage.
     M is the stage's [B, A]."""
     nu = len(Phu)
     A, B = _split(M, nu)
@@ -182,7 +182,7 @@ def _factor_stage(P, M, Phu, Phx_prev):
     L = chol(H)
     BPA = [row[nu:] for row in BPM]
     K = [[-v for v in row] for row in _chol_solve_mat(L, BPA)]
-    # one refinement of K against H (the reason is in rvdjax.solver.kkt._factor)
+    # one refinement of K against H (the reason is in rvdjax.solver.riccati._factor)
     E = _chol_solve_mat(L, _add(_mm(H, K), BPA))
     K = [[k - e for k, e in zip(rk, re, strict=True)] for rk, re in zip(K, E, strict=True)]
     PAcl = _add([row[nu:] for row in PM], _mm([row[:nu] for row in PM], K))
@@ -192,7 +192,7 @@ def _factor_stage(P, M, Phu, Phx_prev):
 
 
 def _backward_rhs(p, M, L, BPA, P, gu, r, gx_prev):
-    """(p_t, k_t) from p_{t+1}: :func:`rvdjax.solver.kkt.riccati_apply`'s backward stage."""
+    """(p_t, k_t) from p_{t+1}: :func:`rvdjax.solver.riccati.riccati_apply`'s backward stage."""
     nu = len(L)
     Pr = _mv(P, r)
     Mp = _mtv(M, [pi - q for pi, q in zip(p, Pr, strict=True)])

@@ -180,7 +180,7 @@ def pd_iteration(
     step = kkt_solve(kkt, g_u, g_x, rp, method, kernel)
     # The corrector's step is the one taken. Near the solution the Newton matrix is as
     # ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's residual
-    # depends on how XLA contracts its products (kkt.py): with loops compiled whole, 4 of 32
+    # depends on how XLA contracts its products (riccati.py): with loops compiled whole, 4 of 32
     # random N = 60 problems ended NONFINITE without this refinement step.
     step = kkt_refine(kkt, g_u, g_x, rp, step, method, kernel)
     step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)

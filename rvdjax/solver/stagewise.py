@@ -7,7 +7,7 @@ vector. Written as ``einsum`` these are batched matrix products with a batch of 
 under ``vmap``, of problems) of 3-12 wide blocks; XLA's CPU backend runs each as its own
 product kernel with layout copies around it. As a multiply and a sum over the contracted axis
 they are plain loops that XLA fuses with the elementwise work around them (the same reason
-as the Riccati recursion's elementwise form in :mod:`rvdjax.solver.kkt`; measured in
+as the Riccati recursion's elementwise form in :mod:`rvdjax.solver.riccati`; measured in
 docs/benchmark.md). Leading axes are indexed only through negative positions, so a block
 shared by every problem of a batch (no batch axis) broadcasts against batched vectors.
 """

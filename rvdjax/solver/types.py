@@ -21,7 +21,7 @@ MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
-KERNELS = ("auto", "xla", "pallas")  # rvdjax.solver.kkt.KERNELS
+KERNELS = ("auto", "xla", "pallas")  # rvdjax.solver.riccati.KERNELS
 
 
 class Status:

@@ -1,0 +1,467 @@
+"""The structured Newton step: the Riccati recursion on the KKT system of
+:mod:`rvdjax.solver.kkt`, and the batching rules that run it on XLA's loops or the GPU kernels.
+
+:func:`riccati_solve` eliminates the system stage by stage (a discrete Riccati recursion on
+the KKT system, equivalent to the block Cholesky factorisation of Y = C Phi^-1 C^T of
+paper 000 Eqs. 24-26): O(N (nx + nu)^3) work, `lax.scan` over stages, no dense matrix. Under
+``vmap``, custom batching rules choose the layout (batch axis last or first) or the kernels of
+:mod:`rvdjax.solver.lanes`; derivatives are those of the dot form. Notation and sign
+convention as in :mod:`rvdjax.solver.kkt`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from rvdjax.solver import lanes
+
+__all__ = [
+    "NewtonStep",
+    "RiccatiFactor",
+    "riccati_factor",
+    "riccati_apply",
+    "riccati_solve",
+    "KERNELS",
+    "riccati_factor_solve",
+]
+
+
+class NewtonStep(NamedTuple):
+    """Solution of one KKT system.
+
+    Attributes:
+        du: (N, nu) input step.
+        dx: (N, nx) state step (dx[t] is the step of x_{t+1}).
+        nu: (N, nx) new dynamics multipliers (nu + dnu).
+    """
+
+    du: jnp.ndarray
+    dx: jnp.ndarray
+    nu: jnp.ndarray
+
+
+def _sym(M):
+    return 0.5 * (M + jnp.swapaxes(M, 0, 1))
+
+
+class RiccatiFactor(NamedTuple):
+    """Stage-wise factorisation of the KKT matrix (independent of the right-hand side).
+
+    Attributes:
+        M: (N, nx, nu + nx) the stage dynamics [B_t, A_t].
+        L: (N, nu, nu) Cholesky factor of the reduced Hessian Phi_u + B^T P_{t+1} B.
+        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t.
+        BPA: (N, nu, nx) B_t^T P_{t+1} A_t.
+        P: (N, nx, nx) cost-to-go Hessian P_{t+1} of x_{t+1}.
+    """
+
+    M: jnp.ndarray
+    L: jnp.ndarray
+    K: jnp.ndarray
+    BPA: jnp.ndarray
+    P: jnp.ndarray
+
+
+def _small_chol(H):
+    """Cholesky of a small SPD matrix written out element by element
+    (:func:`rvdjax.solver.lanes.chol`).
+
+    Under ``vmap`` each entry becomes one vector operation over the batch; XLA's batched
+    LAPACK call costs more than the arithmetic at these sizes. NaN if H is not SPD. Indexes
+    the two leading axes only, so H may carry trailing batch axes.
+    """
+    n = H.shape[0]
+    L = lanes.chol([[H[i, j] for j in range(n)] for i in range(n)])
+    zero = jnp.zeros_like(H[0, 0])
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def _chol_solve(L, b):
+    """Solve (L L^T) X = b for small lower-triangular L; b of shape (n,) or (n, k) (and the
+    same trailing batch axes as L, if any)."""
+    n = L.shape[0]
+    return jnp.stack(lanes.chol_solve([[L[i, j] for j in range(n)] for i in range(n)], list(b)))
+
+
+# --------------------------------------------------------------- products, two formulations
+#
+# The recursion below is written once over four small products. ``_DOT`` uses matrix
+# products (``dot_general``: what XLA handles best for batches kept first and large).
+# ``_ELEMENTWISE`` writes each product as a broadcast multiply and a sum over the contracted
+# axis, indexing leading axes only, so the same code runs on one problem or on arrays with a
+# trailing batch axis, where every operation vectorises over the batch. Per problem (N = 30,
+# nx = 6, nu = 3, one factorisation and two solves): sweeps/kkt_layouts.py, docs/benchmark.md.
+
+
+class _Products(NamedTuple):
+    mm: Any  # X @ Y
+    mtm: Any  # X^T @ Y
+    mv: Any  # X @ v
+    mtv: Any  # X^T @ v
+
+
+_DOT = _Products(
+    mm=lambda X, Y: X @ Y,
+    mtm=lambda X, Y: X.T @ Y,
+    mv=lambda X, v: X @ v,
+    mtv=lambda X, v: X.T @ v,
+)
+_ELEMENTWISE = _Products(
+    mm=lambda X, Y: jnp.sum(X[:, :, None] * Y[None, :, :], axis=1),
+    mtm=lambda X, Y: jnp.sum(X[:, :, None] * Y[:, None, :], axis=0),
+    mv=lambda X, v: jnp.sum(X * v[None, :], axis=1),
+    mtv=lambda X, v: jnp.sum(X * v[:, None], axis=0),
+)
+
+
+def _shift(a):
+    """(a_0, ..., a_{N-1}) -> (0, a_0, ..., a_{N-2}) along the stage axis."""
+    return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
+
+
+def _factor(A, B, Phi_u, Phi_x, ops: _Products) -> RiccatiFactor:
+    nu = B.shape[2]
+    batch = jnp.broadcast_shapes(A.shape[3:], B.shape[3:])
+    A = jnp.broadcast_to(A, A.shape[:3] + batch)
+    B = jnp.broadcast_to(B, B.shape[:3] + batch)
+    M = jnp.concatenate([B, A], axis=2)
+
+    def backward(P, stage):
+        M_t, Phu, Phx = stage
+        B_t, A_t = M_t[:, :nu], M_t[:, nu:]
+        PM = ops.mm(P, M_t)  # [PB, PA]
+        BPM = ops.mtm(B_t, PM)  # [B'PB, B'PA]
+        H = Phu + _sym(BPM[:, :nu])
+        L = _small_chol(H)
+        BPA = BPM[:, nu:]
+        K = -_chol_solve(L, BPA)
+        # Late in a solve the barrier weights reach 1e9-1e12 and H's condition number
+        # follows. The two substitutions then move the last bits of their inputs into K's
+        # leading digits, and XLA may evaluate the same substitution with different
+        # FMA contractions in different consumers: with its loops compiled whole, K was
+        # 1e-9 away (backward error) from the H it came from and the factorisation
+        # broke down. One refinement step against H restores K to rounding level.
+        K = K - _chol_solve(L, ops.mm(H, K) + BPA)
+        # Joseph form (A + BK)' P (A + BK) + K' Phu K: a sum of PSD terms, so P stays PSD
+        # whatever K's rounding, and an error in K enters P at second order only (the
+        # subtractive form A'PA - A'PB H^-1 B'PA takes it at first order).
+        PAcl = PM[:, nu:] + ops.mm(PM[:, :nu], K)
+        Acl = A_t + ops.mm(B_t, K)
+        P_new = Phx + _sym(ops.mtm(Acl, PAcl)) + _sym(ops.mtm(K, ops.mm(Phu, K)))
+        return P_new, (L, K, BPA, P)
+
+    _, (L, K, BPA, P) = lax.scan(backward, Phi_x[-1], (M, Phi_u, _shift(Phi_x)), reverse=True)
+    return RiccatiFactor(M, L, K, BPA, P)
+
+
+def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
+    nu = f.L.shape[1]
+
+    def backward(p, stage):
+        M_t, L, BPA, P, gu, r, gx = stage
+        Mp = ops.mtv(M_t, p - ops.mv(P, r))
+        k = -_chol_solve(L, gu + Mp[:nu])
+        return gx + Mp[nu:] + ops.mtv(BPA, k), (k, p)
+
+    stages = (f.M, f.L, f.BPA, f.P, g_u, rp, _shift(g_x))
+    _, (k, p_next) = lax.scan(backward, g_x[-1], stages, reverse=True)
+
+    def forward(dx_t, stage):
+        M_t, K_t, k_t, r, P, p = stage
+        du = ops.mv(K_t, dx_t) + k_t
+        dx_next = ops.mv(M_t, jnp.concatenate([du, dx_t])) - r
+        return dx_next, (du, dx_next, -(ops.mv(P, dx_next) + p))
+
+    _, (du, dx, nu_new) = lax.scan(forward, jnp.zeros_like(rp[0]), (f.M, f.K, k, rp, f.P, p_next))
+    return NewtonStep(du, dx, nu_new)
+
+
+# ------------------------------------------------------------- batching and differentiation
+#
+# Unbatched, the elementwise form runs (fewer, fused operations on 6x6 blocks). Under
+# ``vmap`` (custom_vmap) a batch of at most BATCH_LAST_MAX problems moves its batch axis last
+# and runs the elementwise form; a larger batch runs the elementwise form with the batch first
+# (an ordinary vmap): past a few hundred problems the batch-last working set leaves the cache.
+# With XLA's loops compiled whole (rvdjax.xla_options) the elementwise form beats the dot form
+# at every batch size measured (sweeps/kkt_layouts.py, docs/benchmark.md). Derivatives
+# (custom_jvp) are those of the dot form: custom_vmap has no reverse-mode rule, and both
+# forms compute the same function.
+
+BATCH_LAST_MAX = 512
+
+
+def _full(axis_size, a, batched):
+    """``a`` with the batch axis first, broadcast if it had none."""
+    return a if batched else jnp.broadcast_to(a, (axis_size, *a.shape))
+
+
+def _to_last(a, batched=True):
+    if not batched:
+        return a[..., None]  # broadcasts against the batch inside the elementwise form
+    return jnp.moveaxis(a, 0, -1)
+
+
+def _to_first(a):
+    return jnp.moveaxis(a, -1, 0)
+
+
+def _first_vmap(fn, in_batched, args, out_batched):
+    """The elementwise form under an ordinary ``vmap`` (batches above BATCH_LAST_MAX)."""
+    axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
+    return jax.vmap(lambda *a: fn(*a, _ELEMENTWISE), in_axes=axes)(*args), out_batched
+
+
+def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
+    if axis_size > BATCH_LAST_MAX:
+        return _first_vmap(
+            _factor, in_batched, (A, B, Phi_u, Phi_x), RiccatiFactor(True, True, True, True, True)
+        )
+    bA, bB, bPu, bPx = in_batched
+    f = _factor(
+        _to_last(A, bA),
+        _to_last(B, bB),
+        _to_last(_full(axis_size, Phi_u, bPu)),
+        _to_last(_full(axis_size, Phi_x, bPx)),
+        _ELEMENTWISE,
+    )
+    m_batched = bool(bA or bB)
+    M = _to_first(f.M) if m_batched else f.M[..., 0]
+    out = RiccatiFactor(M, *(_to_first(a) for a in f[1:]))
+    return out, RiccatiFactor(m_batched, True, True, True, True)
+
+
+def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
+    if axis_size > BATCH_LAST_MAX:
+        return _first_vmap(_apply, in_batched, (f, g_u, g_x, rp), NewtonStep(True, True, True))
+    fb, bu, bx, br = in_batched
+    # every operand but M carries the batch
+    f = RiccatiFactor(
+        _to_last(f.M, fb.M),
+        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)),
+    )
+    g_u, g_x, rp = (_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br)))
+    out = _apply(f, g_u, g_x, rp, _ELEMENTWISE)
+    return NewtonStep(*(_to_first(a) for a in out)), NewtonStep(True, True, True)
+
+
+# ------------------------------------------------------------------- the GPU kernels' layout
+#
+# The kernels of :mod:`rvdjax.solver.lanes` take the batch as the minor axis. Under ``vmap``
+# the operands arrive batch first; they are moved last for the kernel and the results moved
+# back. Between a factorisation and its solves the two moves cancel (XLA folds a transpose of
+# a transpose), so the gains stay in the kernels' layout on the device.
+
+
+def _lane_cfg(interpret: bool):
+    return dataclasses.replace(lanes.default_config(), interpret=interpret)
+
+
+def _model_M(axis_size, A, B, bA, bB, batched: bool):
+    """[B, A] with the batch first when ``batched`` (else shared)."""
+    if batched:
+        A, B = _full(axis_size, A, bA), _full(axis_size, B, bB)
+    return jnp.concatenate([B, A], axis=-1)
+
+
+def _lane_M(M, batched: bool):
+    return _to_last(M) if batched else M
+
+
+def _pallas_factor_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
+    """The factorisation by the kernels (with a right-hand side ``rhs`` = g_u, g_x, rp: and
+    its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's."""
+    bA, bB, bPu, bPx = in_batched[:4]
+    flags = _factor_flags(axis_size, in_batched)
+    M = _model_M(axis_size, A, B, bA, bB, flags.M)
+    mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
+    cfg = _lane_cfg(interpret)
+    if not rhs:
+        f = lanes.factor(_lane_M(M, flags.M), *mats, cfg=cfg)
+        return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
+    vecs = [_to_last(_full(axis_size, a, b)) for a, b in zip(rhs, in_batched[4:], strict=True)]
+    f, s = lanes.factor_solve(_lane_M(M, flags.M), *mats, *vecs, cfg=cfg)
+    out = (RiccatiFactor(M, *(_to_first(a) for a in f)), NewtonStep(*(_to_first(a) for a in s)))
+    return out, (flags, NewtonStep(True, True, True))
+
+
+def _pallas_apply_rule(interpret, axis_size, in_batched, f, g_u, g_x, rp):
+    fb, bu, bx, br = in_batched
+    mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
+    vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
+    s = lanes.apply(_lane_M(f.M, fb.M), *mats, *vecs, cfg=_lane_cfg(interpret))
+    return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
+
+
+def _xla_factor_solve_rule(axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
+    f, fb = _xla_factor_rule(axis_size, in_batched[:4], A, B, Phi_u, Phi_x)
+    s, sb = _xla_apply_rule(axis_size, (fb, *in_batched[4:]), f, g_u, g_x, rp)
+    return (f, s), (fb, sb)
+
+
+def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
+    f = _factor(A, B, Phi_u, Phi_x, ops)
+    return f, _apply(f, g_u, g_x, rp, ops)
+
+
+KERNELS = ("auto", "xla", "pallas")
+
+
+def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
+    """Which factor fields carry the batch (the same for both forms: the XLA rule above
+    BATCH_LAST_MAX returns M batched)."""
+    if axis_size > BATCH_LAST_MAX:
+        return RiccatiFactor(True, True, True, True, True)
+    bA, bB = in_batched[:2]
+    return RiccatiFactor(bool(bA or bB), True, True, True, True)
+
+
+def _by_platform(kernel: str, xla, pallas, *args):
+    """``xla(*args)`` or ``pallas(interpret, *args)``: "auto" and "xla" run XLA's loops on
+    every platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted
+    elsewhere (the tests).
+
+    "auto" stays on XLA's loops on a GPU too: on one H100 (jax 0.11.2, CUDA 13, 2026-11-26)
+    Triton did not finish compiling the paper-mode kernel within 165 s (XLA's slow-compile
+    alarm), against 5 s for the XLA program (docs/benchmark.md). The kernels are opt-in until
+    they compile in seconds."""
+    if kernel != "pallas":
+        return xla(*args)
+    return lax.platform_dependent(
+        *args, cuda=functools.partial(pallas, False), default=functools.partial(pallas, True)
+    )
+
+
+# op: (unbatched XLA form, XLA vmap rule, kernels' vmap rule); a rule returns (out, flags)
+_OPS = {
+    "factor": (functools.partial(_factor, ops=_ELEMENTWISE), _xla_factor_rule, _pallas_factor_rule),
+    "apply": (functools.partial(_apply, ops=_ELEMENTWISE), _xla_apply_rule, _pallas_apply_rule),
+    "factor_solve": (
+        functools.partial(_factor_solve, ops=_ELEMENTWISE),
+        _xla_factor_solve_rule,
+        _pallas_factor_rule,
+    ),
+}
+
+
+@functools.cache
+def _batched(op: str, kernel: str):
+    """The recursion ``op`` as a custom_vmap function dispatching on ``kernel``: unbatched,
+    the kernels run a batch of one; under vmap, the rules above (the batch dimension of each
+    output is the same whichever form runs)."""
+    xla_fn, xla_rule, pallas_rule = _OPS[op]
+
+    def flags(axis_size, in_batched):
+        shapes = (axis_size, in_batched)
+        if op == "factor":
+            return _factor_flags(*shapes)
+        if op == "apply":
+            return NewtonStep(True, True, True)
+        return _factor_flags(*shapes), NewtonStep(True, True, True)
+
+    def one(interpret, *args):
+        batched = jax.tree.map(lambda _: True, args)
+        out, _ = pallas_rule(interpret, 1, batched, *jax.tree.map(lambda a: a[None], args))
+        return jax.tree.map(lambda a: a[0], out)
+
+    @jax.custom_batching.custom_vmap
+    def fn(*args):
+        return _by_platform(kernel, xla_fn, one, *args)
+
+    @fn.def_vmap
+    def rule(axis_size, in_batched, *args):
+        out = _by_platform(
+            kernel,
+            lambda *a: xla_rule(axis_size, in_batched, *a)[0],
+            lambda i, *a: pallas_rule(i, axis_size, in_batched, *a)[0],
+            *args,
+        )
+        return out, flags(axis_size, in_batched)
+
+    return fn
+
+
+def _dot_derivative(fn):
+    """A custom_jvp rule: the derivative of ``fn``'s dot form (``kernel`` is not
+    differentiated)."""
+
+    def jvp(kernel, primals, tangents):
+        return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
+
+    return jvp
+
+
+def _check_kernel(kernel):
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
+    """Backward Riccati sweep over the KKT matrix (paper 000 Eqs. 24-26 by stage elimination).
+
+    The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx with P_N = Phi_x[N-1] and
+    P_t = Phi_x[t-1] + A^T P A - A^T P B H^-1 B^T P A, H = Phi_u + B^T P B, evaluated in the
+    equal Joseph form Phi_x[t-1] + (A + B K)^T P (A + B K) + K^T Phi_u K with the gain
+    K = -H^-1 B^T P A refined once against H (the reasons are in the code).
+
+    Args:
+        A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
+        Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
+            Phi_x positive semidefinite).
+        kernel: "auto" or "xla" (XLA's loops) or "pallas" (the kernels of
+            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere).
+    """
+    _check_kernel(kernel)
+    return _batched("factor", kernel)(A, B, Phi_u, Phi_x)
+
+
+riccati_factor.defjvp(_dot_derivative(_factor))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
+def riccati_apply(f: RiccatiFactor, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
+    """Solve the factorised KKT system for one right-hand side (g_u, g_x, rp).
+
+    A backward sweep for the affine terms (p_t, k_t) and a forward sweep for the step:
+    du_t = K_t dx_t + k_t, dx_{t+1} = A dx_t + B du_t - rp_t, nu+_t = -(P_{t+1} dx_{t+1} +
+    p_{t+1}). ``kernel`` as :func:`riccati_factor`.
+    """
+    _check_kernel(kernel)
+    return _batched("apply", kernel)(f, g_u, g_x, rp)
+
+
+riccati_apply.defjvp(_dot_derivative(_apply))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
+def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto"):
+    """:func:`riccati_factor` and :func:`riccati_apply` of one right-hand side together:
+    (RiccatiFactor, NewtonStep). On a GPU both sweeps of the factorisation and the step run
+    in one kernel (:func:`rvdjax.solver.lanes.factor_solve`)."""
+    _check_kernel(kernel)
+    return _batched("factor_solve", kernel)(A, B, Phi_u, Phi_x, g_u, g_x, rp)
+
+
+riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
+
+
+def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
+    """Solve the stage-structured KKT system: :func:`riccati_factor` then :func:`riccati_apply`.
+
+    Args:
+        A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
+        Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks.
+        g_u: (N, nu), g_x: (N, nx) gradient blocks.
+        rp: (N, nx) dynamics residual x_{t+1} - A_t x_t - B_t u_t - c_t.
+        kernel: as :func:`riccati_factor`.
+
+    Returns:
+        The :class:`NewtonStep`. Non-finite entries signal a failed factorisation.
+    """
+    return riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)[1]
