@@ -131,6 +131,18 @@ def field_tunable(field: str, description: str, **options):
     )
 
 
+def horizon(fc) -> int:
+    """The OCP's horizon of a family whose configuration has one ``N`` (steps)."""
+    return fc.N
+
+
+#: The hooks most families share (``Hooks.of(globals(), **SHARED_HOOKS, ...)``): u_0 of the plan,
+#: the phase's sample time and model, one horizon ``N``.
+SHARED_HOOKS = dict(
+    control=control, sample_time=sample_time, truth_model=truth_model, horizon=horizon
+)
+
+
 def make_plant(mass, Ac, Bc, **fields) -> Plant:
     """The :class:`~rvdjax.loop.plant.Plant` of a family's parameters: the mass [kg], the
     continuous model with its force input [N, N m] (the truth integrates it under thruster

@@ -45,16 +45,14 @@ from rvdjax.constraints import (
 from rvdjax.disturbances import LAB_DISTURBANCES
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    control,
+    SHARED_HOOKS,
     derive_terminal,
     field_tunable,
     make_plant,
     model,
-    sample_time,
     smooth_excess,
     smooth_norm,
     tracking_ocp,
-    truth_model,
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
@@ -449,13 +447,10 @@ FAMILY = Family(
     "entry cone, moving obstacles (papers 000, 002)",
     law=Hooks.of(
         globals(),
-        control=control,  # the shared hooks of rvdjax.families.common
-        sample_time=sample_time,
-        truth_model=truth_model,
+        **SHARED_HOOKS,
         layout=LAYOUT,
         n_phases=2,
         config_type=Config,
-        horizon=lambda fc: fc.N,
     ),
     make_params=make_params,
     plot=lazy("rvdjax.families.plots.docking:plot"),

@@ -38,16 +38,14 @@ from rvdjax.constraints import entry_cone, rotating_hyperplane, sphere_keep_out,
 from rvdjax.disturbances import LAB_DISTURBANCES
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    control,
+    SHARED_HOOKS,
     derive_terminal,
     field_tunable,
     make_plant,
     model,
-    sample_time,
     smooth_excess,
     smooth_norm,
     tracking_ocp,
-    truth_model,
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
@@ -413,13 +411,10 @@ FAMILY = Family(
     "and entry cone (paper 001)",
     law=Hooks.of(
         globals(),
-        control=control,  # the shared hooks of rvdjax.families.common
-        sample_time=sample_time,
-        truth_model=truth_model,
+        **SHARED_HOOKS,
         layout=LAYOUT,
         n_phases=1,
         config_type=Config,
-        horizon=lambda fc: fc.N,
     ),
     make_params=make_params,
     plot=lazy("rvdjax.families.plots.poseidyn:plot"),

@@ -22,15 +22,13 @@ from rvdjax import checks
 from rvdjax.constraints import sphere_keep_out, thrust_box
 from rvdjax.disturbances import disturbances as make_disturbances
 from rvdjax.families.common import (
-    control,
+    SHARED_HOOKS,
     derive_terminal,
     make_plant,
     model,
-    sample_time,
     smooth_excess,
     smooth_norm,
     tracking_ocp,
-    truth_model,
     weight_tunables,
 )
 from rvdjax.loop.family import Family, Hooks, Layout, Tuning, lazy
@@ -253,13 +251,10 @@ FAMILY = Family(
     description="3-D CW rendezvous to a holding point around moving keep-out spheres (paper 000)",
     law=Hooks.of(
         globals(),
-        control=control,  # the shared hooks of rvdjax.families.common
-        sample_time=sample_time,
-        truth_model=truth_model,
+        **SHARED_HOOKS,
         layout=LAYOUT,
         n_phases=1,
         config_type=Config,
-        horizon=lambda fc: fc.N,
     ),
     make_params=make_params,
     truths=("linear", "two-body", "two-body-j2"),

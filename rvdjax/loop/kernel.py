@@ -54,7 +54,7 @@ from rvdjax.loop.navigation import (
     process_noise,
     thrust_error_fraction,
 )
-from rvdjax.loop.plant import TRUTHS, Plant
+from rvdjax.loop.plant import TRUTHS, checked_plant
 from rvdjax.ocp import OCP
 from rvdjax.solver import (
     Plan,
@@ -249,39 +249,20 @@ class StepInfo(NamedTuple):
 def init(loop: Loop, params, x0, key=None) -> LoopState:
     """The state at the start of a run from ``x0`` (the PRNG ``key`` drives disturbances)."""
     fam, fc = loop.family, loop.config.family_config
-    plant = getattr(params, "plant", None)
-    if not isinstance(plant, Plant):  # the contract of rvdjax.loop.family, checked while tracing
-        raise TypeError(
-            f"the {fam.name} family's parameters need a field plant: rvdjax.loop.plant.Plant"
-            f" (got {type(plant).__name__})"
-        )
+    cfg, act = loop.config, loop.config.actuation
+    plant = checked_plant(params, fam.name, act, cfg.disturbed, cfg.truth)
     dtype = jnp.result_type(float)
     x0 = jnp.asarray(x0, dtype)
     key = jax.random.key(0) if key is None else key
     g = fam.init(params, fc, x0)
     plan = fam.initial_plan(params, fc, g, x0)
-    act = loop.config.actuation
-    mod = None
-    if act is not None:
-        thr = plant.thrusters
-        if thr is None or thr.thrust.shape != (act.n,):
-            raise ValueError(
-                f"a loop with thrusters needs params.plant.thrusters of {act.n} thrusters "
-                "(Scenario.build(thrusters=True))"
-            )
-        mod = jnp.zeros(act.n, dtype)
+    mod = None if act is None else jnp.zeros(act.n, dtype)
     n_axes = fam.layout.nu if act is None else act.n  # thrust errors per axis / per thruster
-    if loop.config.disturbed:
-        if plant.disturbances is None:
-            raise ValueError("a disturbed run needs params.plant.disturbances")
+    if cfg.disturbed:
         gm = gm_init(jax.random.fold_in(key, 0), plant.disturbances, n_axes)
     else:
         gm = jnp.zeros((n_axes, 2), dtype)
-    orbit = plant.orbit if loop.config.truth != "linear" else None
-    if loop.config.truth != "linear" and orbit is None:
-        raise ValueError(
-            f"truth={loop.config.truth!r} needs params.plant.orbit (the target's orbit)"
-        )
+    orbit = plant.orbit if cfg.truth != "linear" else None
     false = jnp.asarray(False)
     nav = None
     if loop.config.nav_filter:  # replaced by the first measurement (prepare, k = 0)

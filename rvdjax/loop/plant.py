@@ -26,7 +26,15 @@ if TYPE_CHECKING:
     from rvdjax.disturbances import Disturbances
     from rvdjax.propagate import Drag, Orbit
 
-__all__ = ["Plant", "with_plant", "TRUTHS", "truth_step", "truth_step_pulses", "impulse_per_unit"]
+__all__ = [
+    "Plant",
+    "checked_plant",
+    "with_plant",
+    "TRUTHS",
+    "truth_step",
+    "truth_step_pulses",
+    "impulse_per_unit",
+]
 
 
 class Plant(NamedTuple):
@@ -58,6 +66,31 @@ class Plant(NamedTuple):
     # provenance (rvdjax.provenance.canonical) stores these fields as the parameters' own, as
     # they were before the record, so that stored definitions of runs keep their meaning
     STORED_FLAT = True
+
+
+def checked_plant(params, family: str, actuation, disturbed: bool, truth: str) -> Plant:
+    """``params.plant``, checked against the loop's configuration while its program is traced
+    (the contract of :mod:`rvdjax.loop.family`): a :class:`Plant`, with the thrusters a loop
+    with ``actuation`` flies, the disturbances of a ``disturbed`` run and the orbit of a
+    nonlinear ``truth``."""
+    plant = getattr(params, "plant", None)
+    if not isinstance(plant, Plant):
+        raise TypeError(
+            f"the {family} family's parameters need a field plant: rvdjax.loop.plant.Plant"
+            f" (got {type(plant).__name__})"
+        )
+    if actuation is not None:
+        thr = plant.thrusters
+        if thr is None or thr.thrust.shape != (actuation.n,):
+            raise ValueError(
+                f"a loop with thrusters needs params.plant.thrusters of {actuation.n} "
+                "thrusters (Scenario.build(thrusters=True))"
+            )
+    if disturbed and plant.disturbances is None:
+        raise ValueError("a disturbed run needs params.plant.disturbances")
+    if truth != "linear" and plant.orbit is None:
+        raise ValueError(f"truth={truth!r} needs params.plant.orbit (the target's orbit)")
+    return plant
 
 
 def with_plant(params, **fields):
