@@ -89,13 +89,11 @@ def closed_loop_batch_benchmark(
         docked = np.mean([bool(m.docked) for m in singles])
         its = np.mean([float(m.mean_iterations) for m in singles])
         steps = np.mean([int(m.steps) for m in singles])
+        # the columns every row of this scenario and plant shares
+        base = dict(scenario=name, family=sc.family, mode=mode, disturbed=disturbed, plant=plant)
         rows.append(
             dict(
-                scenario=name,
-                family=sc.family,
-                mode=mode,
-                disturbed=disturbed,
-                plant=plant,
+                **base,
                 method="one at a time (jitted fly)",
                 batch=1,
                 runs=n1,
@@ -122,11 +120,7 @@ def closed_loop_batch_benchmark(
             rate = runs / out["seconds"]
             rows.append(
                 dict(
-                    scenario=name,
-                    family=sc.family,
-                    mode=mode,
-                    disturbed=disturbed,
-                    plant=plant,
+                    **base,
                     method=f"engine (chunk {cfg.chunk_size}, {iterations} iterations / tick)",
                     batch=B,
                     runs=runs,
