@@ -53,20 +53,32 @@ def _random(name, n):
 
 
 @pytest.mark.parametrize(
+    "kernel, config",
+    [
+        ("pallas", {}),
+        ("unrolled", {}),
+        pytest.param("pallas", {"fused": True}, id="pallas-fused"),
+        pytest.param("pallas", {"block_io": True}, id="pallas-block-io"),
+    ],
+)
+@pytest.mark.parametrize(
     "case",
     [pytest.param(c, marks=pytest.mark.slow) if c.startswith("fastmpc") else c for c in CASES],
 )
-def test_kernels_give_the_xla_iterates(case):
-    """The same statuses and iteration counts, and the same answer: to 1e-10 relative (in
-    norm) in the plan and the multipliers. Both forms round differently (fused products,
-    summation inside the kernel), and the Newton matrix's conditioning amplifies rounding as
-    the gap closes: on fastmpc-3d the iterates agree to 1e-16 at the first iterations and
-    to ~1e-11 at the ninth, where the XLA form's own batched and unbatched solves differ by
-    2.5e-12 (docs/solver.md). In accurate mode the objective is Clarabel's to 1e-7."""
+def test_kernels_give_the_xla_iterates(case, kernel, config):
+    """The Pallas kernels (interpreted; the factorisation and the first step in one kernel or in
+    two, a stage's arrays loaded and stored entry by entry or as blocks) and the unrolled XLA
+    loops against XLA's loops. The same statuses and iteration counts, and the same answer: to
+    1e-10 relative (in norm) in the plan and the multipliers. Both forms round differently
+    (fused products, summation inside the kernel), and the Newton matrix's conditioning
+    amplifies rounding as the gap closes: on fastmpc-3d the iterates agree to 1e-16 at the first
+    iterations and to ~1e-11 at the ninth, where the XLA form's own batched and unbatched solves
+    differ by 2.5e-12 (docs/solver.md). In accurate mode the objective is Clarabel's to 1e-7."""
     make, ocps = CASES[case]
     ocps = ocps()
     xla = _solve(make(kernel="xla"), ocps)
-    pal = _solve(make(kernel="pallas"), ocps)
+    with lanes.configured(**config):
+        pal = _solve(make(kernel=kernel), ocps)
     np.testing.assert_array_equal(np.asarray(pal.status), np.asarray(xla.status))
     np.testing.assert_array_equal(np.asarray(pal.iterations), np.asarray(xla.iterations))
     assert set(np.asarray(xla.status).tolist()) <= {Status.CONVERGED, Status.MAX_ITER}
@@ -126,7 +138,7 @@ def test_kernel_gradients_match_central_differences():
 
     grads, fds = {}, {}
     h = 1e-5
-    for kernel in ("xla", "pallas"):
+    for kernel in ("xla", "pallas", "unrolled"):
         settings = SolverSettings.paper(kernel=kernel, max_iter=200)
         f = jax.jit(functools.partial(loss, settings))
         with lanes.configured(block=BLOCK):
@@ -134,11 +146,13 @@ def test_kernel_gradients_match_central_differences():
                 1.3, ocp.x0
             )
             fds[kernel] = (float(f(1.3 + h, ocp.x0)) - float(f(1.3 - h, ocp.x0))) / (2 * h)
-    (gs_x, g0_x), (gs_p, g0_p) = grads["xla"], grads["pallas"]
-    assert float(gs_p) == pytest.approx(float(gs_x), rel=1e-9)
-    np.testing.assert_allclose(np.asarray(g0_p), np.asarray(g0_x), rtol=1e-9)
-    assert float(gs_p) == pytest.approx(fds["pallas"], rel=1e-6)
-    assert fds["pallas"] == pytest.approx(fds["xla"], rel=1e-8)
+    gs_x, g0_x = grads["xla"]
+    for kernel in ("pallas", "unrolled"):
+        gs_p, g0_p = grads[kernel]
+        assert float(gs_p) == pytest.approx(float(gs_x), rel=1e-9), kernel
+        np.testing.assert_allclose(np.asarray(g0_p), np.asarray(g0_x), rtol=1e-9)
+        assert float(gs_p) == pytest.approx(fds[kernel], rel=1e-6), kernel
+        assert fds[kernel] == pytest.approx(fds["xla"], rel=1e-8), kernel
 
 
 def _cuda_text(fn, *args):
@@ -148,14 +162,15 @@ def _cuda_text(fn, *args):
 @pytest.mark.parametrize(
     "settings, kernels, loops",
     [
-        # accurate: factorisation + predictor, corrector, refinement; loops: the solve, the
-        # start's drift of the warm-start inputs
-        (SolverSettings(kernel="pallas"), 3, 2),
+        # accurate: factorisation, then the predictor, corrector and refinement steps;
+        # loops: the solve, the start's drift of the warm-start inputs
+        (SolverSettings(kernel="pallas"), 4, 2),
         # paper: factorisation + step; loops: the solve, the drift, the line search
-        (SolverSettings.paper(kernel="pallas"), 1, 3),
+        (SolverSettings.paper(kernel="pallas"), 2, 3),
     ],
 )
-def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops):
+@pytest.mark.parametrize("block_io", [False, True])
+def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, block_io):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
     a batched and an unbatched solve with ``kernel="pallas"`` hold the Riccati sweeps as
     ``kernels`` Triton kernels and no loop over stages beyond the solve loop, the start's
@@ -163,11 +178,14 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops):
     on a GPU."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
-    batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
-    single = _cuda_text(lambda o: solve(o, settings), one)
+    with lanes.configured(block_io=block_io):
+        batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
+        single = _cuda_text(lambda o: solve(o, settings), one)
     for text in (batched, single):
         assert text.count("__gpu$xla.gpu.triton") == kernels
         assert text.count("stablehlo.while") == loops
+    if block_io:
+        return
     # the default stays on XLA's loops on a GPU (the kernels' compile there, docs/solver.md)
     default = dataclasses.replace(settings, kernel="auto")
     gpu_default = _cuda_text(jax.vmap(lambda o: solve(o, default)), ocps)

@@ -97,8 +97,8 @@ def kkt_factor(A, B, Phi_u, Phi_x, method: str, kernel: str = "auto") -> KKT:
 
 
 def kkt_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, method: str, kernel: str = "auto"):
-    """:func:`kkt_factor` and :func:`kkt_solve` of a first right-hand side: (KKT, step). One
-    kernel on a GPU (:func:`riccati_factor_solve`)."""
+    """:func:`kkt_factor` and :func:`kkt_solve` of a first right-hand side: (KKT, step), with
+    the Riccati method through :func:`riccati_factor_solve`."""
     if method != "riccati":
         kkt = kkt_factor(A, B, Phi_u, Phi_x, method)
         return kkt, kkt_solve(kkt, g_u, g_x, rp, method)

@@ -21,9 +21,12 @@ sweep of the first right-hand side, then its forward sweep), :func:`apply` (one 
 right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
 compute the recursion of :mod:`rvdjax.solver.riccati` in the same order (the Joseph form, the
 refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
-runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``:
-on one H100 (jax 0.11.2, CUDA 13) Triton did not finish compiling them within 165 s, so the
-default keeps XLA's loops (docs/solver.md).
+runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``,
+and the solver calls :func:`factor` then :func:`apply` (``KernelConfig.fused`` off): on one
+H200 (jax 0.11.2, CUDA 13, 2026-11-26) Triton compiled :func:`factor` in 51 s and
+:func:`apply` in about 3 s, where :func:`factor_solve` had not finished in 165 s on an H100.
+A batched accurate-mode solve then compiles in 74 s (5 s with XLA's loops) and runs 2.1x
+faster at 65 536 problems, so the default keeps XLA's loops (docs/solver.md).
 
 Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
 axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
@@ -36,6 +39,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -62,11 +66,23 @@ class KernelConfig:
         num_warps: warps per program (Triton): 4 warps = 128 threads, one problem each at
             block = 128.
         interpret: run the kernels in Pallas' interpreter (the CPU; tests).
+        fused: the solver's factorisation and first step in one kernel (:func:`factor_solve`)
+            instead of :func:`factor` then :func:`apply`. On an H200 (2026-11-26) Triton
+            compiled :func:`factor` alone in 51 s and :func:`apply` in about 3 s; the fused
+            kernel did not finish in 165 s, so it is off.
+        block_io: load and store a stage's block of each array at once (entries flattened
+            and padded to a power of two, split into lane vectors and joined back inside
+            the kernel) instead of entry by entry. Triton's compile time is its coalescing
+            pass, which costs about (loads and stores) x (kernel size)^2
+            (``sweeps/triton_compile_profile.py``); this cuts the loads and stores from
+            hundreds to a few. Its speed on a GPU is not yet measured.
     """
 
     block: int = 128
     num_warps: int = 4
     interpret: bool = False
+    fused: bool = False
+    block_io: bool = False
 
 
 _DEFAULT = [KernelConfig()]
@@ -213,14 +229,45 @@ def _forward(dx, M, K, k, r, P, p):
 # ------------------------------------------------------------------------------ the kernels
 
 
+class _Block:
+    """A ``[stage][entry][problem]`` ref, entries flattened and padded to a power of two, whose
+    stage is loaded and stored as one block (``KernelConfig.block_io``)."""
+
+    def __init__(self, ref):
+        self.ref, self.dtype = ref, ref.dtype
+
+
+def _interleaved(vals):
+    """(lanes, len(vals)) with vals[i] in column i, built from two-way joins (the only
+    concatenation Triton has): column i*2 + j of a join holds row i of its j-th operand."""
+    if len(vals) == 1:
+        return vals[0].reshape(vals[0].shape[0], 1)
+    a, b = _interleaved(vals[0::2]), _interleaved(vals[1::2])
+    return jnp.stack([a, b], axis=-1).reshape(a.shape[0], 2 * a.shape[1])
+
+
 def _load(ref, t, *shape):
     """The (shape) entries of stage t of a [stage][entry...][problem] ref."""
+    if isinstance(ref, _Block):
+        x = ref.ref[t]
+        flat = [v.reshape(v.shape[-1]) for v in jnp.split(x, x.shape[0], axis=0)]
+        if len(shape) == 1:
+            return flat[: shape[0]]
+        return [flat[i * shape[1] : (i + 1) * shape[1]] for i in range(shape[0])]
     if len(shape) == 1:
         return [ref[t, i] for i in range(shape[0])]
     return [[ref[t, i, j] for j in range(shape[1])] for i in range(shape[0])]
 
 
 def _store(ref, t, X):
+    if isinstance(ref, _Block):
+        flat = [v for row in X for v in row] if isinstance(X[0], list) else list(X)
+        like = next(v for v in flat if v is not None)
+        zero = jnp.zeros_like(like)
+        flat = [zero if v is None else v for v in flat]
+        flat += [zero] * (ref.ref.shape[1] - len(flat))
+        ref.ref[t] = _interleaved(flat).T
+        return
     if not isinstance(X[0], list):
         for i, v in enumerate(X):
             ref[t, i] = v
@@ -244,7 +291,7 @@ def _untri(flat, n):
     return P
 
 
-def _kernel(N, nx, nu, lanes, with_rhs, factorise, *refs):
+def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, model_batched, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
@@ -253,6 +300,8 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, *refs):
     rows until the forward sweep overwrites them.
     """
     refs = list(refs)
+    if block_io:
+        refs = [r if i == 0 and not model_batched else _Block(r) for i, r in enumerate(refs)]
     M_ref = refs[0]
     pos = 1
     if factorise:
@@ -378,9 +427,16 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         out_shapes += [(N, nu, nu), (N, nu, nx), (N, nu, nx), (N, nx, nx)]
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
+    entries = [s[1:] for s in out_shapes]
+    if cfg.block_io:  # [stage][entry][problem], the entries padded to a power of two
+        M = _flat(M) if model_batched else M
+        mats, rhs = [_flat(m) for m in mats], [_flat(r) for r in rhs]
+        out_shapes = [(N, _pow2(math.prod(e))) for e in entries]
     out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
     ins = [M, *mats, *rhs]
-    kernel = functools.partial(_kernel, N, nx, nu, lanes, with_rhs, factorise)
+    kernel = functools.partial(
+        _kernel, N, nx, nu, lanes, with_rhs, factorise, cfg.block_io, model_batched
+    )
     res = pl.pallas_call(
         kernel,
         out_shape=out_shapes,
@@ -391,11 +447,26 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         compiler_params=_compiler_params(cfg),
         name="rvdjax_riccati" + ("_factor" if factorise else "") + ("_solve" if with_rhs else ""),
     )(*ins)
+    if cfg.block_io:
+        res = [
+            r[:, : math.prod(e)].reshape(N, *e, b_pad) for r, e in zip(res, entries, strict=True)
+        ]
     return [r[..., :b] for r in res]
 
 
+def _pow2(n: int) -> int:
+    return 1 << (n - 1).bit_length()
+
+
+def _flat(a):
+    """(N, entries..., b) -> (N, E, b), E the entries' count padded to a power of two."""
+    e = math.prod(a.shape[1:-1])
+    a = a.reshape(a.shape[0], e, a.shape[-1])
+    return jnp.pad(a, ((0, 0), (0, _pow2(e) - e), (0, 0)))
+
+
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig()):
-    """Backward Riccati factorisation: (L, K, BPA, P), each [stage][entry][problem].
+    """Backward Riccati factorisation: (L, K, BPA, P), each ``[stage][entry][problem]``.
 
     Args:
         M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared).

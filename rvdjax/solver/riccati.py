@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from rvdjax.solver import lanes
+from rvdjax.solver import lanes, unrolled
 
 __all__ = [
     "NewtonStep",
@@ -258,8 +258,21 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
 # a transpose), so the gains stay in the kernels' layout on the device.
 
 
-def _lane_cfg(interpret: bool):
-    return dataclasses.replace(lanes.default_config(), interpret=interpret)
+def _lane_ops(impl):
+    """(factor, factor_solve, apply) of the batch-last forms: ``impl`` "unrolled" (XLA's
+    loops, :mod:`rvdjax.solver.unrolled`), or a bool: the Pallas kernels, interpreted or not."""
+    if impl == "unrolled":
+        return unrolled.factor, unrolled.factor_solve, unrolled.apply
+    cfg = dataclasses.replace(lanes.default_config(), interpret=impl)
+    factor, apply = (functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply))
+    if cfg.fused:
+        return factor, functools.partial(lanes.factor_solve, cfg=cfg), apply
+
+    def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp):
+        f = factor(M, Phi_u, Phi_x)
+        return f, apply(M, *f, g_u, g_x, rp)
+
+    return factor, factor_solve, apply
 
 
 def _model_M(axis_size, A, B, bA, bB, batched: bool):
@@ -273,28 +286,28 @@ def _lane_M(M, batched: bool):
     return _to_last(M) if batched else M
 
 
-def _pallas_factor_rule(interpret, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
+def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
     """The factorisation by the kernels (with a right-hand side ``rhs`` = g_u, g_x, rp: and
     its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's."""
     bA, bB, bPu, bPx = in_batched[:4]
     flags = _factor_flags(axis_size, in_batched)
     M = _model_M(axis_size, A, B, bA, bB, flags.M)
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
-    cfg = _lane_cfg(interpret)
+    factor, factor_solve, _ = _lane_ops(impl)
     if not rhs:
-        f = lanes.factor(_lane_M(M, flags.M), *mats, cfg=cfg)
+        f = factor(_lane_M(M, flags.M), *mats)
         return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in zip(rhs, in_batched[4:], strict=True)]
-    f, s = lanes.factor_solve(_lane_M(M, flags.M), *mats, *vecs, cfg=cfg)
+    f, s = factor_solve(_lane_M(M, flags.M), *mats, *vecs)
     out = (RiccatiFactor(M, *(_to_first(a) for a in f)), NewtonStep(*(_to_first(a) for a in s)))
     return out, (flags, NewtonStep(True, True, True))
 
 
-def _pallas_apply_rule(interpret, axis_size, in_batched, f, g_u, g_x, rp):
+def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp):
     fb, bu, bx, br = in_batched
     mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
-    s = lanes.apply(_lane_M(f.M, fb.M), *mats, *vecs, cfg=_lane_cfg(interpret))
+    s = _lane_ops(impl)[2](_lane_M(f.M, fb.M), *mats, *vecs)
     return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
 
 
@@ -309,7 +322,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-KERNELS = ("auto", "xla", "pallas")
+KERNELS = ("auto", "xla", "pallas", "unrolled")
 
 
 def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
@@ -322,14 +335,17 @@ def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
 
 
 def _by_platform(kernel: str, xla, pallas, *args):
-    """``xla(*args)`` or ``pallas(interpret, *args)``: "auto" and "xla" run XLA's loops on
-    every platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted
-    elsewhere (the tests).
+    """``xla(*args)`` or ``pallas(impl, *args)``: "auto" and "xla" run XLA's loops on every
+    platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere
+    (the tests); "unrolled" runs the kernels' algebra as XLA loops (:mod:`.unrolled`).
 
-    "auto" stays on XLA's loops on a GPU too: on one H100 (jax 0.11.2, CUDA 13, 2026-11-26)
-    Triton did not finish compiling the paper-mode kernel within 165 s (XLA's slow-compile
-    alarm), against 5 s for the XLA program (docs/benchmark.md). The kernels are opt-in until
-    they compile in seconds."""
+    "auto" stays on XLA's loops on a GPU too. On one H200 (jax 0.11.2, CUDA 13, 2026-11-26,
+    65 536 fastmpc-3d QPs, accurate mode) the kernels ran 2.1x faster (2.68 against 5.58 µs
+    a QP) but the program compiled in 74 s against 5 s, and the batch engine's programs with
+    them are not yet measured; "unrolled" compiled in 18 s and ran 4.83 µs, slower than XLA's
+    loops at 16 384 problems and alone (docs/benchmark.md)."""
+    if kernel == "unrolled":
+        return pallas("unrolled", *args)
     if kernel != "pallas":
         return xla(*args)
     return lax.platform_dependent(
@@ -364,9 +380,9 @@ def _batched(op: str, kernel: str):
             return NewtonStep(True, True, True)
         return _factor_flags(*shapes), NewtonStep(True, True, True)
 
-    def one(interpret, *args):
+    def one(impl, *args):
         batched = jax.tree.map(lambda _: True, args)
-        out, _ = pallas_rule(interpret, 1, batched, *jax.tree.map(lambda a: a[None], args))
+        out, _ = pallas_rule(impl, 1, batched, *jax.tree.map(lambda a: a[None], args))
         return jax.tree.map(lambda a: a[0], out)
 
     @jax.custom_batching.custom_vmap
@@ -414,8 +430,9 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" or "xla" (XLA's loops) or "pallas" (the kernels of
-            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere).
+        kernel: "auto" or "xla" (XLA's loops), "pallas" (the kernels of
+            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
+            "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
     """
     _check_kernel(kernel)
     return _batched("factor", kernel)(A, B, Phi_u, Phi_x)
@@ -442,8 +459,8 @@ riccati_apply.defjvp(_dot_derivative(_apply))
 @functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
 def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto"):
     """:func:`riccati_factor` and :func:`riccati_apply` of one right-hand side together:
-    (RiccatiFactor, NewtonStep). On a GPU both sweeps of the factorisation and the step run
-    in one kernel (:func:`rvdjax.solver.lanes.factor_solve`)."""
+    (RiccatiFactor, NewtonStep). With the kernels, the factorisation and the step are two
+    kernels (:class:`rvdjax.solver.lanes.KernelConfig`, ``fused``)."""
     _check_kernel(kernel)
     return _batched("factor_solve", kernel)(A, B, Phi_u, Phi_x, g_u, g_x, rp)
 
