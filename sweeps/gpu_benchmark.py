@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 import rvdjax  # noqa: E402, F401  (float64)
 from rvdjax import devices  # noqa: E402
 from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0  # noqa: E402
-from rvdjax.solver import SolverSettings, Status, lanes, solve  # noqa: E402
+from rvdjax.solver import SolverSettings, Status, lanes, solve, unrolled  # noqa: E402
 
 SIZES = (1, 16384, 65536)
 SMOKE_SIZES = (1, 64, 256)
@@ -183,8 +183,11 @@ def _settings(mode: str, kernel: str) -> SolverSettings:
     return SolverSettings.paper(kernel=kernel) if mode == "paper" else SolverSettings(kernel=kernel)
 
 
-def _gpu_row(rec, device, mode, kernel, n, ocps_host, dtype="float64", ref=None, label=None):
-    """One jit(vmap(solve)) row on ``device``; returns the solutions (host)."""
+def _gpu_row(
+    rec, device, mode, kernel, n, ocps_host, dtype="float64", ref=None, label=None, hlo_dir=None
+):
+    """One jit(vmap(solve)) row on ``device``; returns the solutions (host). With ``hlo_dir``
+    the compiled program's HLO text is written there."""
     settings = _settings(mode, kernel)
     fn = jax.jit(jax.vmap(lambda o: solve(o, settings)))
     ocps = jax.device_put(ocps_host, device)
@@ -209,8 +212,13 @@ def _gpu_row(rec, device, mode, kernel, n, ocps_host, dtype="float64", ref=None,
         planned_mb=_planned_mb(compiled),
         peak_mb=_peak_mb(device),
     )
-    if device.platform != "cpu":
-        row.update(kernels_per_iteration(compiled.as_text()))
+    if device.platform != "cpu" or hlo_dir:
+        text = compiled.as_text()
+        row.update(kernels_per_iteration(text))
+        if hlo_dir:
+            name = re.sub(r"[^\w.-]+", "_", f"hlo_{label or kernel}_{mode}_{n}.txt")
+            with open(os.path.join(hlo_dir, name), "w", encoding="utf-8") as f:
+                f.write(text)
     if ref is not None:
         J, J_ref = np.asarray(sol.objective, float), np.asarray(ref.objective, float)
         ok = np.isfinite(J) & np.isfinite(J_ref)
@@ -291,9 +299,18 @@ def _maneuver_row(rec, device, kernel="auto"):
     )
 
 
-def qp_part(rec, budget_s: float, smoke: bool) -> None:
+def qp_part(
+    rec,
+    budget_s: float,
+    smoke: bool,
+    kernels=("unrolled", "xla"),
+    sizes=None,
+    unrolls=(),
+    cpu=True,
+    hlo_dir=None,
+) -> None:
     t_start = time.perf_counter()
-    sizes = SMOKE_SIZES if smoke else SIZES
+    sizes = sizes or (SMOKE_SIZES if smoke else SIZES)
     accel = [d for d in jax.devices() if d.platform != "cpu"]
     gpu = accel[0] if accel else jax.devices("cpu")[0]
     if not accel:
@@ -303,14 +320,24 @@ def qp_part(rec, budget_s: float, smoke: bool) -> None:
     def left():
         return budget_s - (time.perf_counter() - t_start)
 
-    # In priority order. The default (XLA's loops) first; the Pallas kernels last: on an H100
-    # their Triton compile did not finish in 165 s (2026-11-26), a compile no budget bounds.
-    plan = [("gpu", m, "xla", n) for m in ("accurate", "paper") for n in reversed(sizes)]
-    plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes]
-    plan += [("maneuver", gpu), ("maneuver", "cpu"), ("f32", "paper", "xla", sizes[-1])]
-    plan += [("gpu", m, "pallas", sizes[-1]) for m in ("paper", "accurate")]
-    # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig), if time is left
-    plan += [("tile", block, warps, sizes[-1]) for block, warps in ((64, 2), (256, 8), (128, 2))]
+    # In priority order: each kernel at the largest batch first. The Pallas kernels only when
+    # asked for, last: on an H100 their Triton compile did not finish in 165 s (2026-11-26),
+    # a compile no budget bounds.
+    fast = [k for k in kernels if k != "pallas"]
+    plan = [("gpu", m, k, n) for m in ("accurate", "paper") for n in reversed(sizes) for k in fast]
+    plan += [("unroll", u, sizes[-1]) for u in unrolls]
+    if cpu:
+        plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes[1:]]
+    if "pallas" in kernels:  # accurate mode first: the default; block I/O first (compiles fast)
+        plan += [("blockio", m, sizes[-1]) for m in ("accurate", "paper")]
+        plan += [("gpu", m, "pallas", sizes[-1]) for m in ("accurate", "paper")]
+    plan += [("maneuver", gpu, k) for k in fast]
+    if cpu:
+        plan += [("maneuver", "cpu", "auto")]
+    plan += [("f32", "paper", k, sizes[-1]) for k in fast[:1]]
+    if "pallas" in kernels:
+        # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig)
+        plan += [("tile", b, w, sizes[-1]) for b, w in ((64, 2), (256, 8), (128, 2))]
     refs = {}
     for item in plan:
         if left() < 20:
@@ -319,8 +346,22 @@ def qp_part(rec, budget_s: float, smoke: bool) -> None:
         try:
             if item[0] == "gpu":
                 _, mode, kernel, n = item
-                sol = _gpu_row(rec, gpu, mode, kernel, n, host[n])
+                dump = hlo_dir if (mode, n) == ("accurate", sizes[-1]) else None
+                ref = refs.get((mode, n))
+                sol = _gpu_row(rec, gpu, mode, kernel, n, host[n], ref=ref, hlo_dir=dump)
                 refs.setdefault((mode, n), sol)
+            elif item[0] == "blockio":
+                _, mode, n = item
+                with lanes.configured(block_io=True):
+                    label = "pallas, block I/O"
+                    _gpu_row(
+                        rec, gpu, mode, "pallas", n, host[n], label=label, ref=refs.get((mode, n))
+                    )
+            elif item[0] == "unroll":
+                _, u, n = item
+                with unrolled.configured(unroll=u):
+                    label = f"unrolled, {u} stages a trip"
+                    _gpu_row(rec, gpu, "accurate", "unrolled", n, host[n], label=label)
             elif item[0] == "cpu":
                 _cpu_row(rec, item[1], item[3], host[item[3]])
             elif item[0] == "tile":
@@ -336,7 +377,7 @@ def qp_part(rec, budget_s: float, smoke: bool) -> None:
                 _gpu_row(rec, gpu, mode, kernel, n, h32, "float32", refs.get((mode, n)))
             else:
                 dev = jax.devices("cpu")[0] if item[1] == "cpu" else item[1]
-                _maneuver_row(rec, dev)
+                _maneuver_row(rec, dev, item[2])
         except Exception as err:  # a failed row is a result too: say it and go on
             rec.add(part="qp", error=f"{item}: {type(err).__name__}: {err}"[:500])
 
@@ -369,7 +410,8 @@ def format_table(rows) -> str:
     for r in rows:
         if r.get("part") == "maneuver":
             out.append(
-                f"one fastmpc-3d maneuver on {r['device']}: {r['ms_per_step']:.3g} ms per MPC "
+                f"one fastmpc-3d maneuver on {r['device']} ({r['kernel']}): "
+                f"{r['ms_per_step']:.3g} ms per MPC "
                 f"step ({r['steps']} steps, compile {r['compile_s']:.1f} s)"
             )
         if "error" in r:
@@ -383,7 +425,23 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/gpu", help="directory for gpu_benchmark.jsonl")
     ap.add_argument("--budget-s", type=float, default=None, help="seconds per part (290)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
+    ap.add_argument(
+        "--kernels", default="unrolled,xla", help="Newton-step forms to time (and 'pallas')"
+    )
+    ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
+    ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
+    ap.add_argument("--no-cpu", action="store_true", help="leave out the CPU cores' rows")
+    ap.add_argument("--hlo", action="store_true", help="write the largest batch's HLO to --out")
     args = ap.parse_args(argv)
+    kernels = tuple(k for k in args.kernels.split(",") if k)
+    bad = set(kernels) - {"xla", "unrolled", "pallas", "auto"}
+    if bad:
+        print(
+            f"--kernels: unknown {', '.join(sorted(bad))}; choose from auto, xla, unrolled, pallas"
+        )
+        return 2
+    sizes = tuple(int(v) for v in args.sizes.split(",")) if args.sizes else None
+    unrolls = tuple(int(v) for v in args.unrolls.split(",") if v)
     budget = args.budget_s or (60.0 if args.smoke else 290.0)
     from rvdjax.outputs import check_dir
 
@@ -395,7 +453,16 @@ def main(argv=None) -> int:
 
     rec.add(part="machine", machine=machine_info(), devices=[str(d) for d in jax.devices()])
     if args.part in ("qp", "all"):
-        qp_part(rec, budget, args.smoke)
+        qp_part(
+            rec,
+            budget,
+            args.smoke,
+            kernels,
+            sizes,
+            unrolls,
+            cpu=not args.no_cpu,
+            hlo_dir=args.out if args.hlo else None,
+        )
     if args.part in ("study", "all"):
         sys.path.insert(0, os.path.dirname(__file__))
         import gpu_study_benchmark

@@ -2,7 +2,8 @@
 machine's CPU cores, in one run of at most ``--budget-s`` seconds (290), compile included.
 
     PYTHONPATH=. python sweeps/gpu_study_benchmark.py [--out DIR] [--budget-s 290]
-        [--parts throughput,ch5,study,cpu,bits] [--smoke]
+        [--parts throughput,ch5,study,cpu,bits] [--kernel K [--block-io]]
+        [--scenarios A,B] [--slots 4096,32768] [--smoke]
 
 From the repository root on a machine whose jax has GPU support; nothing to install. Parts,
 each with its own time budget (a share of ``--budget-s``; a part that runs out stops and
@@ -101,11 +102,16 @@ def _platform(smoke: bool) -> str:
 
 
 def throughput(
-    scenario: str, slots: int, budget_s: float, smoke: bool = False, refresh: str | None = None
+    scenario: str,
+    slots: int,
+    budget_s: float,
+    smoke: bool = False,
+    refresh: str | None = None,
+    kernel: str | None = None,
 ) -> dict:
     """Maneuvers/s of ``scenario`` through ``slots`` slots on the default device: a queue of
     3 x slots runs (x0 perturbed by 2 %), cut at ``budget_s`` (compile included); ``refresh``
-    overrides the engine's choice."""
+    overrides the engine's choice, ``kernel`` the Newton step's form (SolverSettings)."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import arrays_source, auto_config, compile_engine
 
@@ -113,7 +119,9 @@ def throughput(
     sc = _scenario(scenario)
     from rvdjax.scenarios import FlightOptions
 
-    flight = sc.flight(FlightOptions(n_steps=SMOKE["n_steps"] if smoke else None))
+    options = FlightOptions(n_steps=SMOKE["n_steps"] if smoke else None)
+    settings = sc.settings(options.mode, kernel=kernel) if kernel else None
+    flight = sc.flight(options, settings=settings)
     params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params()
     n = 3 * slots
@@ -139,6 +147,7 @@ def throughput(
         compile_s=compile_s,
         device_busy_share=out["device_busy_s"] / out["seconds"] if out["seconds"] else None,
         engine=cfg.describe(),
+        kernel=flight.loop.config.settings.kernel,
     )
 
 
@@ -375,7 +384,14 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-s", type=float, default=None, help="seconds in all (290)")
     ap.add_argument("--parts", default=",".join(SHARES), help="comma-separated parts")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
+    ap.add_argument("--kernel", default=None, help="the Newton step's form for throughput rows")
+    ap.add_argument(
+        "--block-io", action="store_true", help="with --kernel pallas: KernelConfig.block_io"
+    )
+    ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="throughput's scenarios")
+    ap.add_argument("--slots", default=None, help="throughput's slot counts (4096,32768)")
     args = ap.parse_args(argv)
+    scenarios = [s for s in args.scenarios.split(",") if s]
     parts = [p for p in args.parts.split(",") if p]
     unknown = set(parts) - set(SHARES)
     if unknown:
@@ -401,10 +417,16 @@ def main(argv=None) -> int:
         try:
             if name == "throughput":
                 sizes = SMOKE["slots"] if args.smoke else SLOTS
-                each = allowed / (len(SCENARIOS) * len(sizes))
-                for scenario in SCENARIOS:
+                if args.slots:
+                    sizes = tuple(int(v) for v in args.slots.split(","))
+                each = allowed / (len(scenarios) * len(sizes))
+                from rvdjax.solver import lanes
+
+                for scenario in scenarios:
                     for slots in sizes:
-                        rec.add(**throughput(scenario, slots, each, args.smoke))
+                        with lanes.configured(block_io=args.block_io):
+                            row = throughput(scenario, slots, each, args.smoke, kernel=args.kernel)
+                        rec.add(**row, block_io=args.block_io)
             elif name == "refresh":  # the other refresh than the device's choice
                 slots = (SMOKE["slots"] if args.smoke else SLOTS)[-1]
                 other = "masked" if platform != "cpu" else "compacted"

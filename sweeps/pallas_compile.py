@@ -1,0 +1,130 @@
+"""How long the Newton step's Pallas kernels take to compile, and to run, against the same
+sweeps as XLA loops (:mod:`rvdjax.solver.unrolled`), one kernel per process.
+
+    PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py apply|factor|factor_solve
+        [--batch 65536] [--block 128] [--warps 4] [--block-io] [--out FILE]
+
+On a CUDA GPU the kernel is compiled by Triton (bounded only by the caller's ``timeout``:
+on an H100, 2026-11-26, the solver's programs with the kernels did not finish compiling in
+165 s). Elsewhere it is lowered for CUDA only (no compile). The inputs are one fastmpc-3d
+shaped stage-wise system (N = 30, nx = 6, nu = 3) per problem, well conditioned: the figures
+are times, not answers. A JSON line per measurement goes to ``--out`` as it is taken.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import rvdjax  # noqa: F401  (float64)
+from rvdjax.solver import lanes, unrolled
+
+N, NX, NU = 30, 6, 3
+
+
+def _inputs(b: int):
+    rng = np.random.default_rng(0)
+    A = np.eye(NX) + 0.05 * rng.standard_normal((N, NX, NX))
+    B = 0.1 * rng.standard_normal((N, NX, NU))
+    M = jnp.asarray(np.concatenate([B, A], axis=2))  # shared model, as in a scenario's OCP
+    d_u = 1.0 + rng.random((N, NU, 1))
+    d_x = 1.0 + rng.random((N, NX, 1))
+    Phi_u = jnp.asarray(np.eye(NU)[None, :, :, None] * d_u[:, :, None] * np.ones(b))
+    Phi_x = jnp.asarray(np.eye(NX)[None, :, :, None] * d_x[:, :, None] * np.ones(b))
+    g_u = jnp.asarray(rng.standard_normal((N, NU, b)))
+    g_x = jnp.asarray(rng.standard_normal((N, NX, b)))
+    rp = jnp.asarray(rng.standard_normal((N, NX, b)))
+    return M, Phi_u, Phi_x, g_u, g_x, rp
+
+
+def _fns(part: str, cfg):
+    if part == "factor":
+        return (
+            lambda M, Pu, Px, gu, gx, r: lanes.factor(M, Pu, Px, cfg=cfg),
+            lambda M, Pu, Px, gu, gx, r: unrolled.factor(M, Pu, Px),
+        )
+    if part == "factor_solve":
+        return (
+            lambda M, Pu, Px, gu, gx, r: lanes.factor_solve(M, Pu, Px, gu, gx, r, cfg=cfg),
+            lambda M, Pu, Px, gu, gx, r: unrolled.factor_solve(M, Pu, Px, gu, gx, r),
+        )
+
+    def stored(M, Pu, Px):  # the apply kernels take a factorisation computed beforehand
+        return unrolled.factor(M, Pu, Px)
+
+    return (
+        lambda M, Pu, Px, gu, gx, r: lanes.apply(M, *stored(M, Pu, Px), gu, gx, r, cfg=cfg),
+        lambda M, Pu, Px, gu, gx, r: unrolled.apply(M, *stored(M, Pu, Px), gu, gx, r),
+    )
+
+
+def _best(fn, args, repeats=5):
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("part", choices=("apply", "factor", "factor_solve"))
+    ap.add_argument("--batch", type=int, default=65536)
+    ap.add_argument("--block", type=int, default=128)
+    ap.add_argument("--warps", type=int, default=4)
+    ap.add_argument("--block-io", action="store_true", help="KernelConfig.block_io")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    gpu = jax.default_backend() == "gpu"
+    cfg = lanes.KernelConfig(
+        block=args.block, num_warps=args.warps, interpret=False, block_io=args.block_io
+    )
+    args_ = _inputs(args.batch)
+    pallas_fn, xla_fn = _fns(args.part, cfg)
+
+    def emit(**row):
+        row = dict(
+            part=args.part,
+            batch=args.batch,
+            block=args.block,
+            warps=args.warps,
+            block_io=args.block_io,
+            **row,
+        )
+        print(json.dumps(row), flush=True)
+        if args.out:
+            with open(args.out, "a", encoding="utf-8") as f:
+                f.write(json.dumps(row) + "\n")
+
+    t0 = time.perf_counter()
+    xla = jax.jit(xla_fn).lower(*args_).compile()
+    emit(form="unrolled (XLA loops)", compile_s=time.perf_counter() - t0)
+    if gpu:
+        emit(form="unrolled (XLA loops)", ms=1e3 * _best(xla, args_))
+    t0 = time.perf_counter()
+    lowered = jax.jit(pallas_fn).trace(*args_).lower(lowering_platforms=("cuda",))
+    emit(form="pallas", lower_s=time.perf_counter() - t0, hlo_kb=len(lowered.as_text()) / 1e3)
+    if not gpu:
+        return 0
+    t0 = time.perf_counter()
+    compiled = jax.jit(pallas_fn).lower(*args_).compile()
+    emit(form="pallas", compile_s=time.perf_counter() - t0)
+    emit(form="pallas", ms=1e3 * _best(compiled, args_))
+    a, b = jax.tree.leaves(compiled(*args_)), jax.tree.leaves(xla(*args_))
+    err = max(
+        float(jnp.max(jnp.abs(x - y)) / (jnp.max(jnp.abs(y)) + 1e-300))
+        for x, y in zip(a, b, strict=True)
+    )
+    emit(form="pallas", max_rel_difference_to_unrolled=err)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
