@@ -5,14 +5,16 @@ Parts (``python sweeps/gpu_benchmark.py [qp|study|all]``, from the repository ro
 ``PYTHONPATH=.`` on a machine whose jax has GPU support; nothing to install):
 
 * ``qp``: the fastmpc-3d first-step QPs (paper 000 Table 1, x0 perturbed, N = 30):
-  ``jit(vmap(solve))`` per QP at B = 1, 16 384 and 65 536 in accurate and paper modes with
-  XLA's loops on the GPU (the default) and, last, with the Newton step's Pallas kernels
-  (``kernel="pallas"``, whose compile on an H100 took longer than the budget); the same rows on the
-  machine's CPU cores (one XLA host device per core, the batch split over them, chunks of
-  32 per core); float32 paper mode (NONFINITE count and objective error against float64);
-  one fastmpc-3d maneuver per MPC step on the GPU and on one CPU core; compile times, XLA's
-  planned memory per program, the GPU's peak memory, and the kernels per solver iteration
-  counted in the compiled GPU program.
+  ``jit(vmap(solve))`` per QP at B = 1, 16 384 and 65 536 (``--sizes``) in accurate and paper
+  modes on the GPU, for each form of the Newton step in ``--kernels`` (default ``xla,pallas``:
+  XLA's loops at every size, then the Pallas kernels at the largest, with block loads and
+  stores first since they compile in seconds, then entry by entry, a compile of over a
+  minute); the same QPs on the machine's CPU cores (one XLA host device per core, the batch
+  split over them, chunks of 32 per core; ``--no-cpu`` leaves them out); one fastmpc-3d
+  maneuver per MPC step on the GPU and on one CPU core; float32 paper mode (NONFINITE count
+  and objective error against float64); compile times, XLA's planned memory per program, the
+  GPU's peak memory, the kernels per solver iteration counted in the compiled GPU program,
+  and each form's objective error against the first's.
 * ``study``: the batch engine at GPU scale (``sweeps/gpu_study_benchmark.py``).
 
 Every row is appended to ``OUT/gpu_benchmark.jsonl`` as it is measured (so a run cut short
@@ -303,7 +305,7 @@ def qp_part(
     rec,
     budget_s: float,
     smoke: bool,
-    kernels=("unrolled", "xla"),
+    kernels=("xla", "pallas"),
     sizes=None,
     unrolls=(),
     cpu=True,
@@ -426,7 +428,7 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-s", type=float, default=None, help="seconds per part (290)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
     ap.add_argument(
-        "--kernels", default="unrolled,xla", help="Newton-step forms to time (and 'pallas')"
+        "--kernels", default="xla,pallas", help="Newton-step forms: xla, unrolled, pallas"
     )
     ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
