@@ -338,7 +338,8 @@ def qp_part(
         plan += [("maneuver", "cpu", "auto")]
     plan += [("f32", "paper", k, sizes[-1]) for k in fast[:1]]
     if "pallas" in kernels:
-        # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig)
+        # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig), with block
+        # I/O: compiles of seconds
         plan += [("tile", b, w, sizes[-1]) for b, w in ((64, 2), (256, 8), (128, 2))]
     refs = {}
     for item in plan:
@@ -368,8 +369,8 @@ def qp_part(
                 _cpu_row(rec, item[1], item[3], host[item[3]])
             elif item[0] == "tile":
                 _, block, warps, n = item
-                with lanes.configured(block=block, num_warps=warps):
-                    label = f"pallas, block {block}, {warps} warps"
+                with lanes.configured(block=block, num_warps=warps, block_io=True):
+                    label = f"pallas, block I/O, {block} problems, {warps} warps"
                     _gpu_row(rec, gpu, "accurate", "pallas", n, host[n], label=label)
             elif item[0] == "f32":
                 _, mode, kernel, n = item
