@@ -154,6 +154,28 @@ def test_importance_sampling_covers_two_failure_regions():
     assert lo <= 2 * norm.cdf(-beta) <= hi, res
 
 
+class Slab(Linear):
+    """g = 1 where |xi_0| < beta, else -1: a flat margin no search can follow, P(g < 0) =
+    2 Phi(-beta)."""
+
+    def forward(self, xi):
+        return {"margin": np.where(np.abs(xi[:, 0]) < self.beta, 1.0, -1.0)}
+
+    def gradient(self, xi):
+        g = self.forward(xi)["margin"]
+        return {"margin": g, "smooth": g, "grad": np.zeros_like(xi)}
+
+
+def test_importance_sampling_without_a_failing_draw_still_bounds_p():
+    """When no draw fails (here p = 6e-7 and 400 draws), the estimate is 0 but the interval
+    is not [0, 0]: it still holds the probability."""
+    exact = 2 * norm.cdf(-5.0)
+    res = estimate(Slab(5.0), ProbabilitySpec("is", 400, seed=1), None, False)
+    assert res["p"] == 0.0
+    lo, hi = res["ci95"]
+    assert lo == 0.0 and exact <= hi < 0.1, res
+
+
 def test_subset_cov_matches_its_spread():
     """The CoV subset simulation reports (its replicates' standard error) against the spread
     of 40 seeded estimates of p = 1e-3."""

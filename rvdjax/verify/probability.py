@@ -14,7 +14,9 @@
   failure region of several parts, e.g. one per approach side, is covered by the centres, and
   the N(0, I) share bounds the weights). Weight phi(xi) / q(xi) = 1 / (a + (1 - a) / J sum_j
   exp(c_j.xi - |c_j|^2 / 2)); p = mean(w 1[fail]), CoV from the sample variance, 95 %
-  interval p +- 1.96 sd (clipped at 0).
+  interval p +- 1.96 sd (clipped at 0). With no failing draw the sample variance is 0 and
+  says nothing: the interval is then [0, u / a], u the 97.5 % Clopper-Pearson bound of the
+  mixture's mass on the failure set (no failure in n draws) and 1 / a the largest weight.
 
 Every estimate draws from a stream of its own: its seed, the method and the problem's
 definition hash (:meth:`~rvdjax.verify.evaluate.Problem.definition`), so two thresholds of
@@ -176,6 +178,13 @@ def _subset(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
 # ----------------------------------------------------------------------------- IS
 
 
+def _is_interval(p: float, sd: float, n: int) -> tuple[float, float]:
+    """Importance sampling's 95 % interval (module docstring)."""
+    if p > 0:
+        return max(0.0, p - 1.96 * sd), p + 1.96 * sd
+    return 0.0, float(1.0 - 0.025 ** (1.0 / n)) / IS_DEFENSIVE
+
+
 def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
     from rvdjax.verify.worst import SearchSpec, search
 
@@ -218,7 +227,7 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
         t = np.concatenate(terms)
         ph = t.mean()
         sd = t.std(ddof=1) / np.sqrt(len(t)) if len(t) > 1 else np.inf
-        history.append((dp_runs + len(t), ph, max(0.0, ph - 1.96 * sd), ph + 1.96 * sd))
+        history.append((dp_runs + len(t), ph, *_is_interval(ph, sd, len(t))))
         if bar is not None:
             bar.update(len(xs))
     t = np.concatenate(terms)
@@ -229,7 +238,7 @@ def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
         "is",
         p,
         cov,
-        (max(0.0, p - 1.96 * sd), p + 1.96 * sd),
+        _is_interval(p, sd, len(t)),
         dp_runs + len(t),
         time.perf_counter() - t0,
         design_point=None if dp is None else [float(v) for v in dp],
