@@ -185,8 +185,11 @@ def _coverage_row(out: Path, doc: dict) -> dict:
         "wall_s": float(np.mean([e["wall_s"] for e in doc["estimates"]])),
         "mean_p": float(p.mean()),
         "sd_p": float(p.std(ddof=1)),
-        "mean_cov": float(np.mean([e["cov"] or np.nan for e in doc["estimates"]])),
     }
+    # an estimate of 0 (no failing draw) reports no CoV: the mean is over the others
+    covs = [e["cov"] for e in doc["estimates"] if e["cov"] is not None]
+    row["mean_cov"] = float(np.mean(covs)) if covs else None
+    row["estimates_without_cov"] = len(p) - len(covs)
     row["empirical_cov"] = row["sd_p"] / row["mean_p"] if row["mean_p"] > 0 else None
     if row["empirical_cov"]:  # CoV^2 ~ 1 / n
         row["runs_for_cov_0.3"] = row["runs"] * (row["empirical_cov"] / 0.3) ** 2
