@@ -355,11 +355,8 @@ def qp_part(
                 refs.setdefault((mode, n), sol)
             elif item[0] == "blockio":
                 _, mode, n = item
-                with lanes.configured(block_io=True):
-                    label = "pallas, block I/O"
-                    _gpu_row(
-                        rec, gpu, mode, "pallas", n, host[n], label=label, ref=refs.get((mode, n))
-                    )
+                ref = refs.get((mode, n))
+                _gpu_row(rec, gpu, mode, "pallas-block-io", n, host[n], ref=ref)
             elif item[0] == "unroll":
                 _, u, n = item
                 with unrolled.configured(unroll=u):
@@ -369,9 +366,9 @@ def qp_part(
                 _cpu_row(rec, item[1], item[3], host[item[3]])
             elif item[0] == "tile":
                 _, block, warps, n = item
-                with lanes.configured(block=block, num_warps=warps, block_io=True):
-                    label = f"pallas, block I/O, {block} problems, {warps} warps"
-                    _gpu_row(rec, gpu, "accurate", "pallas", n, host[n], label=label)
+                with lanes.configured(block=block, num_warps=warps):
+                    label = f"pallas-block-io, {block} problems, {warps} warps"
+                    _gpu_row(rec, gpu, "accurate", "pallas-block-io", n, host[n], label=label)
             elif item[0] == "f32":
                 _, mode, kernel, n = item
                 h32 = jax.tree.map(

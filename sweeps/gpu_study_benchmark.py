@@ -2,7 +2,7 @@
 machine's CPU cores, in one run of at most ``--budget-s`` seconds (290), compile included.
 
     PYTHONPATH=. python sweeps/gpu_study_benchmark.py [--out DIR] [--budget-s 290]
-        [--parts throughput,ch5,study,cpu,bits] [--kernel K [--block-io]]
+        [--parts throughput,ch5,study,cpu,bits] [--kernel K]
         [--scenarios A,B] [--slots 4096,32768] [--smoke]
 
 From the repository root on a machine whose jax has GPU support; nothing to install. Parts,
@@ -385,9 +385,6 @@ def main(argv=None) -> int:
     ap.add_argument("--parts", default=",".join(SHARES), help="comma-separated parts")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
     ap.add_argument("--kernel", default=None, help="the Newton step's form for throughput rows")
-    ap.add_argument(
-        "--block-io", action="store_true", help="with --kernel pallas: KernelConfig.block_io"
-    )
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="throughput's scenarios")
     ap.add_argument("--slots", default=None, help="throughput's slot counts (4096,32768)")
     args = ap.parse_args(argv)
@@ -420,13 +417,10 @@ def main(argv=None) -> int:
                 if args.slots:
                     sizes = tuple(int(v) for v in args.slots.split(","))
                 each = allowed / (len(scenarios) * len(sizes))
-                from rvdjax.solver import lanes
-
                 for scenario in scenarios:
                     for slots in sizes:
-                        with lanes.configured(block_io=args.block_io):
-                            row = throughput(scenario, slots, each, args.smoke, kernel=args.kernel)
-                        rec.add(**row, block_io=args.block_io)
+                        row = throughput(scenario, slots, each, args.smoke, kernel=args.kernel)
+                        rec.add(**row)
             elif name == "refresh":  # the other refresh than the device's choice
                 slots = (SMOKE["slots"] if args.smoke else SLOTS)[-1]
                 other = "masked" if platform != "cpu" else "compacted"

@@ -26,9 +26,16 @@ def _solver(settings: SolverSettings):
     return jax.jit(jax.vmap(lambda o: solve(o, settings)))
 
 
-def _solve(settings, ocps):
+@pytest.fixture(autouse=True, scope="module")
+def _small_tiles():
+    """Every kernel of this module traced with tiles of BLOCK lanes (set once: a change of
+    the launch configuration clears JAX's caches)."""
     with lanes.configured(block=BLOCK):
-        return _solver(settings)(ocps)
+        yield
+
+
+def _solve(settings, ocps):
+    return _solver(settings)(ocps)
 
 
 def _rel(a, b):
@@ -52,20 +59,12 @@ def _random(name, n):
     return stack_ocps([random_ocp(seed, SHAPE_CLASSES[name]) for seed in range(n)])
 
 
-@pytest.mark.parametrize(
-    "kernel, config",
-    [
-        ("pallas", {}),
-        ("unrolled", {}),
-        pytest.param("pallas", {"fused": True}, id="pallas-fused"),
-        pytest.param("pallas", {"block_io": True}, id="pallas-block-io"),
-    ],
-)
+@pytest.mark.parametrize("kernel", ["pallas", "pallas-block-io", "pallas-fused", "unrolled"])
 @pytest.mark.parametrize(
     "case",
     [pytest.param(c, marks=pytest.mark.slow) if c.startswith("fastmpc") else c for c in CASES],
 )
-def test_kernels_give_the_xla_iterates(case, kernel, config):
+def test_kernels_give_the_xla_iterates(case, kernel):
     """The Pallas kernels (interpreted; the factorisation and the first step in one kernel or in
     two, a stage's arrays loaded and stored entry by entry or as blocks) and the unrolled XLA
     loops against XLA's loops. The same statuses and iteration counts, and the same answer: to
@@ -77,8 +76,7 @@ def test_kernels_give_the_xla_iterates(case, kernel, config):
     make, ocps = CASES[case]
     ocps = ocps()
     xla = _solve(make(kernel="xla"), ocps)
-    with lanes.configured(**config):
-        pal = _solve(make(kernel=kernel), ocps)
+    pal = _solve(make(kernel=kernel), ocps)
     np.testing.assert_array_equal(np.asarray(pal.status), np.asarray(xla.status))
     np.testing.assert_array_equal(np.asarray(pal.iterations), np.asarray(xla.iterations))
     assert set(np.asarray(xla.status).tolist()) <= {Status.CONVERGED, Status.MAX_ITER}
@@ -116,8 +114,7 @@ def test_one_iteration_from_the_same_iterate_agrees_to_rounding():
         return jax.jit(jax.vmap(jax.vmap(one)))
 
     a = step(xs)(ocs, states)
-    with lanes.configured(block=BLOCK):
-        b = step(ps)(ocs, states)
+    b = step(ps)(ocs, states)
     for name in ("u", "x", "nu", "lam", "mu", "pi", "s"):
         for k in range(5):
             assert _rel(getattr(a, name)[:, k], getattr(b, name)[:, k]) <= 1e-13, (name, k)
@@ -141,11 +138,8 @@ def test_kernel_gradients_match_central_differences():
     for kernel in ("xla", "pallas", "unrolled"):
         settings = SolverSettings.paper(kernel=kernel, max_iter=200)
         f = jax.jit(functools.partial(loss, settings))
-        with lanes.configured(block=BLOCK):
-            grads[kernel] = jax.jit(jax.grad(functools.partial(loss, settings), (0, 1)))(
-                1.3, ocp.x0
-            )
-            fds[kernel] = (float(f(1.3 + h, ocp.x0)) - float(f(1.3 - h, ocp.x0))) / (2 * h)
+        grads[kernel] = jax.jit(jax.grad(functools.partial(loss, settings), (0, 1)))(1.3, ocp.x0)
+        fds[kernel] = (float(f(1.3 + h, ocp.x0)) - float(f(1.3 - h, ocp.x0))) / (2 * h)
     gs_x, g0_x = grads["xla"]
     for kernel in ("pallas", "unrolled"):
         gs_p, g0_p = grads[kernel]
@@ -169,8 +163,8 @@ def _cuda_text(fn, *args):
         (SolverSettings.paper(kernel="pallas"), 2, 3),
     ],
 )
-@pytest.mark.parametrize("block_io", [False, True])
-def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, block_io):
+@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io"])
+def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
     a batched and an unbatched solve with ``kernel="pallas"`` hold the Riccati sweeps as
     ``kernels`` Triton kernels and no loop over stages beyond the solve loop, the start's
@@ -178,13 +172,13 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, block_
     on a GPU."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
-    with lanes.configured(block_io=block_io):
-        batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
-        single = _cuda_text(lambda o: solve(o, settings), one)
+    settings = dataclasses.replace(settings, kernel=variant)
+    batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
+    single = _cuda_text(lambda o: solve(o, settings), one)
     for text in (batched, single):
         assert text.count("__gpu$xla.gpu.triton") == kernels
         assert text.count("stablehlo.while") == loops
-    if block_io:
+    if variant != "pallas":
         return
     # the default stays on XLA's loops on a GPU (the kernels' compile there, docs/solver.md)
     default = dataclasses.replace(settings, kernel="auto")

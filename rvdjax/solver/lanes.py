@@ -67,15 +67,19 @@ class KernelConfig:
             block = 128.
         interpret: run the kernels in Pallas' interpreter (the CPU; tests).
         fused: the solver's factorisation and first step in one kernel (:func:`factor_solve`)
-            instead of :func:`factor` then :func:`apply`. On an H200 (2026-11-26) Triton
-            compiled :func:`factor` alone in 51 s and :func:`apply` in about 3 s; the fused
-            kernel did not finish in 165 s, so it is off.
+            instead of :func:`factor` then :func:`apply` (the solver: ``kernel=
+            "pallas-fused"``). On an H200 (2026-11-26) Triton compiled :func:`factor` alone
+            in 51 s and :func:`apply` in about 3 s; the fused kernel did not finish in 165 s
+            on an H100, so it is off by default.
         block_io: load and store a stage's block of each array at once (entries flattened
             and padded to a power of two, split into lane vectors and joined back inside
-            the kernel) instead of entry by entry. Triton's compile time is its coalescing
-            pass, which costs about (loads and stores) x (kernel size)^2
-            (``sweeps/triton_compile_profile.py``); this cuts the loads and stores from
-            hundreds to a few. Its speed on a GPU is not yet measured.
+            the kernel) instead of entry by entry (the solver: ``kernel="pallas-block-io"``).
+            Triton's compile time is its coalescing pass, which costs about (loads and
+            stores) x (kernel size)^2 (``sweeps/triton_compile_profile.py``); this cuts the
+            loads and stores from hundreds to a few. Its speed on a GPU is not yet measured.
+
+    The solver takes ``fused`` and ``block_io`` from its kernel name, and the rest from
+    :func:`default_config`.
     """
 
     block: int = 128
@@ -96,13 +100,20 @@ def default_config() -> KernelConfig:
 @contextlib.contextmanager
 def configured(**changes):
     """Trace the solver's kernels with another launch configuration inside the block (e.g.
-    ``block=64`` in a benchmark); programs compiled before keep theirs."""
+    ``block=64`` in a benchmark). JAX's caches are cleared on entry and exit when the
+    configuration changes: a jitted solve would otherwise reuse a program traced with the
+    other one (the configuration is not part of its cache key)."""
     old = _DEFAULT[0]
-    _DEFAULT[0] = dataclasses.replace(old, **changes)
+    new = dataclasses.replace(old, **changes)
+    if new != old:
+        jax.clear_caches()
+    _DEFAULT[0] = new
     try:
-        yield _DEFAULT[0]
+        yield new
     finally:
         _DEFAULT[0] = old
+        if new != old:
+            jax.clear_caches()
 
 
 # ----------------------------------------------------------------------- lane-vector algebra

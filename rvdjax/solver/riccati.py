@@ -260,10 +260,18 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
 
 def _lane_ops(impl):
     """(factor, factor_solve, apply) of the batch-last forms: ``impl`` "unrolled" (XLA's
-    loops, :mod:`rvdjax.solver.unrolled`), or a bool: the Pallas kernels, interpreted or not."""
+    loops, :mod:`rvdjax.solver.unrolled`), or (kernel, interpret): the Pallas kernels of a
+    "pallas*" kernel name, interpreted or not. The variant is in the name (static in
+    SolverSettings, so a program traced with one is never reused for another)."""
     if impl == "unrolled":
         return unrolled.factor, unrolled.factor_solve, unrolled.apply
-    cfg = dataclasses.replace(lanes.default_config(), interpret=impl)
+    kernel, interpret = impl
+    cfg = dataclasses.replace(
+        lanes.default_config(),
+        interpret=interpret,
+        block_io=kernel == "pallas-block-io",
+        fused=kernel == "pallas-fused",
+    )
     factor, apply = (functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply))
     if cfg.fused:
         return factor, functools.partial(lanes.factor_solve, cfg=cfg), apply
@@ -322,7 +330,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-KERNELS = ("auto", "xla", "pallas", "unrolled")
+KERNELS = ("auto", "xla", "pallas", "pallas-block-io", "pallas-fused", "unrolled")
 
 
 def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
@@ -337,7 +345,9 @@ def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
 def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "auto" and "xla" run XLA's loops on every
     platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere
-    (the tests); "unrolled" runs the kernels' algebra as XLA loops (:mod:`.unrolled`).
+    (the tests), "pallas-block-io" with block loads and stores, "pallas-fused" with the
+    factorisation and first step in one kernel (:class:`rvdjax.solver.lanes.KernelConfig`);
+    "unrolled" runs the kernels' algebra as XLA loops (:mod:`.unrolled`).
 
     "auto" stays on XLA's loops on a GPU too. On one H200 (jax 0.11.2, CUDA 13, 2026-11-26,
     65 536 fastmpc-3d QPs, accurate mode) the kernels ran 2.1x faster (2.68 against 5.58 µs
@@ -346,10 +356,12 @@ def _by_platform(kernel: str, xla, pallas, *args):
     loops at 16 384 problems and alone (docs/benchmark.md)."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
-    if kernel != "pallas":
+    if not kernel.startswith("pallas"):
         return xla(*args)
     return lax.platform_dependent(
-        *args, cuda=functools.partial(pallas, False), default=functools.partial(pallas, True)
+        *args,
+        cuda=functools.partial(pallas, (kernel, False)),
+        default=functools.partial(pallas, (kernel, True)),
     )
 
 
@@ -430,9 +442,10 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" or "xla" (XLA's loops), "pallas" (the kernels of
-            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
-            "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
+        kernel: "auto" or "xla" (XLA's loops), "pallas", "pallas-block-io" or
+            "pallas-fused" (the kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA
+            GPU, interpreted elsewhere) or "unrolled" (their algebra as XLA loops,
+            :mod:`rvdjax.solver.unrolled`).
     """
     _check_kernel(kernel)
     return _batched("factor", kernel)(A, B, Phi_u, Phi_x)

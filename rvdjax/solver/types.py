@@ -21,7 +21,14 @@ MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
-KERNELS = ("auto", "xla", "pallas", "unrolled")  # rvdjax.solver.riccati.KERNELS
+KERNELS = (
+    "auto",
+    "xla",
+    "pallas",
+    "pallas-block-io",
+    "pallas-fused",
+    "unrolled",
+)  # rvdjax.solver.riccati.KERNELS
 
 
 class Status:
@@ -78,8 +85,11 @@ class SolverSettings:
             measurements behind the default.
         kernel: how the Riccati sweeps of the Newton step run. "auto" (default) and "xla":
             XLA's loops; "pallas": GPU kernels (:mod:`rvdjax.solver.lanes`), compiled for a
-            CUDA GPU and interpreted elsewhere (the tests check them there); "unrolled": the
-            kernels' entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`).
+            CUDA GPU and interpreted elsewhere (the tests check them there), loading and
+            storing entry by entry; "pallas-block-io": the same with block loads and stores
+            (seconds of compile instead of a minute; GPU speed not measured); "pallas-fused":
+            the factorisation and first step in one kernel; "unrolled": the kernels'
+            entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`).
             They give the same iterates to rounding. "auto" does not pick the kernels on a
             GPU yet: there they ran 2.1x faster on 65 536 QPs but took 74 s to compile,
             against 5 s (docs/solver.md).

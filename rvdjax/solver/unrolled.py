@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import math
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -43,12 +44,17 @@ def default_unroll() -> int:
 @contextlib.contextmanager
 def configured(unroll: int):
     """Trace the solver's sweeps with ``unroll`` stages per loop trip inside the block (a
-    benchmark's variant); programs compiled before keep theirs."""
+    benchmark's variant). JAX's caches are cleared on entry and exit when it changes, as in
+    :func:`rvdjax.solver.lanes.configured`."""
     old, _UNROLL[0] = _UNROLL[0], unroll
+    if unroll != old:
+        jax.clear_caches()
     try:
         yield unroll
     finally:
         _UNROLL[0] = old
+        if unroll != old:
+            jax.clear_caches()
 
 
 def _vec(X):
