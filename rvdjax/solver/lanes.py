@@ -21,8 +21,9 @@ sweep of the first right-hand side, then its forward sweep), :func:`apply` (one 
 right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
 compute the recursion of :mod:`rvdjax.solver.riccati` in the same order (the Joseph form, the
 refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
-runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``,
-and the solver calls :func:`factor` then :func:`apply` (``KernelConfig.fused`` off): on one
+runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``
+(or ``"pallas-block-io"``, ``"pallas-fused"``: :class:`KernelConfig`), and the solver calls
+:func:`factor` then :func:`apply` unless fused: on one
 H200 (jax 0.11.2, CUDA 13, 2026-11-26) Triton compiled :func:`factor` in 51 s and
 :func:`apply` in about 3 s, where :func:`factor_solve` had not finished in 165 s on an H100.
 A batched accurate-mode solve then compiles in 74 s (5 s with XLA's loops) and runs 2.1x
