@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.solver import lanes, unrolled
+from rvdjax.solver.stagewise import shift as _shift
 
 __all__ = [
     "NewtonStep",
@@ -118,11 +119,6 @@ _ELEMENTWISE = _Products(
     mv=lambda X, v: jnp.sum(X * v[None, :], axis=1),
     mtv=lambda X, v: jnp.sum(X * v[:, None], axis=0),
 )
-
-
-def _shift(a):
-    """(a_0, ..., a_{N-1}) -> (0, a_0, ..., a_{N-2}) along the stage axis."""
-    return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
 
 
 def _factor(A, B, Phi_u, Phi_x, ops: _Products) -> RiccatiFactor:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-__all__ = ["mv", "mtv", "congruence", "quad"]
+__all__ = ["mv", "mtv", "congruence", "quad", "shift"]
 
 
 def mv(F, v):
@@ -38,3 +38,8 @@ def congruence(F, d):
 def quad(v, M):
     """(N, n), (N, n, n) -> (): sum over stages of v_t^T M_t v_t (einsum "ti,tij,tj->")."""
     return jnp.sum(v * mv(M, v))
+
+
+def shift(a):
+    """(a_0, ..., a_{N-1}) -> (0, a_0, ..., a_{N-2}) along the stage axis."""
+    return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])

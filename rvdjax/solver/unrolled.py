@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.solver.lanes import _backward_rhs, _factor_stage, _forward
+from rvdjax.solver.stagewise import shift as _shift
 
 __all__ = ["factor", "factor_solve", "apply", "configured", "default_unroll"]
 
@@ -93,11 +94,6 @@ def _scan(body, carry, xs, reverse, unroll):
         out.append(Y[:, row : row + n].reshape(Y.shape[0], *shape, Y.shape[-1]))
         row += n
     return out
-
-
-def _shift(a):
-    """(a_0, ..., a_{N-1}) -> (0, a_0, ..., a_{N-2}) along the stage axis."""
-    return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
 
 
 def _sweeps(M, Phi_u, Phi_x, rhs, unroll):
