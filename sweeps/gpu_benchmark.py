@@ -9,7 +9,8 @@ Parts (``python sweeps/gpu_benchmark.py [qp|study|all]``, from the repository ro
   modes on the GPU, for each form of the Newton step in ``--kernels`` (default ``xla,pallas``:
   XLA's loops at every size, then the Pallas kernels at the largest, with block loads and
   stores first since they compile in seconds, then entry by entry, a compile of over a
-  minute); the same QPs on the machine's CPU cores (one XLA host device per core, the batch
+  minute; ``pallas-block-io`` alone runs the block-I/O kernels at every size, as a fast
+  form); the same QPs on the machine's CPU cores (one XLA host device per core, the batch
   split over them, chunks of 32 per core; ``--no-cpu`` leaves them out); one fastmpc-3d
   maneuver per MPC step on the GPU and on one CPU core; float32 paper mode (NONFINITE count
   and objective error against float64); compile times, XLA's planned memory per program, the
@@ -426,7 +427,10 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-s", type=float, default=None, help="seconds per part (290)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
     ap.add_argument(
-        "--kernels", default="xla,pallas", help="Newton-step forms: xla, unrolled, pallas"
+        "--kernels",
+        default="xla,pallas",
+        help="Newton-step forms: auto, xla, unrolled, pallas (block I/O, then entry-wise, at"
+        " the largest batch), pallas-block-io (at every batch)",
     )
     ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
@@ -434,11 +438,10 @@ def main(argv=None) -> int:
     ap.add_argument("--hlo", action="store_true", help="write the largest batch's HLO to --out")
     args = ap.parse_args(argv)
     kernels = tuple(k for k in args.kernels.split(",") if k)
-    bad = set(kernels) - {"xla", "unrolled", "pallas", "auto"}
+    forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io")
+    bad = set(kernels) - set(forms)
     if bad:
-        print(
-            f"--kernels: unknown {', '.join(sorted(bad))}; choose from auto, xla, unrolled, pallas"
-        )
+        print(f"--kernels: unknown {', '.join(sorted(bad))}; choose from {', '.join(forms)}")
         return 2
     sizes = tuple(int(v) for v in args.sizes.split(",")) if args.sizes else None
     unrolls = tuple(int(v) for v in args.unrolls.split(",") if v)

@@ -234,7 +234,9 @@ def test_engine_settings_are_chosen_for_the_device():
 
 def test_the_segment_program_lowers_for_a_gpu():
     """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
-    lowering error would show here), with the accelerator settings (one chunk, compacted)."""
+    lowering error would show here), with the accelerator settings (one chunk, compacted),
+    and the solver's default Newton step as Pallas (Triton) kernels there."""
     exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
     assert exported.platforms == ("cuda",)
-    assert "stablehlo.while" in exported.mlir_module()
+    text = exported.mlir_module()
+    assert "stablehlo.while" in text and "__gpu$xla.gpu.triton" in text

@@ -163,13 +163,14 @@ def _cuda_text(fn, *args):
         (SolverSettings.paper(kernel="pallas"), 2, 3),
     ],
 )
-@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io"])
+@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "auto"])
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
-    a batched and an unbatched solve with ``kernel="pallas"`` hold the Riccati sweeps as
-    ``kernels`` Triton kernels and no loop over stages beyond the solve loop, the start's
-    drift and (paper mode) the line search; the default ``kernel="auto"`` keeps XLA's loops
-    on a GPU."""
+    a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, which
+    picks the block-I/O kernels on a CUDA GPU) hold the Riccati sweeps as ``kernels`` Triton
+    kernels and no loop over stages beyond the solve loop, the start's drift and (paper
+    mode) the line search; ``kernel="xla"`` keeps XLA's loops on a GPU, and ``"auto"``
+    lowered for the CPU runs XLA's loops."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
@@ -178,9 +179,10 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     for text in (batched, single):
         assert text.count("__gpu$xla.gpu.triton") == kernels
         assert text.count("stablehlo.while") == loops
-    if variant != "pallas":
+    if variant != "auto":
         return
-    # the default stays on XLA's loops on a GPU (the kernels' compile there, docs/solver.md)
-    default = dataclasses.replace(settings, kernel="auto")
-    gpu_default = _cuda_text(jax.vmap(lambda o: solve(o, default)), ocps)
-    assert "triton" not in gpu_default and gpu_default.count("stablehlo.while") > loops
+    xla = dataclasses.replace(settings, kernel="xla")
+    gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
+    assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
+    cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
+    assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops

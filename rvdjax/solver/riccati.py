@@ -339,19 +339,27 @@ def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
 
 
 def _by_platform(kernel: str, xla, pallas, *args):
-    """``xla(*args)`` or ``pallas(impl, *args)``: "auto" and "xla" run XLA's loops on every
-    platform; "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere
-    (the tests), "pallas-block-io" with block loads and stores, "pallas-fused" with the
-    factorisation and first step in one kernel (:class:`rvdjax.solver.lanes.KernelConfig`);
-    "unrolled" runs the kernels' algebra as XLA loops (:mod:`.unrolled`).
+    """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
+    "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
+    "pallas-block-io" with block loads and stores, "pallas-fused" with the factorisation and
+    first step in one kernel (:class:`rvdjax.solver.lanes.KernelConfig`); "unrolled" runs the
+    kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs "pallas-block-io" on a CUDA
+    GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
 
-    "auto" stays on XLA's loops on a GPU too. On one H200 (jax 0.11.2, CUDA 13, 2026-11-26,
-    65 536 fastmpc-3d QPs, accurate mode) the kernels ran 2.1x faster (2.68 against 5.58 µs
-    a QP) but the program compiled in 74 s against 5 s, and the batch engine's programs with
-    them are not yet measured; "unrolled" compiled in 18 s and ran 4.83 µs, slower than XLA's
-    loops at 16 384 problems and alone (docs/benchmark.md)."""
+    Why "auto" picks the block-I/O kernels on a GPU: on one H100 (jax 0.11.2, CUDA 13,
+    2026-11-26, fastmpc-3d QPs, accurate mode) they ran 4.63 against XLA's 7.25 µs a QP at
+    65 536 problems, 5.23 against 6.90 at 16 384 and 19.9 against 23.1 ms alone, and the
+    batch engine flew 1.25x (fastmpc-3d, 32 768 slots) and 1.15x (thesis-vbar, 4 096) the
+    maneuvers per second, for a compile 10-12 s longer. The entry-wise kernels ("pallas")
+    ran 3.58 µs but compiled in 83 s; "unrolled" was slower than XLA's loops at 16 384
+    problems and alone on an H200 (docs/benchmark.md). On the CPU XLA's loops are the
+    fastest form (the kernels are only interpreted there)."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
+    if kernel == "auto":
+        return lax.platform_dependent(
+            *args, cuda=functools.partial(pallas, ("pallas-block-io", False)), default=xla
+        )
     if not kernel.startswith("pallas"):
         return xla(*args)
     return lax.platform_dependent(
@@ -438,7 +446,8 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" or "xla" (XLA's loops), "pallas", "pallas-block-io" or
+        kernel: "auto" (the block-I/O kernels on a CUDA GPU, else XLA's loops), "xla"
+            (XLA's loops), "pallas", "pallas-block-io" or
             "pallas-fused" (the kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA
             GPU, interpreted elsewhere) or "unrolled" (their algebra as XLA loops,
             :mod:`rvdjax.solver.unrolled`).

@@ -83,16 +83,16 @@ class SolverSettings:
             inputs that follow the warm start's states from the new x0 (the LQR correction
             with the OCP's own Q, R; one extra Riccati solve). docs/reproduction.md gives the
             measurements behind the default.
-        kernel: how the Riccati sweeps of the Newton step run. "auto" (default) and "xla":
-            XLA's loops; "pallas": GPU kernels (:mod:`rvdjax.solver.lanes`), compiled for a
-            CUDA GPU and interpreted elsewhere (the tests check them there), loading and
-            storing entry by entry; "pallas-block-io": the same with block loads and stores
-            (seconds of compile instead of a minute; GPU speed not measured); "pallas-fused":
-            the factorisation and first step in one kernel; "unrolled": the kernels'
-            entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`).
-            They give the same iterates to rounding. "auto" does not pick the kernels on a
-            GPU yet: there they ran 2.1x faster on 65 536 QPs but took 74 s to compile,
-            against 5 s (docs/solver.md).
+        kernel: how the Riccati sweeps of the Newton step run. "auto" (default):
+            "pallas-block-io" on a CUDA GPU, XLA's loops elsewhere, chosen by the device the
+            program is compiled for; "xla": XLA's loops everywhere; "pallas": GPU kernels
+            (:mod:`rvdjax.solver.lanes`), compiled for a CUDA GPU and interpreted elsewhere
+            (the tests check them there), loading and storing entry by entry;
+            "pallas-block-io": the same with block loads and stores (a compile of seconds
+            instead of over a minute); "pallas-fused": the factorisation and first step in
+            one kernel; "unrolled": the kernels' entry-by-entry algebra as XLA loops
+            (:mod:`rvdjax.solver.unrolled`). They give the same iterates to rounding. The
+            measurements behind "auto" are in docs/solver.md.
     """
 
     mode: str = "accurate"
