@@ -237,7 +237,7 @@ def auto_config(
             refresh="compacted",
             assign="any",
         )
-        notes.append("accelerator settings not yet measured on a GPU")
+        notes.append("accelerator settings not yet tuned one by one on a GPU")
     per_device = values["slots"]
     if n_runs is not None:
         need = max(1, math.ceil(n_runs / devices))
