@@ -1,0 +1,252 @@
+"""Where a GPU's time goes: the device's kernels in a ``jax.profiler`` trace, summed by name.
+
+    PYTHONPATH=. python sweeps/gpu_profile.py qp [--batch 65536] [--mode accurate]
+        [--kernel auto] [--top 25] [--out results/gpu-profile]
+    PYTHONPATH=. python sweeps/gpu_profile.py engine [--scenario fastmpc-3d] [--slots 32768]
+        [--seconds 3] [--kernel auto] [--top 25] [--out results/gpu-profile]
+
+``qp``: one ``jit(vmap(solve))`` call on the fastmpc-3d first-step QPs (as
+``sweeps/gpu_benchmark.py``), compiled and run once before the traced call. ``engine``: the
+batch engine (``rvdjax bench --closed-loop``'s initial states, the device's engine settings)
+compiled, then flown for ``--seconds`` under the trace.
+
+Each device kernel of the trace (the planes ``/device:*``; on a CPU-only machine the host's
+XLA thunks instead, for this script's test) is summed by name: calls, total and mean time,
+share of the kernels' total. A kernel is matched to the HLO instruction of the compiled
+program with the same name (XLA names a GPU kernel after its fusion), whose ``op_name``
+(the jax function that made it) and source line are printed, so a fusion's time points at
+the code. Triton kernels (the solver's Pallas kernels) are named after their ``pallas_call``.
+The rows go to ``OUT/gpu_profile.jsonl`` and the trace stays in ``OUT/trace`` (TensorBoard
+or Perfetto can open it). One call; the whole run takes under two minutes on one H100.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import shutil
+import sys
+import time
+
+import jax
+import numpy as np
+
+import rvdjax  # noqa: F401  (float64)
+
+_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{([^}]*)\}")
+_META = re.compile(r'(op_name|source_file|source_line)=("[^"]*"|\d+)')
+
+
+def hlo_sources(hlo: str) -> dict:
+    """Instruction name -> "op_name (file:line)" from a compiled program's HLO text; names
+    also under the forms GPU kernels take ('.' and '-' as '_')."""
+    out = {}
+    for line in hlo.splitlines():
+        m = _INSTR.match(line)
+        if not m:
+            continue
+        meta = {k: v.strip('"') for k, v in _META.findall(m.group(2))}
+        if "op_name" not in meta:
+            continue
+        where = os.path.basename(meta.get("source_file", ""))
+        src = meta["op_name"] + (f" ({where}:{meta['source_line']})" if where else "")
+        name = m.group(1)
+        out[name] = src
+        out.setdefault(re.sub(r"[.\-]", "_", name), src)
+    return out
+
+
+def kernel_times(trace_dir: str) -> tuple[list[dict], str]:
+    """Device kernels summed by name from the newest ``*.xplane.pb`` under ``trace_dir``:
+    [{name, calls, total_ms, mean_us}], largest first, and the planes read."""
+    from jax.profiler import ProfileData
+
+    paths = sorted(glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True))
+    if not paths:
+        raise FileNotFoundError(f"no .xplane.pb under {trace_dir}")
+    data = ProfileData.from_file(paths[-1])
+    planes = [p for p in data.planes if p.name.startswith("/device:")]
+    host_only = not planes
+    if host_only:  # a CPU-only machine: the XLA thunks on the host's executor threads
+        planes = [p for p in data.planes if p.name == "/host:CPU"]
+    sums: dict[str, list] = {}
+    for plane in planes:
+        for line in plane.lines:
+            if host_only and not line.name.startswith("tf_XLA"):
+                continue
+            for ev in line.events:
+                s = sums.setdefault(ev.name, [0, 0.0])
+                s[0] += 1
+                s[1] += ev.duration_ns
+    rows = [
+        dict(name=k, calls=c, total_ms=ns / 1e6, mean_us=ns / 1e3 / c)
+        for k, (c, ns) in sums.items()
+    ]
+    rows.sort(key=lambda r: -r["total_ms"])
+    return rows, ", ".join(p.name for p in planes)
+
+
+def _kind(name: str) -> str:
+    low = name.lower()
+    if "triton" in low or "pallas" in low or "riccati" in low:
+        return "triton"
+    for k in ("fusion", "copy", "transpose", "dynamic", "reduce", "scatter", "gather", "memset"):
+        if k in low:
+            return k
+    return "other"
+
+
+def _qp(args):
+    from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
+    from rvdjax.solver import SolverSettings, solve
+
+    settings = (SolverSettings.paper if args.mode == "paper" else SolverSettings)(
+        kernel=args.kernel
+    )
+    ocps = jax.device_put(fastmpc3d_first_step_batch(perturbed_x0(0, args.batch)))
+    compiled = jax.jit(jax.vmap(lambda o: solve(o, settings))).lower(ocps).compile()
+    sol = jax.block_until_ready(compiled(ocps))
+
+    def traced():
+        jax.block_until_ready(compiled(ocps))
+
+    info = dict(
+        target="qp",
+        batch=args.batch,
+        mode=args.mode,
+        kernel=args.kernel,
+        iterations=float(np.mean(np.asarray(sol.iterations))),
+    )
+    return traced, compiled.as_text(), info
+
+
+def _engine(args):
+    from rvdjax.bench import perturbed_states
+    from rvdjax.loop.engine import Block, arrays_source, auto_config, compile_engine, run_stream
+    from rvdjax.scenarios import FlightOptions, get_scenario
+
+    sc = get_scenario(args.scenario)
+    options = FlightOptions(n_steps=40 if args.smoke else None)
+    flight = sc.flight(options, settings=sc.settings(options.mode, kernel=args.kernel))
+    params, x0, loop = flight.params, flight.x0, flight.loop
+    sp = sc.solver_params()
+    n = 3 * args.slots
+    source = arrays_source(perturbed_states(x0, n))
+    cfg = auto_config(slots=args.slots)
+    compile_engine(loop, source, params, sp, cfg)
+    texts = []
+    try:  # the segment program's HLO, for the kernels' sources
+        from rvdjax.loop.engine.program import segment_program
+        from rvdjax.loop.engine.stream import _abstract_args
+
+        program = segment_program(loop, cfg, source.fn)
+        args_ = _abstract_args(loop, cfg, source, params, sp)
+        texts.append(program.lower(*args_).compile().as_text())
+    except Exception as err:  # the sources are a convenience: the times stand without them
+        print(f"(no HLO sources: {type(err).__name__}: {err})", flush=True)
+    done = {}
+
+    def traced():
+        out = run_stream(
+            loop,
+            source.fn,
+            [Block(source.data, 0, n)],
+            n,
+            params=params,
+            solver_params=sp,
+            config=cfg,
+            keep=False,
+            deadline=time.perf_counter() + args.seconds,
+        )
+        done.update(out)
+
+    info = dict(target="engine", scenario=args.scenario, slots=cfg.n_slots, kernel=args.kernel)
+    info["engine"] = cfg.describe()
+    return traced, "\n".join(texts), info, done
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("target", choices=("qp", "engine"))
+    ap.add_argument("--batch", type=int, default=65536, help="QPs in the batch (qp)")
+    ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
+    ap.add_argument("--kernel", default="auto", help="the Newton step's form (SolverSettings)")
+    ap.add_argument("--scenario", default="fastmpc-3d", help="engine: the scenario")
+    ap.add_argument("--slots", type=int, default=32768, help="engine: slots")
+    ap.add_argument("--seconds", type=float, default=3.0, help="engine: seconds flown traced")
+    ap.add_argument("--top", type=int, default=25, help="kernels printed")
+    ap.add_argument("--out", default="results/gpu-profile", help="directory for the rows")
+    ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
+    args = ap.parse_args(argv)
+    from rvdjax.solver.riccati import KERNELS
+
+    if args.kernel not in KERNELS:
+        print(f"--kernel: must be one of {', '.join(KERNELS)}, got {args.kernel!r}")
+        return 2
+    for name, v, lo in (
+        ("--batch", args.batch, 1),
+        ("--slots", args.slots, 1),
+        ("--top", args.top, 1),
+    ):
+        if v < lo:
+            print(f"{name}: must be an integer >= {lo}, got {v}")
+            return 2
+    if not args.seconds > 0:
+        print(f"--seconds: must be > 0, got {args.seconds}")
+        return 2
+    from rvdjax.outputs import check_dir
+
+    check_dir(args.out, "--out")
+    os.makedirs(args.out, exist_ok=True)
+    if args.smoke:
+        args.batch, args.slots, args.seconds = min(args.batch, 64), min(args.slots, 32), 2.0
+    done = {}
+    if args.target == "qp":
+        traced, hlo, info = _qp(args)
+    else:
+        traced, hlo, info, done = _engine(args)
+    trace_dir = os.path.join(args.out, "trace")
+    shutil.rmtree(trace_dir, ignore_errors=True)
+    t0 = time.perf_counter()
+    with jax.profiler.trace(trace_dir):
+        traced()
+    wall_ms = 1e3 * (time.perf_counter() - t0)
+    rows, planes = kernel_times(trace_dir)
+    sources = hlo_sources(hlo)
+    total = sum(r["total_ms"] for r in rows) or float("nan")
+    info.update(
+        device=str(jax.devices()[0].device_kind),
+        planes=planes,
+        wall_ms=wall_ms,
+        kernels_ms=total,
+        launches=sum(r["calls"] for r in rows),
+        runs_done=done.get("done"),
+        by_kind={},
+    )
+    for r in rows:
+        r["share"] = r["total_ms"] / total
+        r["kind"] = _kind(r["name"])
+        r["source"] = sources.get(r["name"]) or sources.get(re.sub(r"[.\-]", "_", r["name"]))
+        info["by_kind"][r["kind"]] = info["by_kind"].get(r["kind"], 0.0) + r["total_ms"]
+    with open(os.path.join(args.out, "gpu_profile.jsonl"), "a", encoding="utf-8") as f:
+        f.write(json.dumps(dict(info, top=rows[: args.top])) + "\n")
+    print(
+        f"{info['target']} on {info['device']} ({planes}): {info['launches']} kernel calls, "
+        f"{total:.1f} ms in kernels, {wall_ms:.1f} ms wall traced"
+    )
+    print("by kind: " + ", ".join(f"{k} {v:.1f} ms" for k, v in info["by_kind"].items()))
+    print("| kernel | kind | calls | total ms | share | mean µs | source |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows[: args.top]:
+        print(
+            f"| {r['name'][:60]} | {r['kind']} | {r['calls']} | {r['total_ms']:.2f} | "
+            f"{100 * r['share']:.1f} % | {r['mean_us']:.1f} | {(r['source'] or '')[:90]} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
