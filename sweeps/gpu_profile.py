@@ -124,8 +124,10 @@ def _qp(args):
 
 
 def _engine(args):
+    from gpu_study_benchmark import _run_until  # this folder's engine driver
+
     from rvdjax.bench import perturbed_states
-    from rvdjax.loop.engine import Block, arrays_source, auto_config, compile_engine, run_stream
+    from rvdjax.loop.engine import arrays_source, auto_config, compile_engine
     from rvdjax.scenarios import FlightOptions, get_scenario
 
     sc = get_scenario(args.scenario)
@@ -150,18 +152,8 @@ def _engine(args):
     done = {}
 
     def traced():
-        out = run_stream(
-            loop,
-            source.fn,
-            [Block(source.data, 0, n)],
-            n,
-            params=params,
-            solver_params=sp,
-            config=cfg,
-            keep=False,
-            deadline=time.perf_counter() + args.seconds,
-        )
-        done.update(out)
+        deadline = time.perf_counter() + args.seconds
+        done.update(_run_until(loop, source, n, params, sp, cfg, deadline, []))
 
     info = dict(target="engine", scenario=args.scenario, slots=cfg.n_slots, kernel=args.kernel)
     info["engine"] = cfg.describe()
