@@ -346,14 +346,10 @@ def _by_platform(kernel: str, xla, pallas, *args):
     kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs "pallas-block-io" on a CUDA
     GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
 
-    Why "auto" picks the block-I/O kernels on a GPU: on one H100 (jax 0.11.2, CUDA 13,
-    2026-11-26, fastmpc-3d QPs, accurate mode) they ran 4.63 against XLA's 7.25 µs a QP at
-    65 536 problems, 5.23 against 6.90 at 16 384 and 19.9 against 23.1 ms alone, and the
-    batch engine flew 1.25x (fastmpc-3d, 32 768 slots) and 1.15x (thesis-vbar, 4 096) the
-    maneuvers per second, for a compile 10-12 s longer. The entry-wise kernels ("pallas")
-    ran 3.58 µs but compiled in 83 s; "unrolled" was slower than XLA's loops at 16 384
-    problems and alone on an H200 (docs/benchmark.md). On the CPU XLA's loops are the
-    fastest form (the kernels are only interpreted there)."""
+    Why "auto" picks the block-I/O kernels on a CUDA GPU: there they were the fastest form
+    that compiles in seconds, for batches and for the batch engine alike; on the CPU XLA's
+    loops are the fastest form (the kernels are only interpreted there). The measurements
+    are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
     if kernel == "auto":

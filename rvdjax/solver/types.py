@@ -89,7 +89,7 @@ class SolverSettings:
             (:mod:`rvdjax.solver.lanes`), compiled for a CUDA GPU and interpreted elsewhere
             (the tests check them there), loading and storing entry by entry;
             "pallas-block-io": the same with block loads and stores (a compile of seconds
-            instead of over a minute); "pallas-fused": the factorisation and first step in
+            instead of over a minute on a GPU); "pallas-fused": the factorisation and first step in
             one kernel; "unrolled": the kernels' entry-by-entry algebra as XLA loops
             (:mod:`rvdjax.solver.unrolled`). They give the same iterates to rounding. The
             measurements behind "auto" are in docs/solver.md.
