@@ -176,6 +176,16 @@ def test_importance_sampling_without_a_failing_draw_still_bounds_p():
     assert lo == 0.0 and exact <= hi < 0.1, res
 
 
+def test_subset_simulation_without_a_failing_state_still_bounds_p():
+    """When no replicate's last population holds a failure (p = 6e-7, 400 runs), the
+    estimate is 0 and its interval [0, u] holds the probability (it was [0, nan])."""
+    exact = 2 * norm.cdf(-5.0)
+    res = estimate(Slab(5.0), ProbabilitySpec("subset", 400, seed=1), None, False)
+    assert res["p"] == 0.0
+    lo, hi = res["ci95"]
+    assert lo == 0.0 and exact <= hi < 0.1, res
+
+
 def test_subset_cov_matches_its_spread():
     """The CoV subset simulation reports (its replicates' standard error) against the spread
     of 40 seeded estimates of p = 1e-3."""

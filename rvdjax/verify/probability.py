@@ -108,13 +108,6 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     return lo, hi
 
 
-def _lognormal_ci(p: float, cov: float) -> list[float]:
-    if not (p > 0 and np.isfinite(cov)):
-        return [0.0, float("nan")]
-    s = np.sqrt(np.log1p(cov * cov))
-    return [float(p * np.exp(-1.96 * s)), float(p * np.exp(1.96 * s))]
-
-
 def _result(method, p, cov, ci, runs, wall, **extra) -> dict:
     out = {
         "method": method,

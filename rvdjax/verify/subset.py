@@ -34,7 +34,11 @@ Straub (2015), "MCMC algorithms for subset simulation", Probabilistic Engineerin
 flown side by side (one engine batch holds every replicate's chains). The estimate is their
 mean and its standard error their sample standard deviation over sqrt(R). The 95 % interval
 is lognormal with that CoV and Student's t quantile of R - 1 degrees of freedom (the
-standard error of a few replicates is itself uncertain).
+standard error of a few replicates is itself uncertain). When no replicate ends with a
+failing state the estimate is 0 and the spread says nothing; the interval is then [0, u],
+u the largest replicate's product of level probabilities times the 97.5 % Clopper-Pearson
+bound after no failure in the last populations' chains (each chain counted once: its
+states are correlated).
 
 Why replicates and not Au & Beck's formula (Eq. 29) or Zuev et al.'s Bayesian
 post-processor (2012): both treat the levels as independent and Zuev's also treats a level's
@@ -303,6 +307,10 @@ def _estimate(reps: list, spec, wall: float) -> dict:
         rows.append(
             {
                 "p": p,
+                "p_levels": float(np.prod(rep.probs)),
+                # the last population's independent draws: its chains (a chain's states are
+                # correlated), or its i.i.d. points at level 0
+                "independent_last": int(n if rep.chains is None else len(rep.chains)),
                 "cov_au_beck": float(np.sqrt(d2)) if p > 0 else None,
                 "levels": rep.levels,
                 "p_last": p_last,
@@ -319,10 +327,26 @@ def _estimate(reps: list, spec, wall: float) -> dict:
     }
 
 
+def _upper_without_failures(replicates: list[dict]) -> float:
+    """The 95 % interval's upper end when no replicate's last population holds a failure:
+    the largest product of a replicate's level probabilities (the estimate of P(F_L)) times
+    the 97.5 % Clopper-Pearson bound of P(F | F_L) after no failure in the last
+    populations' independent draws, their chains counted, not their correlated states (nan
+    for replicates without those counts)."""
+    try:
+        levels = max(float(r["p_levels"]) for r in replicates)
+        n = sum(int(r["independent_last"]) for r in replicates)
+    except KeyError:
+        return float("nan")
+    return levels * float(1.0 - 0.025 ** (1.0 / max(n, 1)))
+
+
 def combine(replicates: list[dict]) -> dict:
-    """The estimate of independent replicates (dicts with p, cov_au_beck, runs, converged):
-    their mean, its CoV from their sample standard deviation, and the 95 % interval,
-    lognormal with that CoV and Student's t quantile of R - 1 degrees of freedom."""
+    """The estimate of independent replicates (dicts with p, cov_au_beck, runs, converged,
+    p_levels, independent_last): their mean, its CoV from their sample standard deviation,
+    and the 95 % interval, lognormal with that CoV and Student's t quantile of R - 1 degrees
+    of freedom; with no failure in any replicate, [0, an upper bound]
+    (:func:`_upper_without_failures`)."""
     ps = np.asarray([r["p"] for r in replicates], float)
     R = len(ps)
     p = float(ps.mean())
@@ -333,7 +357,7 @@ def combine(replicates: list[dict]) -> dict:
         s = np.sqrt(np.log1p(cov * cov))
         ci = [p * float(np.exp(-t * s)), p * float(np.exp(t * s))]
     else:
-        ci = [0.0, float("nan")]
+        ci = [0.0, _upper_without_failures(replicates)]
     ab = [r.get("cov_au_beck") for r in replicates]
     return {
         "p": p,
