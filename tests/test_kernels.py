@@ -186,3 +186,20 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
     cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops
+
+
+def test_kernel_on_names_the_form_auto_runs_on_a_device():
+    """What outputs print beside the device: "auto" is the block-I/O kernels on a CUDA GPU
+    and XLA's loops elsewhere; a chosen form is itself."""
+    from types import SimpleNamespace
+
+    from rvdjax.solver.riccati import kernel_on
+
+    def fake(platform, version):
+        return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
+
+    assert kernel_on(jax.devices("cpu")[0]) == "xla"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-io"
+    assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
+    assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
+    assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"

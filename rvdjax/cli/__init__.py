@@ -45,6 +45,11 @@ def main(argv=None) -> int:
         )
         with devices.placed(args.device, COMMAND_WORK.get(args.command, "single")) as dev:
             args.device_used = devices.describe(dev)
+            from rvdjax.solver.riccati import kernel_on
+
+            form = kernel_on(dev)  # the scenarios' default Newton step on this device
+            if form != "xla":
+                args.device_used += f", Newton step {form}"
             return args.func(args)
     except ValueError as err:  # bad user input: say what and stop, no traceback
         print(f"rvdjax {args.command}: error: {err}", file=sys.stderr)

@@ -29,6 +29,7 @@ __all__ = [
     "riccati_apply",
     "riccati_solve",
     "KERNELS",
+    "kernel_on",
     "riccati_factor_solve",
 ]
 
@@ -327,6 +328,17 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
 
 
 KERNELS = ("auto", "xla", "pallas", "pallas-block-io", "pallas-fused", "unrolled")
+AUTO_ON_CUDA = "pallas-block-io"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+
+
+def kernel_on(device, kernel: str = "auto") -> str:
+    """The form of the Newton step ``kernel`` runs on ``device`` (a jax Device): "auto" is
+    :data:`AUTO_ON_CUDA` on a CUDA GPU and "xla" elsewhere; any other form is itself."""
+    if kernel != "auto":
+        return kernel
+    version = str(getattr(getattr(device, "client", None), "platform_version", "")).lower()
+    cuda = device.platform in ("gpu", "cuda") and "rocm" not in version
+    return AUTO_ON_CUDA if cuda else "xla"
 
 
 def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
@@ -354,7 +366,7 @@ def _by_platform(kernel: str, xla, pallas, *args):
         return pallas("unrolled", *args)
     if kernel == "auto":
         return lax.platform_dependent(
-            *args, cuda=functools.partial(pallas, ("pallas-block-io", False)), default=xla
+            *args, cuda=functools.partial(pallas, (AUTO_ON_CUDA, False)), default=xla
         )
     if not kernel.startswith("pallas"):
         return xla(*args)
