@@ -36,9 +36,10 @@ mean and its standard error their sample standard deviation over sqrt(R). The 95
 is lognormal with that CoV and Student's t quantile of R - 1 degrees of freedom (the
 standard error of a few replicates is itself uncertain). When no replicate ends with a
 failing state the estimate is 0 and the spread says nothing; the interval is then [0, u],
-u the largest replicate's product of level probabilities times the 97.5 % Clopper-Pearson
-bound after no failure in the last populations' chains (each chain counted once: its
-states are correlated).
+u the 97.5 % Clopper-Pearson bound after no failure in the replicates' level-0 draws (i.i.d.;
+a failing draw there would have stayed a seed to the last level). A tighter bound from the
+levels' product and the last chains missed the reference in both of two such estimates at
+10 m (docs/verification.md): it trusts chains that a zero estimate shows did not explore.
 
 Why replicates and not Au & Beck's formula (Eq. 29) or Zuev et al.'s Bayesian
 post-processor (2012): both treat the levels as independent and Zuev's also treats a level's
@@ -307,10 +308,9 @@ def _estimate(reps: list, spec, wall: float) -> dict:
         rows.append(
             {
                 "p": p,
-                "p_levels": float(np.prod(rep.probs)),
-                # the last population's independent draws: its chains (a chain's states are
-                # correlated), or its i.i.d. points at level 0
-                "independent_last": int(n if rep.chains is None else len(rep.chains)),
+                # level 0's i.i.d. draws (more when no level followed and the budget's rest
+                # drew more of them)
+                "iid_draws": int(n if rep.chains is None else spec.n_level),
                 "cov_au_beck": float(np.sqrt(d2)) if p > 0 else None,
                 "levels": rep.levels,
                 "p_last": p_last,
@@ -328,22 +328,22 @@ def _estimate(reps: list, spec, wall: float) -> dict:
 
 
 def _upper_without_failures(replicates: list[dict]) -> float:
-    """The 95 % interval's upper end when no replicate's last population holds a failure:
-    the largest product of a replicate's level probabilities (the estimate of P(F_L)) times
-    the 97.5 % Clopper-Pearson bound of P(F | F_L) after no failure in the last
-    populations' independent draws, their chains counted, not their correlated states (nan
-    for replicates without those counts)."""
+    """The 95 % interval's upper end when no replicate ends with a failing state: the
+    97.5 % Clopper-Pearson bound after no failure in the replicates' level-0 draws, which are
+    i.i.d. from N(0, I) (a failing draw there would have stayed a seed to the last level).
+    The levels' product would give a tighter bound, but one that rests on the chains having
+    explored F_L, which is what a zero estimate puts in doubt. nan for replicates without
+    the count."""
     try:
-        levels = max(float(r["p_levels"]) for r in replicates)
-        n = sum(int(r["independent_last"]) for r in replicates)
+        n = sum(int(r["iid_draws"]) for r in replicates)
     except KeyError:
         return float("nan")
-    return levels * float(1.0 - 0.025 ** (1.0 / max(n, 1)))
+    return float(1.0 - 0.025 ** (1.0 / max(n, 1)))
 
 
 def combine(replicates: list[dict]) -> dict:
     """The estimate of independent replicates (dicts with p, cov_au_beck, runs, converged,
-    p_levels, independent_last): their mean, its CoV from their sample standard deviation,
+    iid_draws): their mean, its CoV from their sample standard deviation,
     and the 95 % interval, lognormal with that CoV and Student's t quantile of R - 1 degrees
     of freedom; with no failure in any replicate, [0, an upper bound]
     (:func:`_upper_without_failures`)."""
