@@ -21,6 +21,7 @@ from jax import lax
 
 from rvdjax.solver import lanes, unrolled
 from rvdjax.solver.stagewise import shift as _shift
+from rvdjax.solver.types import KERNELS  # the Newton step's forms, checked by SolverSettings
 
 __all__ = [
     "NewtonStep",
@@ -327,7 +328,6 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-KERNELS = ("auto", "xla", "pallas", "pallas-block-io", "pallas-fused", "unrolled")
 AUTO_ON_CUDA = "pallas-block-io"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 

@@ -21,14 +21,8 @@ MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
-KERNELS = (
-    "auto",
-    "xla",
-    "pallas",
-    "pallas-block-io",
-    "pallas-fused",
-    "unrolled",
-)  # rvdjax.solver.riccati.KERNELS
+# the Newton step's forms (rvdjax.solver.riccati, which takes them from here)
+KERNELS = ("auto", "xla", "pallas", "pallas-block-io", "pallas-fused", "unrolled")
 
 
 class Status:

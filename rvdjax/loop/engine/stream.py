@@ -348,6 +348,17 @@ def compile_engine(
     flying (a later :func:`run_batch` with the same shapes reuses them); returns XLA's planned
     memory of one device's segment program [MB]: arguments + outputs + temporaries, set by
     the slots and the ring, not by the number of runs in the queue."""
+    compiled = _compile_segment(loop, source, params, solver_params, config)
+    try:
+        m = compiled.memory_analysis()
+        return (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes) / 2**20
+    except Exception:  # memory analysis is backend dependent
+        return float("nan")
+
+
+def _compile_segment(loop, source, params, solver_params, config):
+    """:func:`compile_engine`'s work: the compiled segment program of one device (the packing
+    program too when there are several chunks), the one a later flight reuses."""
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
     config = _resolve(loop, config, source, params, sp, None)
     device = _devices(config)[0]
@@ -372,11 +383,7 @@ def compile_engine(
     )
     if config.n_chunks > 1:  # the packing of the live slots once the queue is empty
         _compact_jit(config).lower(eng).compile()
-    try:
-        m = compiled.memory_analysis()
-        return (m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes) / 2**20
-    except Exception:  # memory analysis is backend dependent
-        return float("nan")
+    return compiled
 
 
 def export_segment(
