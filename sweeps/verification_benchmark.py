@@ -34,7 +34,12 @@ import numpy as np
 
 from rvdjax.solver import Status
 from rvdjax.verify.evaluate import ProblemSpec, problem_for
-from rvdjax.verify.probability import ProbabilitySpec, clopper_pearson, estimate
+from rvdjax.verify.probability import (
+    ProbabilitySpec,
+    clopper_pearson,
+    estimate,
+    importance_side_by_side,
+)
 from rvdjax.verify.store import PROVENANCE, EvalStore, read_evals, write_json
 from rvdjax.verify.worst import SearchSpec, search
 
@@ -115,7 +120,8 @@ def cmd_coverage(args) -> dict:
     """``--seeds`` independent estimates of P(breach deeper than ``--depth``) by one method,
     each with ``--budget`` runs. Subset simulation flies the seeds side by side: one estimate
     of seeds x replicates independent replicates (each with its own level 0 and stream),
-    grouped into the seeds' estimates afterwards. Importance sampling flies seed after seed.
+    grouped into the seeds' estimates afterwards. Importance sampling flies the seeds side by
+    side too, every stage of every seed in one engine batch.
     Writes ``coverage-METHOD-DEPTH.json``."""
     from rvdjax.verify.subset import combine
 
@@ -149,19 +155,18 @@ def cmd_coverage(args) -> dict:
             e = combine(reps[s * R : (s + 1) * R])
             e["wall_s"] = wall / args.seeds  # side by side: the wall time shared out
             estimates.append(e)
-    else:
-        for s in range(args.seeds):
-            spec = ProbabilitySpec(args.method, args.budget, seed=args.seed + s)
-            store = _store(out, f"{name}/seed-{s}", pb, method=dataclasses.asdict(spec))
-            flown = store.seq
-            r = estimate(pb, spec, store, progress=False)
-            r.pop("history", None)
-            if store.seq == flown and before is not None and s < len(before["estimates"]):
-                r["wall_s"] = before["estimates"][s]["wall_s"]  # nothing flown: a replay
-            estimates.append(r)
+    else:  # importance sampling: the seeds side by side, each stage one engine batch
+        specs = [ProbabilitySpec("is", args.budget, seed=args.seed + s) for s in range(args.seeds)]
+        store = _store(out, name, pb, method=[dataclasses.asdict(s) for s in specs])
+        flown = store.seq
+        estimates = importance_side_by_side(pb, specs, store)
+        wall = time.perf_counter() - t0
+        if store.seq == flown and before is not None:  # nothing flown: a replay
+            wall = before["wall_s"]
+        for s, r in enumerate(estimates):
+            r["wall_s"] = wall / args.seeds  # side by side: the wall time shared out
             print(f"  seed {s}: p = {r['p']:.4g} [{r['ci95'][0]:.3g}, {r['ci95'][1]:.3g}], "
-                  f"{r['runs']} runs, {r['wall_s']:.0f} s")  # fmt: skip
-        wall = sum(e["wall_s"] for e in estimates)
+                  f"{r['runs']} runs")  # fmt: skip
     doc = {
         "method": args.method,
         "depth_m": args.depth,

@@ -165,6 +165,10 @@ def cmd(args) -> int:
         )
     # everything above and the problem's set-up are host-side checks: nothing compiled yet
     pb = problem_for(pspec)
+    if args.verify_command == "probability" and kspec.method == "is":
+        from rvdjax.verify.importance import check_dim
+
+        check_dim(pb.dim)
     config = {
         KIND: args.verify_command,  # (rvdjax.verify.replay.is_verification)
         "spec": dataclasses.asdict(pspec),

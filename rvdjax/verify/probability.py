@@ -5,18 +5,9 @@
 * ``subset``: subset simulation with adaptive conditional sampling (Papaioannou et al.
   2015) as ``replicates`` independent runs side by side; the CoV is the replicates' empirical
   standard error (:mod:`rvdjax.verify.subset`, which says why).
-* ``is``: importance sampling centred on the failure points of a design-point search
-  (:mod:`rvdjax.verify.worst`'s ``design-point``, 8 starts from a stream of the estimate's
-  own, its runs counted in the budget): each start's smallest-norm failing point c_j is a
-  centre (a start that found none gives its lowest-margin point), and xi is drawn from the
-  defensive
-  mixture q = a N(0, I) + (1 - a) / J sum_j N(c_j, I) with a = 0.2 (Hesterberg 1995; a
-  failure region of several parts, e.g. one per approach side, is covered by the centres, and
-  the N(0, I) share bounds the weights). Weight phi(xi) / q(xi) = 1 / (a + (1 - a) / J sum_j
-  exp(c_j.xi - |c_j|^2 / 2)); p = mean(w 1[fail]), CoV from the sample variance, 95 %
-  interval p +- 1.96 sd (clipped at 0). With no failing draw the sample variance is 0 and
-  says nothing: the interval is then [0, u / a], u the 97.5 % Clopper-Pearson bound of the
-  mixture's mass on the failure set (no failure in n draws) and 1 / a the largest weight.
+* ``is``: adaptive importance sampling: a kernel density over the failing draws, learnt in
+  stages as the cross-entropy method does, mixed with a defensive N(0, I) share; only the
+  final stage enters the estimate (:mod:`rvdjax.verify.importance`, which says why).
 
 Every estimate draws from a stream of its own: its seed, the method and the problem's
 definition hash (:meth:`~rvdjax.verify.evaluate.Problem.definition`), so two thresholds of
@@ -36,11 +27,15 @@ from scipy import stats
 from rvdjax.verify.evaluate import Problem
 from rvdjax.verify.store import EvalStore
 
-__all__ = ["ProbabilitySpec", "estimate", "PROB_METHODS", "clopper_pearson"]
+__all__ = [
+    "ProbabilitySpec",
+    "estimate",
+    "importance_side_by_side",
+    "PROB_METHODS",
+    "clopper_pearson",
+]
 
 PROB_METHODS = ("subset", "is", "mc")
-IS_DESIGN_FRACTION = 0.2  # the share of the IS budget spent finding the design point
-IS_DEFENSIVE = 0.2  # the N(0, I) share of the importance-sampling mixture
 DEFAULT_REPLICATES = 4
 
 
@@ -55,7 +50,7 @@ class ProbabilitySpec:
             replicate's share of the budget, at least 50).
         replicates: subset simulation's independent replicates (>= 2: their spread is the
             CoV).
-        block: runs handed to the engine at once (mc, is).
+        block: runs handed to the engine at once (mc).
         seed: the estimate's seed.
     """
 
@@ -171,77 +166,38 @@ def _subset(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
 # ----------------------------------------------------------------------------- IS
 
 
-def _is_interval(p: float, sd: float, n: int) -> tuple[float, float]:
-    """Importance sampling's 95 % interval (module docstring)."""
-    if p > 0:
-        return max(0.0, p - 1.96 * sd), p + 1.96 * sd
-    return 0.0, float(1.0 - 0.025 ** (1.0 / n)) / IS_DEFENSIVE
-
-
 def _is(pb: Problem, spec: ProbabilitySpec, store: EvalStore, bar) -> dict:
-    from rvdjax.verify.worst import SearchSpec, search
+    return _is_many(pb, [spec], store, bar)[0]
 
-    t0 = time.perf_counter()
-    dp_budget = max(1, int(IS_DESIGN_FRACTION * spec.budget))
-    starts = 8
-    seed = int(np.random.default_rng(_stream(pb, spec, 31)).integers(2**31))
-    sspec = SearchSpec(
-        methods=("design-point",),
-        budget=max(1, dp_budget // starts),
-        repeats=starts,
-        starts=1,
-        seed=seed,
-    )
-    tr = search(pb, sspec, store, progress=False)["design-point"]
-    dp = tr.extra.get("design_point")
-    # a centre per start: its smallest-norm failing point, else its lowest-margin point (the
-    # estimate is unbiased for any centres: the N(0, I) share keeps the support whole)
-    centres = np.asarray(tr.worst_xi, float).copy()
-    fails = tr.extra.get("failure_starts") or []
-    for r, x in zip(fails, tr.extra.get("failure_points") or [], strict=True):
-        centres[r] = x
-    dp_runs = int(np.ceil(sum(float(e[-1]) for e in tr.evals)))
-    if bar is not None:
-        bar.update(dp_runs)
-    J = len(centres)
-    rng = np.random.default_rng(_stream(pb, spec, 30))
-    n = max(1, spec.budget - dp_runs)
-    terms = []
-    history = []
-    for lo in range(0, n, spec.block):
-        m = min(spec.block, n - lo)
-        comp = rng.integers(0, J, m)
-        shift = np.where((rng.uniform(size=m) < IS_DEFENSIVE)[:, None], 0.0, centres[comp])
-        xs = shift + rng.standard_normal((m, pb.dim))
-        res = store.evaluate(f"is-{lo}", "is", xs, pb.forward)
-        lr = xs @ centres.T - 0.5 * np.sum(centres * centres, axis=1)  # (m, J)
-        w = 1.0 / (IS_DEFENSIVE + (1 - IS_DEFENSIVE) * np.mean(np.exp(lr), axis=1))
-        terms.append(np.where(np.asarray(res["margin"]) < 0, w, 0.0))
-        t = np.concatenate(terms)
-        ph = t.mean()
-        sd = t.std(ddof=1) / np.sqrt(len(t)) if len(t) > 1 else np.inf
-        history.append((dp_runs + len(t), ph, *_is_interval(ph, sd, len(t))))
+
+def _is_many(pb: Problem, specs, store: EvalStore, bar) -> list[dict]:
+    from rvdjax.verify.importance import check_dim, importance_sampling
+
+    check_dim(pb.dim)
+    streams = [_stream(pb, s, 32) for s in specs]
+    return [
+        _result(
+            "is", r.pop("p"), r.pop("cov"), r.pop("ci95"), r.pop("runs"), r.pop("wall_s"), **r
+        )  # fmt: skip
+        for r in importance_sampling(pb, specs, store, bar, streams)
+    ]
+
+
+def importance_side_by_side(pb: Problem, specs, store: EvalStore, progress=True) -> list[dict]:
+    """Importance-sampling estimates for several specs (seeds) flown side by side, each
+    stage of all of them one engine batch; each estimate is the one :func:`estimate` gives
+    for its spec alone (its draws come from its own stream)."""
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        total = sum(s.budget for s in specs)
+        bar = tqdm(total=total, unit="run", desc=f"verify probability: is x {len(specs)}")
+    try:
+        return _is_many(pb, specs, store, bar)
+    finally:
         if bar is not None:
-            bar.update(len(xs))
-    t = np.concatenate(terms)
-    p = float(t.mean())
-    sd = float(t.std(ddof=1) / np.sqrt(len(t)))
-    cov = sd / p if p > 0 else float("inf")
-    return _result(
-        "is",
-        p,
-        cov,
-        _is_interval(p, sd, len(t)),
-        dp_runs + len(t),
-        time.perf_counter() - t0,
-        design_point=None if dp is None else [float(v) for v in dp],
-        design_point_norm=None if dp is None else float(np.linalg.norm(dp)),
-        centres=int(J),
-        centres_failing=len(fails),
-        design_point_runs=dp_runs,
-        fixed_runs=dp_runs,
-        history=history,
-    )
+            bar.close()
 
 
 def estimate(pb: Problem, spec: ProbabilitySpec, store: EvalStore | None = None, progress=True):
