@@ -91,7 +91,26 @@ def test_importance_sampling_intervals_cover_the_normal_tail():
     assert alone["p"] == runs[7]["p"] and alone["ci95"] == runs[7]["ci95"]
 
 
-def test_importance_sampling_refuses_high_dimension(tmp_path):
+def test_importance_weights_against_scipy_densities():
+    """phi / q of the defensive mixture, against scipy's normal densities, and no weight above
+    1 / a."""
+    from scipy.stats import multivariate_normal as mvn
+
+    from rvdjax.verify.importance import IS_DEFENSIVE, _Proposal
+
+    rng = np.random.default_rng(0)
+    c = rng.normal(2.0, 1.0, (7, 3))
+    pi = rng.dirichlet(np.ones(7))
+    q = _Proposal(c, np.log(pi))
+    x = q.sample(rng, 400, 3)
+    phi = mvn(np.zeros(3)).pdf(x)
+    kern = sum(p * mvn(ck).pdf(x) for p, ck in zip(pi, c, strict=True))
+    want = phi / (IS_DEFENSIVE * phi + (1 - IS_DEFENSIVE) * kern)
+    np.testing.assert_allclose(q.weight(x), want, rtol=1e-12)
+    assert q.weight(x).max() <= 1 / IS_DEFENSIVE
+
+
+def test_importance_sampling_refuses_high_dimension():
     """Above 20 coordinates the unit kernels carry no weight: refused in one line, before
     any flight."""
     with pytest.raises(ValueError, match="--method is.*at most 20"):
