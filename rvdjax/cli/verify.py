@@ -317,6 +317,12 @@ def _probability(pb, kspec, out: Path, args, store) -> dict:
             f"95 % interval [{ci[0]:.3g}, {ci[1]:.3g}], {summary['runs']} runs in "
             f"{summary['wall_s']:.1f} s"
         )
+        if summary.get("stages"):  # importance sampling: the proposal's stages
+            parts = [
+                f"{'final ' if st.get('final') else ''}{st['draws']} ({st['failures']} failing)"
+                for st in summary["stages"]
+            ]
+            print(f"  stages: {', '.join(parts)}; only the final stage is counted")
         if "runs_for_cov_0.3" in summary:
             print(f"  runs for a CoV of 0.3: {summary['runs_for_cov_0.3']}")
         print("  assumptions:")
