@@ -323,6 +323,13 @@ def _probability(pb, kspec, out: Path, args, store) -> dict:
                 for st in summary["stages"]
             ]
             print(f"  stages: {', '.join(parts)}; only the final stage is counted")
+            ess = summary.get("ess_failing") or 0.0
+            if 0 < ess < 10:
+                print(
+                    f"  the estimate rests on {ess:.1f} effective failing draws (a scattered "
+                    "failure set): its interval is wide; subset simulation or Monte Carlo may "
+                    "be cheaper here"
+                )
         if "runs_for_cov_0.3" in summary:
             print(f"  runs for a CoV of 0.3: {summary['runs_for_cov_0.3']}")
         print("  assumptions:")
