@@ -349,8 +349,6 @@ def cmd_worst(args) -> dict:
         f"({pb.dim} coordinates)",
     )
     rows = {m: t.summary() for m, t in traces.items()}
-    for r in rows.values():
-        r.pop("failure_points", None)
     print(
         f"worst case: {args.scenario} {pb.requirement.label()} under {pb.dispersion.label()} "
         f"({pb.dim} coordinates), {spec.repeats} repeats, budget {spec.budget} forward "

@@ -5,7 +5,7 @@
 * ``subset``: subset simulation with adaptive conditional sampling (Papaioannou et al.
   2015) as ``replicates`` independent runs side by side; the CoV is the replicates' empirical
   standard error (:mod:`rvdjax.verify.subset`, which says why).
-* ``is``: adaptive importance sampling: a Gaussian mixture fitted to the failing draws,
+* ``is``: adaptive importance sampling: Gaussians and unit kernels fitted to the failing draws,
   learnt in stages as the cross-entropy method does, mixed with a defensive N(0, I) share;
   only the final stage enters the estimate, and the interval's t quantile has the effective
   number of failing draws less one as its degrees of freedom

@@ -363,8 +363,6 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
     if method == "design-point":
         ok = np.isfinite(best_norm)
         extra["design_point_norm"] = float(np.min(best_norm)) if ok.any() else None
-        extra["failure_points"] = [[float(v) for v in best_dp[r]] for r in np.flatnonzero(ok)]
-        extra["failure_starts"] = [int(r) for r in np.flatnonzero(ok)]
         extra["design_point"] = (
             [float(v) for v in best_dp[int(np.argmin(best_norm))]] if ok.any() else None
         )
