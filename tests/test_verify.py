@@ -5,8 +5,6 @@ resume, replay and bad input."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 
 import jax
@@ -150,11 +148,18 @@ def test_importance_sampling_on_needles_widens_its_interval():
     assert np.median([r["ess_failing"] for r in runs]) < 10
 
 
-def test_importance_sampling_refuses_high_dimension():
-    """Above 20 coordinates the unit kernels carry no weight: refused in one line, before
-    any flight."""
+def test_importance_sampling_refuses_high_dimension(tmp_path, capsys):
+    """Above 20 coordinates a mixture fitted to tens of elites is no density of theirs:
+    refused in one line with status 2, after the problem's set-up and before any flight."""
     with pytest.raises(ValueError, match="--method is.*at most 20"):
         estimate(Linear(3.0, dim=21), ProbabilitySpec("is", 500), None, False)
+    argv = ["verify", "probability", "thesis-vbar", "--requirement", "keep-out", "--disturbed",
+            "--dispersion", "nav", "--method", "is", "--budget", "500", "--out",
+            str(tmp_path / "v")]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--method is" in err and "coordinates" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "v").exists()
 
 
 @pytest.mark.parametrize(
@@ -458,7 +463,13 @@ def test_bad_input_names_the_parameter(tmp_path, capsys, extra, needle):
     assert needle in err and len(err.splitlines()) == 1
 
 
-def test_bad_budget_and_method_exit_before_compiling(tmp_path):
+def test_bad_budget_and_method_exit_before_compiling(tmp_path, capsys):
+    """Each refuses in one line with status 2, and nothing is traced or compiled first (jax's
+    own compile events, in this process)."""
+    import jax.monitoring
+
+    events = []
+    listen = lambda name, *_, **__: events.append(name)  # noqa: E731
     cmds = [
         ["probability", "--method", "subset", "--budget", "50"],
         ["probability", "--method", "form", "--budget", "500"],
@@ -476,13 +487,15 @@ def test_bad_budget_and_method_exit_before_compiling(tmp_path):
         ["worst", "--budget", "30", "--methods", "psy"],
     ]
     base = ["--requirement", "keep-out", "--dispersion", "paper003"]
-    for cmd in cmds:
-        t0 = time.perf_counter()
-        p = subprocess.run(
-            [sys.executable, "-m", "rvdjax.cli", "verify", cmd[0], "thesis-vbar", *base, *cmd[1:],
-             "--out", str(tmp_path / "v")],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
-        assert p.returncode == 2, p.stderr
-        assert len(p.stderr.strip().splitlines()) == 1 and "--" in p.stderr
-        assert time.perf_counter() - t0 < 10
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for cmd in cmds:
+            t0 = time.perf_counter()
+            argv = ["verify", cmd[0], "thesis-vbar", *base, *cmd[1:], "--out", str(tmp_path / "v")]
+            assert main(argv) == 2, cmd
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1 and "--" in err, err
+            assert time.perf_counter() - t0 < 10
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert not [e for e in events if "/jax/core/compile" in e], events
