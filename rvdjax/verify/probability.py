@@ -20,6 +20,7 @@ one margin never share their draws. Every run goes through the
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 
@@ -189,31 +190,30 @@ def importance_side_by_side(pb: Problem, specs, store: EvalStore, progress=True)
     """Importance-sampling estimates for several specs (seeds) flown side by side, each
     stage of all of them one engine batch; each estimate is the one :func:`estimate` gives
     for its spec alone (its draws come from its own stream)."""
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        total = sum(s.budget for s in specs)
-        bar = tqdm(total=total, unit="run", desc=f"verify probability: is x {len(specs)}")
-    try:
+    total = sum(s.budget for s in specs)
+    with _progress(progress, total, f"is x {len(specs)}") as bar:
         return _is_many(pb, specs, store, bar)
-    finally:
-        if bar is not None:
-            bar.close()
 
 
 def estimate(pb: Problem, spec: ProbabilitySpec, store: EvalStore | None = None, progress=True):
     """The failure probability of ``pb`` by ``spec.method`` (module docstring): a dict with
     at least p, cov, ci95, runs and wall_s."""
     store = EvalStore(None, pb.effort_key) if store is None else store
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=spec.budget, unit="run", desc=f"verify probability: {spec.method}")
-    try:
-        fn = {"mc": _mc, "subset": _subset, "is": _is}[spec.method]
+    fn = {"mc": _mc, "subset": _subset, "is": _is}[spec.method]
+    with _progress(progress, spec.budget, spec.method) as bar:
         return fn(pb, spec, store, bar)
+
+
+@contextlib.contextmanager
+def _progress(show: bool, total: int, what: str):
+    """A run-counting progress bar (None when not shown), closed on the way out."""
+    if not show:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, unit="run", desc=f"verify probability: {what}")
+    try:
+        yield bar
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
