@@ -430,7 +430,7 @@ def main(argv=None) -> int:
         "--kernels",
         default="xla,pallas",
         help="Newton-step forms: auto, xla, unrolled, pallas (block I/O, then entry-wise, at"
-        " the largest batch), pallas-block-io (at every batch)",
+        " the largest batch), pallas-block-io, pallas-block-factor (at every batch)",
     )
     ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
@@ -438,7 +438,7 @@ def main(argv=None) -> int:
     ap.add_argument("--hlo", action="store_true", help="write the largest batch's HLO to --out")
     args = ap.parse_args(argv)
     kernels = tuple(k for k in args.kernels.split(",") if k)
-    forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io")
+    forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
     bad = set(kernels) - set(forms)
     if bad:
         print(f"--kernels: unknown {', '.join(sorted(bad))}; choose from {', '.join(forms)}")

@@ -1,14 +1,18 @@
 """Where a GPU's time goes: the device's kernels in a ``jax.profiler`` trace, summed by name.
 
     PYTHONPATH=. python sweeps/gpu_profile.py qp [--batch 65536] [--mode accurate]
-        [--kernel auto] [--top 25] [--out results/gpu-profile]
+        [--kernel auto] [--shared-model] [--top 25] [--hlo] [--out results/gpu-profile]
     PYTHONPATH=. python sweeps/gpu_profile.py engine [--scenario fastmpc-3d] [--slots 32768]
         [--seconds 3] [--kernel auto] [--top 25] [--out results/gpu-profile]
 
 ``qp``: one ``jit(vmap(solve))`` call on the fastmpc-3d first-step QPs (as
-``sweeps/gpu_benchmark.py``), compiled and run once before the traced call. ``engine``: the
+``sweeps/gpu_benchmark.py``), compiled and run once before the traced call. ``--shared-model``: one
+(A, B) for the whole batch, as the engine's slots of most scenarios share it. ``engine``: the
 batch engine (``rvdjax bench --closed-loop``'s initial states, the device's engine settings)
-compiled, then flown for ``--seconds`` under the trace.
+compiled, then flown for ``--seconds`` under the trace. On an H100 (jax 0.11.2, 2026-11-27)
+the engine's first segment failed under the trace with ``CUDA_ERROR_LAUNCH_FAILED`` (XLA's
+loops and the kernels alike; without the profiler it flies): JAX's CUPTI tracing is known to
+leave the CUDA context broken on H100s (jax-ml/jax issue 40260).
 
 Each device kernel of the trace (the planes ``/device:*``; on a CPU-only machine the host's
 XLA thunks instead, for this script's test) is summed by name: calls, total and mean time,
@@ -17,7 +21,8 @@ program with the same name (XLA names a GPU kernel after its fusion), whose ``op
 (the jax function that made it) and source line are printed, so a fusion's time points at
 the code. Triton kernels (the solver's Pallas kernels) are named after their ``pallas_call``.
 The rows go to ``OUT/gpu_profile.jsonl`` and the trace stays in ``OUT/trace`` (TensorBoard
-or Perfetto can open it). One call; the whole run takes under two minutes on one H100.
+or Perfetto can open it); ``--hlo`` also writes the compiled program. One call; the whole
+run takes under two minutes on one H100.
 """
 
 from __future__ import annotations
@@ -74,9 +79,13 @@ def kernel_times(trace_dir: str) -> tuple[list[dict], str]:
         planes = [p for p in data.planes if p.name == "/host:CPU"]
     sums: dict[str, list] = {}
     for plane in planes:
-        for line in plane.lines:
-            if host_only and not line.name.startswith("tf_XLA"):
-                continue
+        lines = list(plane.lines)
+        if host_only:
+            lines = [ln for ln in lines if ln.name.startswith("tf_XLA")]
+        elif any(ln.name.startswith("Stream") for ln in lines):
+            # the kernels themselves; "XLA Ops"/"XLA Modules" lines repeat them by HLO name
+            lines = [ln for ln in lines if ln.name.startswith("Stream")]
+        for line in lines:
             for ev in line.events:
                 s = sums.setdefault(ev.name, [0, 0.0])
                 s[0] += 1
@@ -107,7 +116,12 @@ def _qp(args):
         kernel=args.kernel
     )
     ocps = jax.device_put(fastmpc3d_first_step_batch(perturbed_x0(0, args.batch)))
-    compiled = jax.jit(jax.vmap(lambda o: solve(o, settings))).lower(ocps).compile()
+    axes = 0
+    if args.shared_model:  # one (A, B) for the batch, as the engine's slots share it
+        ocps = ocps._replace(A=ocps.A[0], B=ocps.B[0])
+        axes = type(ocps)(*(None if f in ("A", "B") else 0 for f in ocps._fields))
+    compiled = jax.jit(jax.vmap(lambda o: solve(o, settings), in_axes=(axes,)))
+    compiled = compiled.lower(ocps).compile()
     sol = jax.block_until_ready(compiled(ocps))
 
     def traced():
@@ -118,7 +132,10 @@ def _qp(args):
         batch=args.batch,
         mode=args.mode,
         kernel=args.kernel,
+        shared_model=args.shared_model,
         iterations=float(np.mean(np.asarray(sol.iterations))),
+        status=np.bincount(np.asarray(sol.status).ravel()).tolist(),
+        objective_finite=bool(np.all(np.isfinite(np.asarray(sol.objective)))),
     )
     return traced, compiled.as_text(), info
 
@@ -156,6 +173,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("target", choices=("qp", "engine"))
     ap.add_argument("--batch", type=int, default=65536, help="QPs in the batch (qp)")
+    ap.add_argument("--shared-model", action="store_true", help="qp: one (A, B) for all")
     ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
     ap.add_argument("--kernel", default="auto", help="the Newton step's form (SolverSettings)")
     ap.add_argument("--scenario", default="fastmpc-3d", help="engine: the scenario")
@@ -163,6 +181,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=3.0, help="engine: seconds flown traced")
     ap.add_argument("--top", type=int, default=25, help="kernels printed")
     ap.add_argument("--out", default="results/gpu-profile", help="directory for the rows")
+    ap.add_argument("--hlo", action="store_true", help="also write the compiled program's HLO")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
     args = ap.parse_args(argv)
     from rvdjax.solver.riccati import KERNELS
@@ -208,19 +227,34 @@ def main(argv=None) -> int:
         kernels_ms=total,
         launches=sum(r["calls"] for r in rows),
         runs_done=done.get("done"),
+        ticks=done.get("ticks"),
         by_kind={},
     )
+    if info["ticks"]:
+        info["launches_per_tick"] = info["launches"] / info["ticks"]
     for r in rows:
         r["share"] = r["total_ms"] / total
         r["kind"] = _kind(r["name"])
         r["source"] = sources.get(r["name"]) or sources.get(re.sub(r"[.\-]", "_", r["name"]))
         info["by_kind"][r["kind"]] = info["by_kind"].get(r["kind"], 0.0) + r["total_ms"]
+    if args.hlo:
+        tag = args.scenario if args.target == "engine" else args.mode
+        path = os.path.join(args.out, f"{args.target}-{tag}-{args.kernel}.hlo.txt")
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(hlo)
     with open(os.path.join(args.out, "gpu_profile.jsonl"), "a", encoding="utf-8") as f:
         f.write(json.dumps(dict(info, top=rows[: args.top])) + "\n")
     print(
         f"{info['target']} on {info['device']} ({planes}): {info['launches']} kernel calls, "
         f"{total:.1f} ms in kernels, {wall_ms:.1f} ms wall traced"
     )
+    if info["ticks"]:
+        print(f"{info['ticks']} ticks, {info['launches_per_tick']:.0f} kernel calls a tick")
+    if args.target == "qp":
+        print(
+            f"iterations {info['iterations']:.3f}, statuses {info['status']}, "
+            f"objectives finite {info['objective_finite']}"
+        )
     print("by kind: " + ", ".join(f"{k} {v:.1f} ms" for k, v in info["by_kind"].items()))
     print("| kernel | kind | calls | total ms | share | mean µs | source |")
     print("| --- | --- | --- | --- | --- | --- | --- |")

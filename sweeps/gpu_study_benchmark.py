@@ -3,7 +3,7 @@ machine's CPU cores, in one run of at most ``--budget-s`` seconds (290), compile
 
     PYTHONPATH=. python sweeps/gpu_study_benchmark.py [--out DIR] [--budget-s 290]
         [--parts throughput,ch5,study,cpu,bits] [--kernel K]
-        [--scenarios A,B] [--slots 4096,32768] [--smoke]
+        [--scenarios A,B] [--slots 4096,32768] [--block 128 --warps 4] [--smoke]
 
 From the repository root on a machine whose jax has GPU support; nothing to install. Parts,
 each with its own time budget (a share of ``--budget-s``; a part that runs out stops and
@@ -14,6 +14,7 @@ reports what it measured), each a function that ``sweeps/gpu_benchmark.py`` also
   2 %), the engine's other settings chosen for the device
   (:func:`rvdjax.loop.engine.auto_config`); compile time apart; the rate over the runs
   finished while the queue kept every slot busy when the budget cut the queue short;
+  ``--block``/``--warps`` set the Pallas kernels' tile (``rvdjax.solver.lanes.KernelConfig``);
 * ``refresh``: ``thesis-vbar`` at 32 768 slots with the other refresh than the device's
   choice (masked on a GPU), against its ``throughput`` row;
 * ``ch5``: paper 003 Ch. 5 (``rvdjax study robustness thesis-vbar --initial-conditions 100
@@ -387,7 +388,14 @@ def main(argv=None) -> int:
     ap.add_argument("--kernel", default=None, help="the Newton step's form for throughput rows")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="throughput's scenarios")
     ap.add_argument("--slots", default=None, help="throughput's slot counts (4096,32768)")
+    ap.add_argument("--block", type=int, default=None, help="the kernels' problems a program")
+    ap.add_argument("--warps", type=int, default=None, help="the kernels' warps a program")
     args = ap.parse_args(argv)
+    tile = {k: v for k, v in (("block", args.block), ("num_warps", args.warps)) if v}
+    for name, v in tile.items():
+        if v < 1 or v & (v - 1):
+            print(f"--{'warps' if name == 'num_warps' else name}: must be a power of two, got {v}")
+            return 2
     scenarios = [s for s in args.scenarios.split(",") if s]
     parts = [p for p in args.parts.split(",") if p]
     unknown = set(parts) - set(SHARES)
@@ -398,6 +406,7 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     rec = Recorder(os.path.join(args.out, "gpu_study_benchmark.jsonl"))
     from rvdjax.bench import machine_info
+    from rvdjax.solver import lanes
 
     platform = _platform(args.smoke)
     rec.add(part="machine", machine=machine_info(), devices=[str(d) for d in jax.devices()])
@@ -419,8 +428,9 @@ def main(argv=None) -> int:
                 each = allowed / (len(scenarios) * len(sizes))
                 for scenario in scenarios:
                     for slots in sizes:
-                        row = throughput(scenario, slots, each, args.smoke, kernel=args.kernel)
-                        rec.add(**row)
+                        with lanes.configured(**tile):
+                            row = throughput(scenario, slots, each, args.smoke, kernel=args.kernel)
+                        rec.add(**row, **tile)
             elif name == "refresh":  # the other refresh than the device's choice
                 slots = (SMOKE["slots"] if args.smoke else SLOTS)[-1]
                 other = "masked" if platform != "cpu" else "compacted"

@@ -16,6 +16,7 @@ from ocp_factory import SHAPE_CLASSES, random_ocp
 
 from rvdjax.problems import fastmpc3d_first_step, stack_ocps
 from rvdjax.solver import SolverParams, SolverSettings, Status, iterate, lanes, solve, start
+from rvdjax.solver.riccati import AUTO_ON_CUDA
 
 # Problems are padded to a tile of ``block`` lanes: a small tile keeps the interpreter cheap.
 BLOCK = 8
@@ -59,7 +60,9 @@ def _random(name, n):
     return stack_ocps([random_ocp(seed, SHAPE_CLASSES[name]) for seed in range(n)])
 
 
-@pytest.mark.parametrize("kernel", ["pallas", "pallas-block-io", "pallas-fused", "unrolled"])
+@pytest.mark.parametrize(
+    "kernel", ["pallas", "pallas-block-io", "pallas-block-factor", "pallas-fused", "unrolled"]
+)
 @pytest.mark.parametrize(
     "case",
     [pytest.param(c, marks=pytest.mark.slow) if c.startswith("fastmpc") else c for c in CASES],
@@ -153,6 +156,11 @@ def _cuda_text(fn, *args):
     return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
 
 
+def _triton_calls(text):
+    """Each Triton launch of a lowered program: its configuration and kernel IR."""
+    return [ln[ln.index("mhlo.backend_config") :] for ln in text.splitlines() if "gpu.triton" in ln]
+
+
 @pytest.mark.parametrize(
     "settings, kernels, loops",
     [
@@ -163,14 +171,14 @@ def _cuda_text(fn, *args):
         (SolverSettings.paper(kernel="pallas"), 2, 3),
     ],
 )
-@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "auto"])
+@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "pallas-block-factor", "auto"])
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
-    a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, which
-    picks the block-I/O kernels on a CUDA GPU) hold the Riccati sweeps as ``kernels`` Triton
-    kernels and no loop over stages beyond the solve loop, the start's drift and (paper
-    mode) the line search; ``kernel="xla"`` keeps XLA's loops on a GPU, and ``"auto"``
-    lowered for the CPU runs XLA's loops."""
+    a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, whose
+    Triton kernels on a CUDA GPU are those of ``AUTO_ON_CUDA``, launch for launch) hold the
+    Riccati sweeps as ``kernels`` Triton kernels and no loop over stages beyond the solve
+    loop, the start's drift and (paper mode) the line search; ``kernel="xla"`` keeps XLA's
+    loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
@@ -181,6 +189,9 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
         assert text.count("stablehlo.while") == loops
     if variant != "auto":
         return
+    chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
+    chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
+    assert _triton_calls(batched) == _triton_calls(chosen)
     xla = dataclasses.replace(settings, kernel="xla")
     gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
     assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
@@ -189,7 +200,7 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is the block-I/O kernels on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-block-factor" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -199,7 +210,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-io"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-factor"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"

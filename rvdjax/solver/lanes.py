@@ -21,13 +21,13 @@ sweep of the first right-hand side, then its forward sweep), :func:`apply` (one 
 right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
 compute the recursion of :mod:`rvdjax.solver.riccati` in the same order (the Joseph form, the
 refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
-runs them on the CPU for the tests. They run only with ``SolverSettings(kernel="pallas")``
-(or ``"pallas-block-io"``, ``"pallas-fused"``: :class:`KernelConfig`), and the solver calls
-:func:`factor` then :func:`apply` unless fused: on one
-H200 (jax 0.11.2, CUDA 13, 2026-11-26) Triton compiled :func:`factor` in 51 s and
-:func:`apply` in about 3 s, where :func:`factor_solve` had not finished in 165 s on an H100.
-A batched accurate-mode solve then compiles in 74 s (5 s with XLA's loops) and runs 2.1x
-faster at 65 536 problems, so the default keeps XLA's loops (docs/solver.md).
+runs them on the CPU for the tests. They run with ``SolverSettings(kernel="pallas")`` (or
+``"pallas-block-io"``, ``"pallas-block-factor"``, ``"pallas-fused"``: :class:`KernelConfig`),
+and ``kernel="auto"`` runs ``"pallas-block-factor"`` when a program is compiled for a CUDA
+GPU. The solver calls :func:`factor` then :func:`apply` unless fused: on one H200 (jax
+0.11.2, CUDA 13, 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and
+:func:`apply` in about 3 s, where :func:`factor_solve` had not finished in 165 s on an H100;
+with block loads and stores the factorisation compiles in seconds (docs/solver.md).
 
 Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
 axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
@@ -77,10 +77,17 @@ class KernelConfig:
             the kernel) instead of entry by entry (the solver: ``kernel="pallas-block-io"``).
             Triton's compile time is its coalescing pass, which costs about (loads and
             stores) x (kernel size)^2 (``sweeps/triton_compile_profile.py``); this cuts the
-            loads and stores from hundreds to a few. Its speed on a GPU is not yet measured.
+            loads and stores from hundreds to a few.
+        solve_block_io: with ``block_io``, the solves (:func:`apply`) load and store blocks
+            too; without it (the solver: ``kernel="pallas-block-factor"``) only the
+            factorisation does, and the solves read the factorisation, the model and the
+            right-hand sides entry by entry, straight from their arrays: a solve's kernel is
+            small enough to compile in seconds either way, and its operands then need no
+            padding to a power of two (on an H100 the pads and the slices back took about a
+            fifth of an accurate-mode solve with the block-I/O kernels, docs/benchmark.md).
 
-    The solver takes ``fused`` and ``block_io`` from its kernel name, and the rest from
-    :func:`default_config`.
+    The solver takes ``fused``, ``block_io`` and ``solve_block_io`` from its kernel name, and the
+    rest from :func:`default_config`.
     """
 
     block: int = 128
@@ -88,6 +95,7 @@ class KernelConfig:
     interpret: bool = False
     fused: bool = False
     block_io: bool = False
+    solve_block_io: bool = True
 
 
 _DEFAULT = [KernelConfig()]
@@ -419,6 +427,7 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
 
     N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
     b = mats[-1].shape[-1]
+    block_io = cfg.block_io and (factorise or cfg.solve_block_io)
     lanes = cfg.block
     b_pad = -(-b // lanes) * lanes
     model_batched = M.ndim == 4
@@ -440,14 +449,14 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
     entries = [s[1:] for s in out_shapes]
-    if cfg.block_io:  # [stage][entry][problem], the entries padded to a power of two
+    if block_io:  # [stage][entry][problem], the entries padded to a power of two
         M = _flat(M) if model_batched else M
         mats, rhs = [_flat(m) for m in mats], [_flat(r) for r in rhs]
         out_shapes = [(N, _pow2(math.prod(e))) for e in entries]
     out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
     ins = [M, *mats, *rhs]
     kernel = functools.partial(
-        _kernel, N, nx, nu, lanes, with_rhs, factorise, cfg.block_io, model_batched
+        _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, model_batched
     )
     res = pl.pallas_call(
         kernel,
@@ -459,7 +468,7 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         compiler_params=_compiler_params(cfg),
         name="rvdjax_riccati" + ("_factor" if factorise else "") + ("_solve" if with_rhs else ""),
     )(*ins)
-    if cfg.block_io:
+    if block_io:
         res = [
             r[:, : math.prod(e)].reshape(N, *e, b_pad) for r, e in zip(res, entries, strict=True)
         ]

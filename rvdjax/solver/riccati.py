@@ -217,9 +217,11 @@ def _first_vmap(fn, in_batched, args, out_batched):
 
 def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     if axis_size > BATCH_LAST_MAX:
-        return _first_vmap(
-            _factor, in_batched, (A, B, Phi_u, Phi_x), RiccatiFactor(True, True, True, True, True)
-        )
+        flags = _factor_flags(axis_size, in_batched)
+        f, _ = _first_vmap(_factor, in_batched, (A, B, Phi_u, Phi_x), flags)
+        if not flags.M:  # a shared model stays shared (the vmapped copy is dead code)
+            f = f._replace(M=jnp.concatenate([B, A], axis=-1))
+        return f, flags
     bA, bB, bPu, bPx = in_batched
     f = _factor(
         _to_last(A, bA),
@@ -267,7 +269,8 @@ def _lane_ops(impl):
     cfg = dataclasses.replace(
         lanes.default_config(),
         interpret=interpret,
-        block_io=kernel == "pallas-block-io",
+        block_io=kernel in ("pallas-block-io", "pallas-block-factor"),
+        solve_block_io=kernel != "pallas-block-factor",
         fused=kernel == "pallas-fused",
     )
     factor, apply = (functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply))
@@ -328,7 +331,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-block-io"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-block-factor"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -342,10 +345,9 @@ def kernel_on(device, kernel: str = "auto") -> str:
 
 
 def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
-    """Which factor fields carry the batch (the same for both forms: the XLA rule above
-    BATCH_LAST_MAX returns M batched)."""
-    if axis_size > BATCH_LAST_MAX:
-        return RiccatiFactor(True, True, True, True, True)
+    """Which factor fields carry the batch (the same for both forms): all but the model
+    M = [B, A], which is shared when A and B are (the batch engine's slots share one model,
+    and the kernels then read it once per tile instead of a copy per problem)."""
     bA, bB = in_batched[:2]
     return RiccatiFactor(bool(bA or bB), True, True, True, True)
 
@@ -353,15 +355,16 @@ def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
 def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
     "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
-    "pallas-block-io" with block loads and stores, "pallas-fused" with the factorisation and
+    "pallas-block-io" with block loads and stores, "pallas-block-factor" with them in the
+    factorisation only, "pallas-fused" with the factorisation and
     first step in one kernel (:class:`rvdjax.solver.lanes.KernelConfig`); "unrolled" runs the
-    kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs "pallas-block-io" on a CUDA
-    GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
+    kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a
+    CUDA GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
 
-    Why "auto" picks the block-I/O kernels on a CUDA GPU: there they were the fastest form
-    that compiles in seconds, for batches and for the batch engine alike; on the CPU XLA's
-    loops are the fastest form (the kernels are only interpreted there). The measurements
-    are in docs/solver.md."""
+    Why "auto" picks "pallas-block-factor" on a CUDA GPU: there it was the fastest form that
+    compiles in seconds, for batches and for the batch engine alike (its solves read their
+    operands as they are, with no padding pass); on the CPU XLA's loops are the fastest form
+    (the kernels are only interpreted there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
     if kernel == "auto":
@@ -454,8 +457,8 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" (the block-I/O kernels on a CUDA GPU, else XLA's loops), "xla"
-            (XLA's loops), "pallas", "pallas-block-io" or
+        kernel: "auto" ("pallas-block-factor" on a CUDA GPU, else XLA's loops), "xla"
+            (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor" or
             "pallas-fused" (the kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA
             GPU, interpreted elsewhere) or "unrolled" (their algebra as XLA loops,
             :mod:`rvdjax.solver.unrolled`).
