@@ -79,6 +79,9 @@ def test_study_resume_refuses_other_code_and_marks_allowed_rows(tmp_path, other_
     df = read_table(out)
     assert (df["provenance"] == config["provenance"]["first"]).all()
     assert not df["code_changed"].any()
+    prov = summarize(out)["provenance"]  # the summary counts the table's own marks
+    assert prov["rows_used"] == {config["provenance"]["first"]: 2}
+    assert prov["rows_code_changed"] == 0
     other_code()
     spec = StudySpec(n_initial=4, **base)
     with pytest.raises(ValueError, match="different study"):  # the spec: named
@@ -90,8 +93,10 @@ def test_study_resume_refuses_other_code_and_marks_allowed_rows(tmp_path, other_
     run_study(spec, out, resume=True, progress=False, allow_code_change=True)
     s = summarize(out)
     assert len(s["provenance"]["environments"]) == 2
+    assert s["provenance"]["rows_code_changed"] == 0  # no row was flown by the new code
     text = format_summary(s)
     assert "provenance:" in text and "[code changed]" in text
+    assert "rows were flown by another code version" not in text
 
 
 def test_verification_resume_refuses_a_changed_requirement(tmp_path, capsys, other_code):
