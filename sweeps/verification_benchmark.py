@@ -326,6 +326,7 @@ def cmd_worst(args) -> dict:
     if budget is None:
         raise SystemExit("--budget is needed (no failure probability to derive it from)")
     spec = SearchSpec(
+        engine_cost=True,
         methods=tuple(args.methods.split(",")),
         budget=budget,
         repeats=args.repeats,

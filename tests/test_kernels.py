@@ -171,7 +171,7 @@ def _triton_calls(text):
         (SolverSettings.paper(kernel="pallas"), 2, 3),
     ],
 )
-@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "pallas-block-factor", "auto"])
+@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "auto"])
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
     a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, whose

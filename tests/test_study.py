@@ -199,6 +199,7 @@ def test_a_study_writes_a_tidy_table_and_replays_a_run(tmp_path):
 CLI = [sys.executable, "-m", "rvdjax.cli", "study", "montecarlo", SC.name]
 ARGS = ["--n-steps", "25", "--slots", "4", "--chunk", "4", "--vary", "x0=*normal(1,0.2)"]
 ARGS += ["--quiet", "--flush-rows", "2"]
+RUNS = 48  # two waves of the distributed test's 24 slots; flying them dominates these tests
 
 
 def _env(cache: Path, **extra) -> dict:
@@ -221,7 +222,7 @@ def study_env(tmp_path_factory):
     root = tmp_path_factory.mktemp("study")
     env = _env(root / "cache")
     ref = root / "reference"
-    r = _cli(["--runs", "160", "--out", str(ref), *ARGS], env, timeout=600)
+    r = _cli(["--runs", str(RUNS), "--out", str(ref), *ARGS], env, timeout=600)
     assert r.returncode == 0, r.stderr
     return root, env, read_table(ref)
 
@@ -234,7 +235,7 @@ def test_a_killed_study_resumes_to_the_same_table_bit_for_bit(study_env):
     root, env, reference = study_env
     out = root / "killed"
     proc = subprocess.Popen(
-        CLI + ["--runs", "160", "--out", str(out), *ARGS],
+        CLI + ["--runs", str(RUNS), "--out", str(out), *ARGS],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -248,11 +249,13 @@ def test_a_killed_study_resumes_to_the_same_table_bit_for_bit(study_env):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     partial = read_table(out)
-    assert 0 < len(partial) < 160, "the study finished before it could be killed"
-    r = _cli(["--runs", "160", "--out", str(out), "--resume", "--json", *ARGS], env, timeout=600)
+    assert 0 < len(partial) < RUNS, "the study finished before it could be killed"
+    r = _cli(
+        ["--runs", str(RUNS), "--out", str(out), "--resume", "--json", *ARGS], env, timeout=600
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)  # nothing lost, nothing flown twice
-    assert (summary["runs_skipped"], summary["runs_flown"]) == (len(partial), 160 - len(partial))
+    assert (summary["runs_skipped"], summary["runs_flown"]) == (len(partial), RUNS - len(partial))
     _frames_equal(read_table(out), reference)
 
 
@@ -262,7 +265,7 @@ def test_four_devices_give_the_same_table(study_env):
     # (the optimisation level of the tests' XLA_FLAGS kept: the reference is flown at it)
     flags = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
     env4 = {**env, "XLA_FLAGS": flags.strip()}
-    r = _cli(["--runs", "160", "--out", str(out), "--devices", "4", *ARGS], env4, timeout=600)
+    r = _cli(["--runs", str(RUNS), "--out", str(out), "--devices", "4", *ARGS], env4, timeout=600)
     assert r.returncode == 0, r.stderr
     _frames_equal(read_table(out), reference)
 
@@ -297,7 +300,7 @@ def test_two_processes_through_jax_distributed_give_the_same_table(study_env):
     runs = [(explicit, env), (["--coordinator", "auto"], {**env, **slurm})]
     procs = [
         subprocess.Popen(
-            CLI + ["--runs", "160", "--out", str(out), *args, *extra],
+            CLI + ["--runs", str(RUNS), "--out", str(out), *args, *extra],
             env=e,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

@@ -342,11 +342,11 @@ def test_keep_out_margin_against_an_stl_monitor(poseidyn):
     pb = poseidyn
     xis = np.random.default_rng(0).standard_normal((3, pb.dim))
     res = pb.gradient(xis)
-    fc = pb.loop.config.family_config
-    M = fc.substeps
+    M = pb.loop.config.family_config.substeps
+    flown = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))  # one compile for the three
     for i, xi in enumerate(xis):
         x0, params = pb.dispersion.apply(xi, pb.x0, pb.params, pb.scenario.guidance_family.layout)
-        infos, m = jax.jit(lambda p, x: fly(pb.loop, p, x, pb.key, pb.sp))(params, x0)
+        infos, m = flown(params, x0)
         infos = jax.tree.map(np.asarray, infos)
         centre, r_obs = np.asarray(params.obstacle), float(params.r_obs)
         Ac, Bc = np.asarray(params.plant.Ac), np.asarray(params.plant.Bc)

@@ -141,6 +141,7 @@ def cmd(args) -> int:
         if not (isinstance(args.budget, int) and args.budget >= 1):
             raise ValueError(f"--budget must be an integer >= 1, got {args.budget}")
         kspec = SearchSpec(
+            engine_cost=True,
             methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
             budget=args.budget,
             repeats=args.repeats,

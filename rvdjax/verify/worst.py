@@ -66,6 +66,9 @@ class SearchSpec:
         seed: the first repeat's seed (repeat r uses seed + r).
         gradient_cost: forward evaluations a gradient evaluation counts for (None: measured
             in the run, :meth:`Problem.gradient_cost`).
+        engine_cost: also measure, for the report only, a gradient's wall time over the
+            batch engine's per run (:meth:`Problem.gradient_cost_engine`: two engine flights
+            of 64 runs; the command line and the benchmark report it).
     """
 
     methods: tuple = ("gradient", "random", "lhs", "cma-es")
@@ -79,6 +82,7 @@ class SearchSpec:
     popsize: int = 8
     seed: int = 0
     gradient_cost: float | None = None
+    engine_cost: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "methods", tuple(self.methods))
@@ -358,7 +362,7 @@ def _gradient(pb: Problem, spec: SearchSpec, store: EvalStore, method: str, bar)
         if bar is not None:
             bar.update(int(np.ceil(R * per_iter)))
     extra = {"gradient_cost": cost, "iterations": iters, **counts}
-    if hasattr(pb, "gradient_cost_engine"):
+    if spec.engine_cost and hasattr(pb, "gradient_cost_engine"):
         extra["gradient_cost_vs_engine"] = pb.gradient_cost_engine(R * K)
     if method == "design-point":
         ok = np.isfinite(best_norm)
