@@ -162,16 +162,16 @@ def _triton_calls(text):
 
 
 @pytest.mark.parametrize(
-    "settings, kernels, loops",
+    "settings, kernels, loops, variant",
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps;
         # loops: the solve, the start's drift of the warm-start inputs
-        (SolverSettings(kernel="pallas"), 4, 2),
-        # paper: factorisation + step; loops: the solve, the drift, the line search
-        (SolverSettings.paper(kernel="pallas"), 2, 3),
+        *((SolverSettings(), 4, 2, v) for v in ("pallas", "pallas-block-io", "auto")),
+        # paper: factorisation + step; loops: the solve, the drift, the line search (the
+        # count of launches and loops is the mode's, whichever kernels run them)
+        (SolverSettings.paper(), 2, 3, "auto"),
     ],
 )
-@pytest.mark.parametrize("variant", ["pallas", "pallas-block-io", "auto"])
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
     """Lowered for CUDA (the compile happens on the GPU; here the lowering catches errors),
     a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, whose
