@@ -72,11 +72,12 @@ def summarize(out, confidence: float = 0.9, reliability: float = 0.9973, worst: 
     if config is None:
         raise ValueError(f"{out}: no config.json (not a study directory)")
     spec = StudySpec.from_dict(config["spec"])
-    # the columns the statistics need (a 10^6-run study's strings stay on disk)
+    # the columns the statistics and the provenance counts need (a 10^6-run study's other
+    # strings stay on disk)
     names = table_columns(out)
     wanted = ["point", "docked", "max_violation_m", "effort", "delta_v_m_s", "time_to_dock_s"]
     wanted += [c for c in names if c.startswith("margin_")]
-    wanted += [c for c in ("provenance", "code_changed") if c in names]  # provenance counts
+    wanted += [c for c in ("provenance", "code_changed") if c in names]
     df = read_table(out, columns=wanted)
     from rvdjax.study.runner import effort_metric
     from rvdjax.study.spec import study_scenario
