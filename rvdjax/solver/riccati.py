@@ -217,7 +217,7 @@ def _first_vmap(fn, in_batched, args, out_batched):
 
 def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     if axis_size > BATCH_LAST_MAX:
-        flags = _factor_flags(axis_size, in_batched)
+        flags = _factor_flags(in_batched)
         f, _ = _first_vmap(_factor, in_batched, (A, B, Phi_u, Phi_x), flags)
         if not flags.M:  # a shared model stays shared (the vmapped copy is dead code)
             f = f._replace(M=jnp.concatenate([B, A], axis=-1))
@@ -299,7 +299,7 @@ def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
     """The factorisation by the kernels (with a right-hand side ``rhs`` = g_u, g_x, rp: and
     its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's."""
     bA, bB, bPu, bPx = in_batched[:4]
-    flags = _factor_flags(axis_size, in_batched)
+    flags = _factor_flags(in_batched)
     M = _model_M(axis_size, A, B, bA, bB, flags.M)
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     factor, factor_solve, _ = _lane_ops(impl)
@@ -344,7 +344,7 @@ def kernel_on(device, kernel: str = "auto") -> str:
     return AUTO_ON_CUDA if cuda else "xla"
 
 
-def _factor_flags(axis_size, in_batched) -> RiccatiFactor:
+def _factor_flags(in_batched) -> RiccatiFactor:
     """Which factor fields carry the batch (the same for both forms): all but the model
     M = [B, A], which is shared when A and B are (the batch engine's slots share one model,
     and the kernels then read it once per tile instead of a copy per problem)."""
@@ -399,13 +399,12 @@ def _batched(op: str, kernel: str):
     output is the same whichever form runs)."""
     xla_fn, xla_rule, pallas_rule = _OPS[op]
 
-    def flags(axis_size, in_batched):
-        shapes = (axis_size, in_batched)
+    def flags(in_batched):
         if op == "factor":
-            return _factor_flags(*shapes)
+            return _factor_flags(in_batched)
         if op == "apply":
             return NewtonStep(True, True, True)
-        return _factor_flags(*shapes), NewtonStep(True, True, True)
+        return _factor_flags(in_batched), NewtonStep(True, True, True)
 
     def one(impl, *args):
         batched = jax.tree.map(lambda _: True, args)
@@ -424,7 +423,7 @@ def _batched(op: str, kernel: str):
             lambda i, *a: pallas_rule(i, axis_size, in_batched, *a)[0],
             *args,
         )
-        return out, flags(axis_size, in_batched)
+        return out, flags(in_batched)
 
     return fn
 
