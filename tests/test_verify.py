@@ -464,8 +464,12 @@ def test_bad_input_names_the_parameter(tmp_path, capsys, extra, needle):
 
 def test_bad_budget_and_method_exit_before_compiling(tmp_path, capsys):
     """Each refuses in one line with status 2, and nothing is traced or compiled first (jax's
-    own compile events, in this process)."""
+    own compile events, in this process). Importance sampling's dimension limit is the loop's
+    dimension, so it is checked after the problem's set-up, whose eager parameter arithmetic
+    is done here first: from then on nothing may compile."""
     import jax.monitoring
+
+    from rvdjax.verify.evaluate import ProblemSpec, problem_for
 
     events = []
     listen = lambda name, *_, **__: events.append(name)  # noqa: E731
@@ -484,8 +488,11 @@ def test_bad_budget_and_method_exit_before_compiling(tmp_path, capsys):
         ],  # fmt: skip
         ["worst", "--budget", "3", "--methods", "cma-es"],
         ["worst", "--budget", "30", "--methods", "psy"],
+        ["worst", "--budget", "30", "--starts", "0"],
+        ["worst", "--budget", "30", "--step", "0"],
     ]
     base = ["--requirement", "keep-out", "--dispersion", "paper003"]
+    problem_for(ProblemSpec("thesis-vbar", "keep-out", "nav", disturbed=True))
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         for cmd in cmds:

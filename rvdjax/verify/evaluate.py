@@ -109,8 +109,12 @@ class Problem:
         self.loop, self.params, self.x0 = loop, params, np.asarray(x0, float)
         fam = sc.guidance_family
         fc = loop.config.family_config
-        g0 = fam.init(params, fc, jnp.asarray(self.x0))
-        blocks = fam.truth_blocks(params, fc, g0, jnp.asarray(self.x0), jnp.asarray(0.0))
+        # only the zones' names are read: traced abstractly, nothing compiled or flown
+        blocks = jax.eval_shape(
+            lambda p, x: fam.truth_blocks(p, fc, fam.init(p, fc, x), x, jnp.asarray(0.0)),
+            params,
+            jnp.asarray(self.x0),
+        )
         self.requirement: Composite = parse_requirement(
             spec.requirement, {b.name for b in blocks}, fam.dock_error is not None
         )

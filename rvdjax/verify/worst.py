@@ -93,6 +93,12 @@ class SearchSpec:
             raise ValueError(f"--region must be ball or box, got {self.region!r}")
         if self.radius is not None and not (0 < self.radius < float("inf")):
             raise ValueError(f"--radius must be > 0 (standard deviations), got {self.radius}")
+        for name in ("repeats", "starts", "popsize", "ladder"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v >= 1):
+                raise ValueError(f"--{name} must be an integer >= 1, got {v!r}")
+        if not (0 < self.step < float("inf")):
+            raise ValueError(f"--step must be > 0 (standard deviations), got {self.step}")
 
     def resolved(self, dim: int) -> SearchSpec:
         """The spec with its region's radius for ``dim`` coordinates (module docstring): a
@@ -103,12 +109,6 @@ class SearchSpec:
         from scipy.stats import chi2
 
         return dataclasses.replace(self, radius=float(np.sqrt(chi2.ppf(1 - TAIL, dim))))
-        for name in ("repeats", "starts", "popsize", "ladder"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, np.integer)) and v >= 1):
-                raise ValueError(f"--{name} must be an integer >= 1, got {v!r}")
-        if not (0 < self.step < float("inf")):
-            raise ValueError(f"--step must be > 0 (standard deviations), got {self.step}")
 
     def check_budget(self, gradient_cost: float = 1.0) -> None:
         """ValueError when the budget cannot hold one round of every method."""
