@@ -175,12 +175,18 @@ def canonical(obj, small: int = SMALL_ARRAY):
     if isinstance(obj, Path):
         return str(obj)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        # a renamed field keeps the name stored definitions know it by ("stored_as")
-        return {
-            f.metadata.get("stored_as", f.name): canonical(getattr(obj, f.name), small)
-            for f in dataclasses.fields(obj)
-            if not callable(getattr(obj, f.name)) or dataclasses.is_dataclass(getattr(obj, f.name))
-        }
+        # a renamed field keeps the name stored definitions know it by ("stored_as"); a field
+        # added later is left out at the value that flies the runs as before it existed
+        # ("stored_unless"), so definitions stored before it still match
+        out = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if callable(v) and not dataclasses.is_dataclass(v):
+                continue
+            if "stored_unless" in f.metadata and v == f.metadata["stored_unless"]:
+                continue
+            out[f.metadata.get("stored_as", f.name)] = canonical(v, small)
+        return out
     if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # NamedTuple
         out = {}
         for k, v in zip(obj._fields, obj, strict=True):

@@ -14,6 +14,7 @@ OpenTURNS on the same limit-state function.
         --dispersion nav --disturbed --n-steps 60 --requirement keep-out>=0.09 --random-p P
     python sweeps/verification_benchmark.py openturns --out DIR [--level-size 1000]
     python sweeps/verification_benchmark.py gradcheck --out DIR
+    python sweeps/verification_benchmark.py sense --out DIR [--band-runs 3000] [--sample-runs 6000]
 
 Every part writes its evaluations under DIR with their provenance (resumable: run the same
 command again; another code version needs ``--allow-code-change``) and prints a table;
@@ -533,6 +534,158 @@ def cmd_gradcheck(args) -> dict:
     return {"gradcheck": rows}
 
 
+# ----------------------------------------------------------------------------- sense
+
+
+BAND = ((1300.0, 2200.0), (270.0, 340.0))  # initial range [m] and bearing [deg]
+
+
+def _range_bearing(xi):
+    from scipy.stats import norm
+
+    from rvdjax.verify.dispersions import P003_R
+
+    r = P003_R[0] + (P003_R[1] - P003_R[0]) * norm.cdf(xi[:, 0])
+    return r, 360.0 * norm.cdf(xi[:, 1])
+
+
+def cmd_sense(args) -> dict:
+    """Where the deep breaches come from: thesis-vbar's keep-out planes turn "the way the
+    bearing turns", read afresh each step; near the bearing opposite the approach axis that
+    sense flips from step to step. The same runs flown with the sense latched
+    (``Config.latch_turn``, from a scenario file written here):
+
+    * a line of 61 starts through the reference's deepest breach in the band of initial
+      bearings where the deep breaches lie (``BAND``), 0.01 sigma apart in xi_0 (range), by
+      both guidances;
+    * every failing run of the reference;
+    * ``--band-runs`` of the reference's runs in that band, drawn with ``--seed`` (unbiased
+      within the band; their default-guidance margins are the reference's);
+    * ``--sample-runs`` of all the reference's runs: with the failing ones above, the latched
+      guidance's P(breach) and its interval (Clopper-Pearson on the sample's new failures).
+    """
+    from rvdjax.scenarios import get_scenario
+    from rvdjax.scenarios.files import scenario_to_toml
+
+    out = Path(args.out)
+    ev = read_evals(out / "reference")
+    xi = np.stack(ev["xi"].to_numpy())
+    m = ev["margin"].to_numpy(float)
+    sc = get_scenario(SCENARIO)
+    latched = dataclasses.replace(
+        sc, name=f"{SCENARIO}-latched", config={**sc.config, "latch_turn": True}
+    )
+    path = out / f"{SCENARIO}-latched.toml"
+    path.write_text(scenario_to_toml(latched))
+    pb0 = _problem("keep-out")
+    pb1 = problem_for(ProblemSpec(str(path), "keep-out", DISPERSION))
+    r, b = _range_bearing(xi)
+    band = np.flatnonzero((r > BAND[0][0]) & (r < BAND[0][1]) & (b > BAND[1][0]) & (b < BAND[1][1]))
+    res = {"band": {"range_m": BAND[0], "bearing_deg": BAND[1], "reference_runs": len(band)}}
+
+    # the line through the deepest breach in the band, by both guidances
+    i = band[np.argmin(m[band])]
+    line = np.repeat(xi[i][None], 61, axis=0)
+    line[:, 0] += np.linspace(-0.3, 0.3, 61)
+    for name, pb in (("default", pb0), ("latched", pb1)):
+        got = _store(out, f"sense-line-{name}", pb).evaluate("line", "line", line, pb.forward)
+        g = np.asarray(got["margin"], float)
+        res[f"line_{name}"] = {
+            "runs": len(g), "failing": int(np.sum(g < 0)), "deeper_than_10m": int(np.sum(g < -10)),
+            "min_m": float(g.min()), "margins_m": [round(float(v), 2) for v in g],
+        }  # fmt: skip
+    res["line_start"] = [float(v) for v in xi[i]]
+
+    # every failing run of the reference, latched
+    fail = np.flatnonzero(m < 0)
+    got = _store(out, "sense-failures", pb1).evaluate("failures", "failures", xi[fail], pb1.forward)
+    g = np.asarray(got["margin"], float)
+    res["reference_failures"] = {
+        "runs": len(fail),
+        "deeper_than_10m": int(np.sum(m[fail] < -10)),
+        "latched_failing": int(np.sum(g < 0)),
+        "latched_deeper_than_10m": int(np.sum(g < -10)),
+        "latched_unchanged": int(np.sum(np.abs(g - m[fail]) < 1e-6)),
+        "latched_failing_start_below_250m": int(np.sum((g < 0) & (r[fail] < 250))),
+    }
+
+    # a sample of the band, latched (the default's margins are the reference's)
+    n = min(args.band_runs, len(band))
+    pick = np.sort(np.random.default_rng(args.seed).choice(band, n, replace=False))
+    store = _store(out, "sense-band", pb1, band=BAND, seed=args.seed)
+    g = []
+    for lo in range(0, n, 500):
+        got = store.evaluate(f"band-{lo}", "band", xi[pick[lo : lo + 500]], pb1.forward)
+        g.append(np.asarray(got["margin"], float))
+        print(f"band: {lo + len(g[-1])} of {n} runs flown", flush=True)
+    g = np.concatenate(g)
+    d = m[pick]
+    res["band_sample"] = {
+        "runs": n,
+        "default_failing": int(np.sum(d < 0)),
+        "default_deeper_than_10m": int(np.sum(d < -10)),
+        "latched_failing": int(np.sum(g < 0)),
+        "latched_deeper_than_10m": int(np.sum(g < -10)),
+        "default_ci95": clopper_pearson(int(np.sum(d < 0)), n),
+        "latched_ci95": clopper_pearson(int(np.sum(g < 0)), n),
+        "latched_min_m": float(g.min()),
+    }
+    # a uniform sample of the reference, latched: with every failing run of the reference
+    # flown above, P(latched breach) = (latched failures among them + the sample's other
+    # runs' failure rate x the reference's other runs) / the reference's runs
+    n_u = min(args.sample_runs, len(m))
+    pick = np.sort(np.random.default_rng([args.seed, 1]).choice(len(m), n_u, replace=False))
+    store = _store(out, "sense-sample", pb1, seed=args.seed)
+    g = []
+    for lo in range(0, n_u, 500):
+        got = store.evaluate(f"sample-{lo}", "sample", xi[pick[lo : lo + 500]], pb1.forward)
+        g.append(np.asarray(got["margin"], float))
+        print(f"uniform sample: {lo + len(g[-1])} of {n_u} runs flown", flush=True)
+    g = np.concatenate(g)
+    ok = m[pick] >= 0  # the sample's runs that did not fail by the default guidance
+    latched_f = np.asarray(_store(out, "sense-failures", pb1).batches["failures"]["margin"], float)
+    res["latched_p"] = {}
+    for depth in (0.0, 10.0):
+        k_new, n_ok = int(np.sum(g[ok] < -depth)), int(np.sum(ok))
+        lo_new, hi_new = clopper_pearson(k_new, n_ok)
+        k_f, rest = int(np.sum(latched_f < -depth)), len(m) - len(fail)
+        res["latched_p"][_tag(depth)] = {
+            "p": (k_f + k_new / n_ok * rest) / len(m),
+            "ci95": [(k_f + lo_new * rest) / len(m), (k_f + hi_new * rest) / len(m)],
+            "reference_failures_still_failing": k_f,
+            "sample_new_failures": k_new,
+            "sample_runs_not_failing_by_default": n_ok,
+            "default_p": float(np.mean(m < -depth)),
+        }
+    res["uniform_sample"] = {
+        "runs": n_u,
+        "changed": float(np.mean(np.abs(g - m[pick]) > 1e-6)),
+        "latched_min_m": float(g.min()),
+    }
+    f, bs = res["reference_failures"], res["band_sample"]
+    print("the line through the deepest band breach (61 starts, 0.01 sigma apart in xi_0):")
+    for name in ("default", "latched"):
+        ln = res[f"line_{name}"]
+        print(f"  {name:8s} failing {ln['failing']:3d}, deeper than 10 m "
+              f"{ln['deeper_than_10m']:3d}, deepest {ln['min_m']:.1f} m")  # fmt: skip
+    print(f"the reference's {f['runs']} failing runs ({f['deeper_than_10m']} deeper than 10 m), "
+          f"latched: {f['latched_failing']} fail ({f['latched_deeper_than_10m']} deeper than "
+          f"10 m; {f['latched_unchanged']} with the same margin; "
+          f"{f['latched_failing_start_below_250m']} start below 250 m)")  # fmt: skip
+    print(f"{n} of the band's {len(band)} reference runs: default {bs['default_failing']} fail "
+          f"({bs['default_deeper_than_10m']} deeper than 10 m), latched {bs['latched_failing']} "
+          f"({bs['latched_deeper_than_10m']}); deepest latched margin "
+          f"{bs['latched_min_m']:.2f} m")  # fmt: skip
+    print(f"a uniform sample of {n_u} reference runs, latched: "
+          f"{res['uniform_sample']['changed']:.0%} fly differently; deepest latched margin "
+          f"{res['uniform_sample']['latched_min_m']:.2f} m")  # fmt: skip
+    print("breach deeper than | default (the reference) | latched | 95 % interval")
+    for tag, q in res["latched_p"].items():
+        print(f"{tag:>18s} | {q['default_p']:.3g} | {q['p']:.3g} | "
+              f"[{q['ci95'][0]:.2g}, {q['ci95'][1]:.2g}]")  # fmt: skip
+    return res
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -569,7 +722,10 @@ def main(argv=None):
     o = sub.add_parser("openturns")
     o.add_argument("--level-size", type=int, default=1000)
     o.add_argument("--form-calls", type=int, default=200)
-    for q in (ref, cov, tab, fg, w, o, gc):
+    se = sub.add_parser("sense")
+    se.add_argument("--band-runs", type=int, default=3000)
+    se.add_argument("--sample-runs", type=int, default=6000)
+    for q in (ref, cov, tab, fg, w, o, gc, se):
         q.add_argument("--out", required=True)
         q.add_argument("--seed", type=int, default=0)
         q.add_argument("--json", action="store_true")
@@ -584,6 +740,7 @@ def main(argv=None):
         "worst": cmd_worst,
         "gradcheck": cmd_gradcheck,
         "openturns": cmd_openturns,
+        "sense": cmd_sense,
     }[args.cmd](args)
     name = args.cmd
     if args.cmd == "coverage":

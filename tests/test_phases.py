@@ -317,6 +317,46 @@ def test_keep_out_planes_turn_with_the_natural_motion():
         assert np.all(n_fast[:, 0] >= -1e-12)  # fits: the short way whatever the motion
 
 
+def test_latched_turn_keeps_its_sense_through_the_antipode():
+    """Config.latch_turn: near the bearing opposite the approach axis the tangential velocity
+    (and the shortest turn's direction) flip from step to step; the unlatched planes flip
+    with them, the latched ones keep turning about the axis chosen first. The update latches
+    the axis while the rotation does not fit and clears it once it fits."""
+    import dataclasses
+
+    a_final = jnp.array([0.0, 1.0, 0.0])  # V-bar approach axis
+    rate, ts, n = 1.1e-3, 30.0, 30  # 0.99 rad a horizon: half a turn does not fit
+    # the chaser just either side of the antipode (bearing 270 deg), its bearing turning
+    # once clockwise, once anticlockwise: the short way swaps sides, and so does the motion
+    sides = [(jnp.array([-5.0, -1000.0, 0.0]), jnp.array([0.1, 0.0, 0.0])),
+             (jnp.array([5.0, -1000.0, 0.0]), jnp.array([-0.1, 0.0, 0.0]))]  # fmt: skip
+    first = np.asarray(ph._plane_normals(sides[0][0], a_final, n, n, ts, rate, sides[0][1]))
+    second = np.asarray(ph._plane_normals(sides[1][0], a_final, n, n, ts, rate, sides[1][1]))
+    assert first[-1, 0] > 0 > second[-1, 0]  # unlatched: the planes swing to the other side
+    u0, w, _, fits = ph._turn(sides[0][0], a_final, n, ts, rate, sides[0][1])
+    assert not bool(fits)
+    axis = np.cross(np.asarray(u0), np.asarray(w))
+    latched = np.asarray(
+        ph._plane_normals(sides[1][0], a_final, n, n, ts, rate, sides[1][1], jnp.asarray(axis))
+    )
+    assert latched[-1, 0] > 0  # latched: still turning the first way
+    np.testing.assert_allclose(np.linalg.norm(latched, axis=1), 1.0, atol=1e-12)
+    # the family's update latches that axis, and clears it once the rotation fits
+    p, _ = SCENARIOS["thesis-vbar"].build()
+    p = p._replace(n=jnp.asarray(rate))
+    fc = dataclasses.replace(ph.Config(), latch_turn=True)
+    x = jnp.concatenate(sides[0])
+    g = ph.init(p, fc, x)
+    assert np.all(np.asarray(g.turn) == 0)
+    samples = (jnp.zeros(8),)
+    g1 = ph.update(p, fc, g, x, jnp.zeros(3), x, jnp.asarray(0.0), p.ts[0], samples)[0]
+    np.testing.assert_allclose(np.asarray(g1.turn), axis / np.linalg.norm(axis), atol=1e-12)
+    near = jnp.array([0.0, 500.0, 0.0, 0.0, 0.0, 0.0])  # on the axis: the rotation fits
+    g2 = ph.update(p, fc, g1, near, jnp.zeros(3), near, jnp.asarray(0.0), p.ts[0], samples)[0]
+    assert np.all(np.asarray(g2.turn) == 0)
+    assert ph.init(p, ph.Config(), x).turn is None  # off: the loop carries nothing new
+
+
 def test_keep_out_rows_between_samples_are_the_coasted_states():
     """Config.between_samples: the rendezvous keep-out rows at j Ts / 8 act on x_{t+1} through
     the coast back e^{-Ac (Ts - tau_j)} (SciPy's expm), and their slack is the plane's slack at

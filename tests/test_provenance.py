@@ -153,6 +153,27 @@ def test_a_renamed_field_keeps_its_stored_name():
     assert stored["family"]["between_samples"] is True
 
 
+def test_a_field_added_later_is_stored_only_away_from_its_old_behaviour():
+    """Config.latch_turn (added after stores were flown) is left out of a definition while
+    off, so the thesis' stored definitions still match; on, it is part of the definition."""
+    import dataclasses
+
+    from rvdjax.provenance import canonical, digest
+    from rvdjax.scenarios import SCENARIOS
+
+    cfg = SCENARIOS["thesis-vbar"].loop().config
+    fam = canonical(cfg)["family"]
+    assert "latch_turn" not in fam
+    # the family record as it was stored before the field existed (the reference's store)
+    assert fam == {"N": [30, 15, 12], "between_samples": True, "finite_burn": True,
+                   "n_faces": 4, "rendezvous_cost": "qp"}  # fmt: skip
+    on = dataclasses.replace(
+        cfg, family_config=dataclasses.replace(cfg.family_config, latch_turn=True)
+    )
+    assert canonical(on)["family"]["latch_turn"] is True
+    assert digest(on) != digest(cfg)
+
+
 def test_the_plant_record_is_stored_as_the_parameters_own_fields():
     """Params.plant (rvdjax.loop.plant.Plant) is stored flat, as the fields were before the
     record, so definitions stored before it keep their digest: the nested parameters hash as

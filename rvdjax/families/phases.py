@@ -107,15 +107,18 @@ def target_state(p: Params, times):
     return port, jnp.cross(jnp.broadcast_to(omega, port.shape), port), axis
 
 
-def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max, v0):
-    """Keep-out plane normals (N_max, 3) rotating from the bearing of r0 towards a_final
-    (paper 003 Eq. 3.6): equal angles over the real horizon, at most rate_max ts per stage.
+def _turn(r0, a_final, n_real, ts, rate_max, v0, turn=None):
+    """The keep-out planes' turn from the bearing of r0 towards a_final (paper 003
+    Sec. 3.1.3): (u0, w, delta, fits), the unit bearing, the unit direction the normal leaves
+    it in, the angle to turn [rad] and whether that fits in the horizon at rate_max.
 
-    Direction (Sec. 3.1.3): when the rotation fits in the horizon at the capped rate, along
-    the shortest great circle; otherwise "in the direction most closely aligned with the
-    natural relative orbit motion" — here the sense in which the chaser's bearing turns,
-    r0 x v0 (the long way round if that is the sense of motion). Antipodal bearings fall
-    back to the plane through the radial axis.
+    When the rotation fits in the horizon at the capped rate it follows the shortest great
+    circle; otherwise "in the direction most closely aligned with the natural relative orbit
+    motion" — here the sense in which the chaser's bearing turns, r0 x v0 (the long way round
+    if that is the sense of motion). ``turn`` (``Config.latch_turn``): a latched rotation
+    axis (zero: undecided); while it is set and the rotation does not fit, the planes keep
+    turning about it instead. Antipodal bearings fall back to the plane through the radial
+    axis.
     """
     u0 = r0 / jnp.maximum(jnp.linalg.norm(r0), 1e-12)
     cosd = jnp.clip(jnp.dot(u0, a_final), -1.0, 1.0)
@@ -127,9 +130,21 @@ def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max, v0):
     fits = delta <= rate_max * ts * n_real
     # bearing rate direction: the tangential part of v0; against w means the long way
     against = jnp.dot(v0 - jnp.dot(v0, u0) * u0, w) < 0.0
+    if turn is not None:
+        # latched: the long way when the shortest turn's axis u0 x w opposes the latched one
+        latched = jnp.dot(turn, turn) > 0.0
+        against = jnp.where(latched, jnp.dot(jnp.cross(u0, w), turn) < 0.0, against)
     long_way = ~fits & against
     w = jnp.where(long_way, -w, w)
     delta = jnp.where(long_way, 2.0 * jnp.pi - delta, delta)
+    return u0, w, delta, fits
+
+
+def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max, v0, turn=None):
+    """Keep-out plane normals (N_max, 3) rotating from the bearing of r0 towards a_final
+    (paper 003 Eq. 3.6): equal angles over the real horizon, at most rate_max ts per stage,
+    in the sense of :func:`_turn`."""
+    u0, w, delta, _ = _turn(r0, a_final, n_real, ts, rate_max, v0, turn)
     step = jnp.minimum(delta / n_real, rate_max * ts)
     i = jnp.minimum(jnp.arange(1, N_max + 1), n_real)
     ang = jnp.minimum(delta, step * i)
@@ -147,7 +162,8 @@ def _in_cone(p: Params, r, t, n_faces):
 
 
 def init(p: Params, fc: Config, x0):
-    return Guidance(phase=jnp.asarray(0, jnp.int32), entered=jnp.asarray(False))
+    turn = jnp.zeros(3, jnp.asarray(x0).dtype) if fc.latch_turn else None
+    return Guidance(phase=jnp.asarray(0, jnp.int32), entered=jnp.asarray(False), turn=turn)
 
 
 def _N(fc: Config) -> int:
@@ -201,7 +217,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     ref2 = jnp.concatenate([port, port_vel], -1)
     x_ref = jnp.stack([ref0, ref1, ref2])[phase]
 
-    normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n, x[3:])
+    normals = _plane_normals(x[:3], axis_end, N, n_real, ts, p.n, x[3:], g.turn)
     # The phases' rows are never active together, so they share rows (constraints.exclusive):
     # 10 state rows per stage instead of 16 (the solver's row work scales with the count).
     keep_out = keep_out_plane(normals, p.r1, 6, POS, rho=p.rho, name="keep_out").masked(on * p0)
@@ -391,7 +407,17 @@ def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
     cone = approach_cone(port_n[None], axis_next[None], p.half_angle[2], fc.n_faces, 6, POS)
     inside = jnp.min(block_margin(cone, x_next)) >= 0.0
     entered = jnp.asarray(g.entered) | ((phase == 2) & inside)
-    return Guidance(phase=phase, entered=entered), docked, ts, judged
+    turn = g.turn
+    if fc.latch_turn:
+        # the sense this step's planes turned in (ocp's decision, from the step's start),
+        # kept while the rotation does not fit; reset once it fits or the phase ends
+        n_real = jnp.asarray(fc.N)[g.phase]
+        _, _, axis_end = target_state(p, t + n_real * ts)
+        u0, w, _, fits = _turn(x[:3], axis_end, n_real, ts, p.n, x[3:], g.turn)
+        k = jnp.cross(u0, w)
+        k = k / jnp.maximum(jnp.linalg.norm(k), 1e-12)
+        turn = jnp.where(fits | (phase != 0), 0.0, k)
+    return Guidance(phase=phase, entered=entered, turn=turn), docked, ts, judged
 
 
 SUBSAMPLES = 8  # intervals a step is cut into for the truth between samples

@@ -139,6 +139,14 @@ class Config:
             (Eq. 3.1) while the thrusters burn for up to 5 s from each period's start, as the
             thesis' own formulation does: its truth then lags the plans by up to
             m u_max^2 / (2 F) = 0.45 m per step and crosses the overshoot plane.
+        latch_turn: once the keep-out planes must turn the way the chaser's bearing turns
+            (the rotation does not fit in the horizon, Sec. 3.1.3), keep that sense of
+            rotation until it fits. Off (the default, today's published figures): the sense is
+            read afresh each step from the tangential velocity, which near the bearing
+            opposite the approach axis flips from step to step, and the planes swing from
+            one side to the other while the chaser, braking, comes straight in: thesis-vbar's
+            keep-out breaches deeper than 10 m under paper 003's initial states are such runs
+            (docs/verification.md, "Where the deep breaches come from").
     """
 
     N: tuple[int, int, int] = (30, 15, 12)
@@ -146,6 +154,8 @@ class Config:
     rendezvous_cost: str = "qp"
     between_samples: bool = True
     finite_burn: bool = True
+    # added 2026-11-27: left out of stored definitions while off (runs as before it existed)
+    latch_turn: bool = dataclasses.field(default=False, metadata={"stored_unless": False})
 
     def __post_init__(self):
         if len(self.N) != N_PHASES or any(not isinstance(k, int) or k < 1 for k in self.N):
@@ -153,7 +163,7 @@ class Config:
         if not isinstance(self.n_faces, int) or self.n_faces < 3:
             raise ValueError(f"n_faces must be an int >= 3, got {self.n_faces!r}")
         checks.choice("rendezvous_cost", self.rendezvous_cost, ("qp", "lp"))
-        for name in ("between_samples", "finite_burn"):
+        for name in ("between_samples", "finite_burn", "latch_turn"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
 
@@ -161,10 +171,13 @@ class Config:
 class Guidance(NamedTuple):
     """The current phase (0 rendezvous, 1 approach, 2 docking) and whether the chaser has
     been inside the docking cone at a sample of the docking phase (from then on the truth
-    must stay in it: the docking cone is judged; before, the chaser is still entering)."""
+    must stay in it: the docking cone is judged; before, the chaser is still entering).
+    ``turn`` (with ``Config.latch_turn``): the axis (3,) about which the keep-out planes
+    turn the long way, zero while undecided or while the rotation fits; None without."""
 
     phase: jnp.ndarray
     entered: jnp.ndarray | bool = True
+    turn: jnp.ndarray | None = None
 
 
 SCHEMA = Schema(
