@@ -549,6 +549,17 @@ def _range_bearing(xi):
     return r, 360.0 * norm.cdf(xi[:, 1])
 
 
+def _fly_blocks(store, name: str, xs, pb, block: int = 500):
+    """Exact margins of ``xs`` flown in blocks of ``block`` runs (batches ``name-LO`` of the
+    store: a killed part resumes), with a line per block."""
+    g = []
+    for lo in range(0, len(xs), block):
+        got = store.evaluate(f"{name}-{lo}", name, xs[lo : lo + block], pb.forward)
+        g.append(np.asarray(got["margin"], float))
+        print(f"{name}: {lo + len(g[-1])} of {len(xs)} runs flown", flush=True)
+    return np.concatenate(g)
+
+
 def cmd_sense(args) -> dict:
     """Where the deep breaches come from: thesis-vbar's keep-out planes turn "the way the
     bearing turns", read afresh each step; near the bearing opposite the approach axis that
@@ -613,12 +624,7 @@ def cmd_sense(args) -> dict:
     n = min(args.band_runs, len(band))
     pick = np.sort(np.random.default_rng(args.seed).choice(band, n, replace=False))
     store = _store(out, "sense-band", pb1, band=BAND, seed=args.seed)
-    g = []
-    for lo in range(0, n, 500):
-        got = store.evaluate(f"band-{lo}", "band", xi[pick[lo : lo + 500]], pb1.forward)
-        g.append(np.asarray(got["margin"], float))
-        print(f"band: {lo + len(g[-1])} of {n} runs flown", flush=True)
-    g = np.concatenate(g)
+    g = _fly_blocks(store, "band", xi[pick], pb1)
     d = m[pick]
     res["band_sample"] = {
         "runs": n,
@@ -635,13 +641,7 @@ def cmd_sense(args) -> dict:
     # runs' failure rate x the reference's other runs) / the reference's runs
     n_u = min(args.sample_runs, len(m))
     pick = np.sort(np.random.default_rng([args.seed, 1]).choice(len(m), n_u, replace=False))
-    store = _store(out, "sense-sample", pb1, seed=args.seed)
-    g = []
-    for lo in range(0, n_u, 500):
-        got = store.evaluate(f"sample-{lo}", "sample", xi[pick[lo : lo + 500]], pb1.forward)
-        g.append(np.asarray(got["margin"], float))
-        print(f"uniform sample: {lo + len(g[-1])} of {n_u} runs flown", flush=True)
-    g = np.concatenate(g)
+    g = _fly_blocks(_store(out, "sense-sample", pb1, seed=args.seed), "sample", xi[pick], pb1)
     ok = m[pick] >= 0  # the sample's runs that did not fail by the default guidance
     latched_f = np.asarray(_store(out, "sense-failures", pb1).batches["failures"]["margin"], float)
     res["latched_p"] = {}

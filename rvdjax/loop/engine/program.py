@@ -23,11 +23,13 @@ def _build(loop: Loop, cfg: EngineConfig, source_fn):
 
 @functools.lru_cache(maxsize=64)
 def _build_one(loop: Loop, cfg: EngineConfig, source_fn):
-    """The jitted segment function of one device (cached: one compile per loop, engine
+    """The jitted segment function of one device (cached: one trace per loop, engine
     configuration of a device and queue function, whatever the data). Several devices run
     it each on its own slots and share of the queue, with no communication: the same
-    program (JAX compiles a one-device program once and runs it on any device) and so the
-    same bits as on one device. (A ``shard_map`` over the devices was partitioned by XLA:
+    program, and so the same bits as on one device. (``jax.jit`` keys its executables on the
+    device, so XLA compiles the program once per device: the compile time grows with
+    ``devices``.)
+    (A ``shard_map`` over the devices was partitioned by XLA:
     one of the solver's shared-model products took another layout, and the last bits of
     some runs differed from one device's.)"""
     return jax.jit(_segment(loop, cfg, source_fn))
