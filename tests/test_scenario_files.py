@@ -108,6 +108,20 @@ def test_get_scenario_takes_a_path(tmp_path):
     assert sc.x0 == (3.0, 2.5, 0.0, 0.0) and isinstance(sc.x0[0], float)
 
 
+def test_a_latched_sense_is_read_from_a_file_and_printed(tmp_path):
+    """[config] latch_turn = true reaches the family's configuration and adds its assumption
+    to the printed notes; the built-in thesis-vbar (per-step reading) prints none of it."""
+    text = scenario_to_toml(SCENARIOS["thesis-vbar"])
+    assert "latch_turn" not in text  # off: not written
+    path = tmp_path / "latched.toml"
+    path.write_text(text.replace("N = [30, 15, 12]", "N = [30, 15, 12]\nlatch_turn = true"))
+    sc = load_scenario_file(path)
+    assert sc.loop().config.family_config.latch_turn is True
+    added = set(sc.notes("accurate")) - set(SCENARIOS["thesis-vbar"].notes("accurate"))
+    assert len(added) == 1 and "latch_turn" in added.pop()
+    assert not any("latch_turn" in n for n in SCENARIOS["thesis-vbar"].notes("accurate"))
+
+
 # ----------------------------------------------------------------------------------- errors
 
 THESIS = scenario_to_toml(SCENARIOS["thesis-vbar"])

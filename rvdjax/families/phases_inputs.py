@@ -143,8 +143,8 @@ class Config:
             (the rotation does not fit in the horizon, Sec. 3.1.3), keep that sense of
             rotation until it fits. Off (the default, today's published figures): the sense is
             read afresh each step from the tangential velocity, which near the bearing
-            opposite the approach axis flips from step to step, and the planes swing from
-            one side to the other while the chaser, braking, comes straight in: thesis-vbar's
+            opposite the approach axis can flip from one step to the next; the planes swing
+            from one side to the other and the chaser comes straight in: thesis-vbar's
             keep-out breaches deeper than 10 m under paper 003's initial states are such runs
             (docs/verification.md, "Where the deep breaches come from").
     """
@@ -167,13 +167,24 @@ class Config:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
 
+    def notes(self) -> tuple[str, ...]:
+        """Assumptions this configuration adds to its scenario's (printed with a run)."""
+        if self.latch_turn:
+            return (
+                "keep-out planes: once the turn does not fit in the horizon, the sense chosen "
+                "first is kept until it fits (latch_turn; the thesis' 'natural relative orbit "
+                "motion' read per step flips near the bearing opposite the approach axis)",
+            )
+        return ()
+
 
 class Guidance(NamedTuple):
     """The current phase (0 rendezvous, 1 approach, 2 docking) and whether the chaser has
     been inside the docking cone at a sample of the docking phase (from then on the truth
     must stay in it: the docking cone is judged; before, the chaser is still entering).
-    ``turn`` (with ``Config.latch_turn``): the axis (3,) about which the keep-out planes
-    turn the long way, zero while undecided or while the rotation fits; None without."""
+    ``turn`` (with ``Config.latch_turn``): the unit axis (3,) about which the keep-out
+    planes turned at the last step whose turn did not fit in the horizon; zero while the turn
+    fits (or before the first step, or after the rendezvous phase); None without."""
 
     phase: jnp.ndarray
     entered: jnp.ndarray | bool = True

@@ -251,6 +251,8 @@ class Scenario:
     def notes(self, mode: str, thrusters: bool | ThrusterSet = False) -> tuple[str, ...]:
         """The assumptions printed with a run in ``mode`` (and its thruster set's)."""
         out = self.assumptions
+        config = self.guidance_family.config_type(**self.config)
+        out = (*out, *getattr(config, "notes", tuple)())
         if mode == "paper" and self.paper_kappa != PAPER_KAPPA:
             out = (*out, _KAPPA_NOTE.format(kappa=self.paper_kappa))
         tset = self.thruster_set(thrusters)
