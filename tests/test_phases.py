@@ -357,6 +357,27 @@ def test_latched_turn_keeps_its_sense_through_the_antipode():
     assert ph.init(p, ph.Config(), x).turn is None  # off: the loop carries nothing new
 
 
+@pytest.mark.slow  # two 300-step flights of their own programs; `pytest -m slow`
+def test_latched_turn_removes_a_deep_breach_of_the_reference():
+    """A start inside one of thesis-vbar's breach slabs under paper 003's initial states (the
+    middle of a slab 0.04 sigma wide, next to the reference's 30.7 m breach): the per-step
+    sense of turn flies it 20+ m into the keep-out sphere; latched, the same start stays out."""
+    from rvdjax.loop import fly
+    from rvdjax.verify.evaluate import ProblemSpec, problem_for
+
+    pb = problem_for(ProblemSpec("thesis-vbar", "keep-out", "paper003"))
+    xi = np.array([1.01540886, 1.34767128, -1.38671643, -0.10798368 + 0.07, 1.03272868])
+    lay = pb.scenario.guidance_family.layout
+    x0, p = pb.dispersion.apply(jnp.asarray(xi), jnp.asarray(pb.x0), pb.params, lay)
+    clearance = {}
+    for latch in (False, True):
+        loop = pb.scenario.loop(latch_turn=latch)
+        _, m = jax.jit(lambda p, x0, loop=loop: fly(loop, p, x0, pb.key, pb.sp))(p, x0)
+        clearance[latch] = float(pb.requirement.exact(m, pb.effort_key))
+    assert clearance[False] < -20.0, clearance
+    assert clearance[True] > 0.0, clearance
+
+
 def test_keep_out_rows_between_samples_are_the_coasted_states():
     """Config.between_samples: the rendezvous keep-out rows at j Ts / 8 act on x_{t+1} through
     the coast back e^{-Ac (Ts - tau_j)} (SciPy's expm), and their slack is the plane's slack at
