@@ -229,17 +229,14 @@ def cmd_figures(args) -> dict:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy.stats import norm
 
     from rvdjax.verify import figures
-    from rvdjax.verify.dispersions import P003_R
 
     out = Path(args.out)
     df = read_evals(out / "reference")
     xi = np.stack(df["xi"].to_numpy())
     g = df["margin"].to_numpy(float)
-    r0 = P003_R[0] + (P003_R[1] - P003_R[0]) * norm.cdf(xi[:, 0])
-    bearing = np.degrees(2 * np.pi * norm.cdf(xi[:, 1]))
+    r0, bearing = _range_bearing(xi)
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for lo, hi, color, label in ((-10, 0, "0.6", "0 to 10 m"), (-20, -10, "C1", "10 to 20 m"),
                                  (-np.inf, -20, "C3", "deeper than 20 m")):  # fmt: skip
@@ -541,6 +538,7 @@ BAND = ((1300.0, 2200.0), (270.0, 340.0))  # initial range [m] and bearing [deg]
 
 
 def _range_bearing(xi):
+    """paper003's initial range [m] and bearing [deg] of dispersion vectors xi (N, 5)."""
     from scipy.stats import norm
 
     from rvdjax.verify.dispersions import P003_R
