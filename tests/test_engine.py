@@ -240,3 +240,36 @@ def test_the_segment_program_lowers_for_a_gpu():
     assert exported.platforms == ("cuda",)
     text = exported.mlir_module()
     assert "stablehlo.while" in text and "__gpu$xla.gpu.triton" in text
+
+
+def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
+    """The devices' programs compiled ahead in threads (several devices on a host with cores
+    to spare) are found by the later calls: no compile at the call, the same result."""
+    from jax import monitoring
+
+    from rvdjax.loop.engine.stream import compile_side_by_side, compile_threads
+
+    assert compile_threads(4, cores=2) == 1  # the 2-core VM: one after another, at the call
+    assert compile_threads(16, cores=16) == 8 and compile_threads(2, cores=16) == 2
+
+    def f(x, k):
+        return jax.lax.fori_loop(0, k, lambda i, y: jnp.sin(y) @ y.T / 8 + x, x)
+
+    program = jax.jit(f)
+    per_device = [(jnp.full((8, 8), v), jnp.int32(3)) for v in (0.1, 0.2)]
+    assert compile_side_by_side(program, per_device, threads=1) == 1
+    compiles = []
+
+    def count(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    monitoring.register_event_duration_secs_listener(count)
+    try:
+        assert compile_side_by_side(program, per_device, threads=2) == 2
+        ahead = len(compiles)
+        out = [program(*a) for a in per_device]
+    finally:
+        monitoring.unregister_event_duration_listener(count)
+    assert ahead >= 1 and len(compiles) == ahead
+    np.testing.assert_array_equal(out[1], jax.jit(f)(*per_device[1]))

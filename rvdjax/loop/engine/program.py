@@ -28,7 +28,8 @@ def _build_one(loop: Loop, cfg: EngineConfig, source_fn):
     it each on its own slots and share of the queue, with no communication: the same
     program, and so the same bits as on one device. (``jax.jit`` keys its executables on the
     device, so XLA compiles the program once per device: the compile time grows with
-    ``devices``.)
+    ``devices``; :func:`~rvdjax.loop.engine.stream.compile_side_by_side` overlaps those
+    compiles on a host with cores to spare.)
     (A ``shard_map`` over the devices was partitioned by XLA:
     one of the solver's shared-model products took another layout, and the last bits of
     some runs differed from one device's.)"""
