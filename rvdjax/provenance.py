@@ -1,7 +1,7 @@
 """Provenance of stored results: which code, on which machine, flew which definition.
 
 Every directory that stores results (study tables, verification evaluations, tuning outputs,
-benchmark JSON) records two things:
+benchmark JSON: :func:`benchmark_block`) records two things:
 
 * the **environment** (:func:`environment`): the rvdjax version, a SHA-256 of the package's
   source files, the git commit and whether the package's files differ from it (``dirty``),
@@ -48,6 +48,7 @@ __all__ = [
     "digest",
     "differences",
     "stamp",
+    "benchmark_block",
     "row_marks",
     "format_provenance",
     "summary",
@@ -346,6 +347,15 @@ def stamp(
     envs = dict(stored["environments"])
     envs.setdefault(eid, env)
     return {**stored, "environments": envs, "current": eid}
+
+
+def benchmark_block(benchmark: str, options: dict, device: str | None = None) -> dict:
+    """The provenance block of a benchmark's output (a :func:`stamp` of a new directory):
+    the definition is the benchmark's name (its script or command) and its options (values
+    that are not plain data, such as argparse's handlers, left out)."""
+    plain = (str, int, float, bool, type(None), list, tuple)
+    kept = {k: v for k, v in options.items() if isinstance(v, plain)}
+    return stamp(None, describe(benchmark=benchmark, options=kept), device=device)
 
 
 def row_marks(block: dict) -> dict:

@@ -63,10 +63,12 @@ class Recorder:
         self.rows.append(row)
         with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(row) + "\n")
-        print(
-            "  " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.items() if v is not None),
-            flush=True,
-        )
+        shown = {k: v for k, v in row.items() if v is not None and k != "provenance"}
+        print("  " + ", ".join(f"{k}={_fmt(v)}" for k, v in shown.items()), flush=True)
+        if "provenance" in row:
+            from rvdjax.provenance import format_provenance
+
+            print("  provenance: " + "; ".join(format_provenance(row["provenance"])), flush=True)
 
 
 def _fmt(v):
@@ -453,8 +455,14 @@ def main(argv=None) -> int:
     path = os.path.join(args.out, "gpu_benchmark.jsonl")
     rec = Recorder(path)
     from rvdjax.bench import machine_info
+    from rvdjax.provenance import benchmark_block
 
-    rec.add(part="machine", machine=machine_info(), devices=[str(d) for d in jax.devices()])
+    rec.add(
+        part="machine",
+        machine=machine_info(),
+        devices=[str(d) for d in jax.devices()],
+        provenance=benchmark_block("sweeps/gpu_benchmark.py", vars(args)),
+    )
     if args.part in ("qp", "all"):
         qp_part(
             rec,

@@ -243,7 +243,10 @@ def main(argv=None) -> int:
         with open(path, "w", encoding="utf-8") as f:
             f.write(hlo)
     with open(os.path.join(args.out, "gpu_profile.jsonl"), "a", encoding="utf-8") as f:
-        f.write(json.dumps(dict(info, top=rows[: args.top])) + "\n")
+        from rvdjax.provenance import benchmark_block
+
+        prov = benchmark_block("sweeps/gpu_profile.py", vars(args))
+        f.write(json.dumps(dict(info, top=rows[: args.top], provenance=prov)) + "\n")
     print(
         f"{info['target']} on {info['device']} ({planes}): {info['launches']} kernel calls, "
         f"{total:.1f} ms in kernels, {wall_ms:.1f} ms wall traced"

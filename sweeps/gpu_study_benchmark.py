@@ -83,7 +83,12 @@ class Recorder:
         self.rows.append(row)
         with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(row, default=str) + "\n")
-        print("  " + ", ".join(f"{k}={_fmt(v)}" for k, v in row.items()), flush=True)
+        shown = {k: v for k, v in row.items() if k != "provenance"}
+        print("  " + ", ".join(f"{k}={_fmt(v)}" for k, v in shown.items()), flush=True)
+        if "provenance" in row:
+            from rvdjax.provenance import format_provenance
+
+            print("  provenance: " + "; ".join(format_provenance(row["provenance"])), flush=True)
         return row
 
 
@@ -409,7 +414,14 @@ def main(argv=None) -> int:
     from rvdjax.solver import lanes
 
     platform = _platform(args.smoke)
-    rec.add(part="machine", machine=machine_info(), devices=[str(d) for d in jax.devices()])
+    from rvdjax.provenance import benchmark_block
+
+    rec.add(
+        part="machine",
+        machine=machine_info(),
+        devices=[str(d) for d in jax.devices()],
+        provenance=benchmark_block("sweeps/gpu_study_benchmark.py", vars(args)),
+    )
     t_start = time.perf_counter()
     total_share = sum(SHARES[p] for p in parts)
     carried = 0.0

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import rvdjax  # noqa: F401  (float64)
+from rvdjax.provenance import benchmark_block
 from rvdjax.solver import lanes, unrolled
 
 N, NX, NU = 30, 6, 3
@@ -99,6 +100,7 @@ def main(argv=None) -> int:
             **row,
         )
         print(json.dumps(row), flush=True)
+        row["provenance"] = benchmark_block("sweeps/pallas_compile.py", vars(args))
         if args.out:
             with open(args.out, "a", encoding="utf-8") as f:
                 f.write(json.dumps(row) + "\n")

@@ -197,7 +197,10 @@ def main() -> None:
     result = {"ch4": ch4, "ch5": ch5, "ch6": ch6}[args.chapter](args)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     path = Path(args.out) / f"{args.chapter}-summary.json"
-    path.write_text(json.dumps(result, indent=2, default=str))
+    from rvdjax.provenance import benchmark_block
+
+    prov = benchmark_block("sweeps/paper003_studies.py", vars(args))
+    path.write_text(json.dumps({**result, "provenance": prov}, indent=2, default=str))
     print(json.dumps(result, indent=2, default=str)[:4000])
     print(f"summary: {path}")
 

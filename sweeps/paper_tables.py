@@ -30,8 +30,11 @@ def main(out: str = "paper_tables.json") -> int:
             _, m, ms = SCENARIOS[name].flight(FlightOptions(mode=mode)).fly_timed()
             results[f"{name}/{mode}"] = {**metrics_row(m), "ms_per_step": ms}
             print(f"{name} {mode}: docked {bool(m.docked)}", file=sys.stderr, flush=True)
+    from rvdjax.provenance import benchmark_block
+
     with open(out, "w") as f:
-        json.dump(results, f, indent=1)
+        prov = benchmark_block("sweeps/paper_tables.py", {"out": str(out)})
+        json.dump({**results, "provenance": prov}, f, indent=1)
 
     def effort(name, r):
         fam = SCENARIOS[name].family

@@ -248,8 +248,11 @@ def main() -> None:
         print(" | ".join(f"{r.get(k):.4g}" if isinstance(r.get(k), float) else str(r.get(k))
                          for k in keys))  # fmt: skip
     if args.json:
+        from rvdjax.provenance import benchmark_block
+
         with open(args.json, "w") as f:
-            json.dump(rows, f, indent=2)
+            prov = benchmark_block("sweeps/study_benchmark.py", vars(args))
+            json.dump({"provenance": prov, "rows": rows}, f, indent=2)
 
 
 if __name__ == "__main__":

@@ -242,8 +242,11 @@ def main(argv=None) -> None:
                 flush=True,
             )
     if args.json:
+        from rvdjax.provenance import benchmark_block
+
         with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+            prov = benchmark_block("sweeps/tick_kernels.py", vars(args))
+            json.dump({"provenance": prov, "rows": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -108,7 +108,11 @@ def cmd_tune(out: Path, scenarios) -> None:
             plt.close(fig)
         except ImportError:
             pass
-    (out / "tune.json").write_text(json.dumps(results, indent=2))
+    from rvdjax.provenance import benchmark_block
+
+    options = {"out": str(out), "scenarios": list(scenarios)}
+    prov = benchmark_block("sweeps/tuning_benchmark.py tune", options)
+    (out / "tune.json").write_text(json.dumps({**results, "provenance": prov}, indent=2))
 
 
 def cmd_cost_one(name: str, n_steps, remat: bool) -> dict:
@@ -155,7 +159,10 @@ def cmd_cost(out: Path) -> None:
             f"| {r['scenario']} | {r['remat']} | {r['n_steps']} | {r['forward_s']:.2f} | "
             f"{r['grad_step_s']:.2f} | {r['grad_to_forward']:.2f} | {r['peak_memory_mb']:.0f} |"
         )
-    (out / "cost.json").write_text(json.dumps(rows, indent=2))
+    from rvdjax.provenance import benchmark_block
+
+    prov = benchmark_block("sweeps/tuning_benchmark.py cost", {"out": str(out)})
+    (out / "cost.json").write_text(json.dumps({"provenance": prov, "rows": rows}, indent=2))
 
 
 def main(argv=None) -> int:

@@ -139,7 +139,17 @@ def test_closed_loop_bench_json(tmp_path, capsys):
         assert r["scenario"] == "poseidyn-lqmpc" and r["family"] == "poseidyn"
         assert r["docked_fraction"] == 1.0 and r["maneuvers_per_s"] > 0
     assert rows[1]["peak_memory_mb"] > 0
-    assert json.loads(out.read_text())["rows"][0]["scenario"] == "poseidyn-lqmpc"
+    doc = json.loads(out.read_text())
+    assert doc["rows"][0]["scenario"] == "poseidyn-lqmpc"
+    # the file says which code, machine and options measured it
+    from rvdjax import provenance
+
+    prov = doc["provenance"]
+    env = prov["environments"][prov["first"]]
+    assert env["source_sha256"] == provenance.source_sha256() and env["device"] == "cpu"
+    options = prov["definition"]["options"]
+    assert prov["definition"]["benchmark"] == "rvdjax bench" and options["closed_loop"] is True
+    assert prov["definition_sha256"] == provenance.digest(prov["definition"])
 
 
 @pytest.mark.parametrize(

@@ -194,3 +194,18 @@ def test_the_plant_record_is_stored_as_the_parameters_own_fields():
     # and the stored values are the plant's: another mass is another definition
     other = params._replace(plant=params.plant._replace(mass=params.plant.mass + 1.0))
     assert digest(other) != digest(params)
+
+
+def test_every_benchmark_that_writes_json_records_its_provenance():
+    """Each script under sweeps/ that writes JSON to a file stamps it with the code, the
+    machine and its options (benchmark_block); a new benchmark without it fails here."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "sweeps"
+    writes = re.compile(r"json\.dump\(|write_text\(json\.dumps|f\.write\(json\.dumps")
+    writers = [p for p in sorted(root.glob("*.py")) if writes.search(p.read_text())]
+    assert len(writers) >= 8
+    assert [p.name for p in writers if "benchmark_block" not in p.read_text()] == []
+    block = provenance.benchmark_block("sweeps/x.py", {"budget_s": 290.0, "handler": print})
+    assert block["definition"] == {"benchmark": "sweeps/x.py", "options": {"budget_s": 290.0}}

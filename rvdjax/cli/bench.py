@@ -116,9 +116,10 @@ def cmd(args) -> int:
         r["device"] = args.device_used
     if args.out:
         with open(args.out, "w") as f:
-            from rvdjax.provenance import environment  # provenance hook
+            from rvdjax.provenance import benchmark_block
 
-            doc = {"machine": machine_info(), "provenance": environment(), "rows": rows}
+            prov = benchmark_block("rvdjax bench", vars(args), device=args.device_used)
+            doc = {"machine": machine_info(), "provenance": prov, "rows": rows}
             json.dump(doc, f, indent=1)
     if args.json:
         print(json.dumps(rows, indent=1))
