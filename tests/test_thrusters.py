@@ -169,7 +169,7 @@ def test_centred_pulses_meet_the_zero_order_hold():
     centred, _, _ = pwm(demand, ts, 1e-6, 0.0, jnp.zeros(8), carry=False, align="centre")
     early, _, _ = pwm(demand, ts, 1e-6, 0.0, jnp.zeros(8), carry=False)
     w = np.asarray(centred.width[:, 0])
-    np.testing.assert_allclose(np.asarray(centred.start[:, 0]), 0.5 * (ts - w), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(centred.start[:, 0]), 0.5 * (ts - w), atol=1e-14 * ts)
     np.testing.assert_array_equal(np.asarray(early.width), np.asarray(centred.width))
     g = RNG.normal(size=(8, 3)) * 0.15
     _, Bd = discretize_zoh(Ac, Bc, ts)
