@@ -230,3 +230,30 @@ def test_run_disturbed_json(capsys):
     assert out["disturbed"] is True and out["seed"] == 4
     assert out["docked"] is True and np.isfinite(out["effort_l1_N_s"])
     assert any("Gauss-Markov" in a for a in out["assumptions"])
+
+
+def test_a_reader_that_stops_early_gets_no_traceback():
+    """`rvdjax ... | head`: the pipe closes while the command still prints; the command ends
+    with status 141 (a closed pipe), no traceback on stderr."""
+    import subprocess
+    import sys
+
+    child = (
+        "import sys\n"
+        "import rvdjax.cli.scenarios as m\n"
+        "def flood(args):\n"
+        "    for _ in range(20000):\n"
+        "        print('x' * 100)\n"
+        "    return 0\n"
+        "m.cmd_list = flood\n"
+        "from rvdjax.cli import main\n"
+        "sys.exit(main(['list']))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", child], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    proc.stdout.read(200)  # read a little, then stop reading: the pipe fills and closes
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert "Traceback" not in err and "BrokenPipeError" not in err

@@ -5,6 +5,7 @@ each with ``add_parser(sub)`` and ``cmd(args)``."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from rvdjax.cli import bench, compare, demo, run, scenarios, study, tune, verify
@@ -54,6 +55,11 @@ def main(argv=None) -> int:
     except ValueError as err:  # bad user input: say what and stop, no traceback
         print(f"rvdjax {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader stopped early (`rvdjax run | head`): no traceback, and no second error
+        # when Python flushes stdout at exit (the recipe of Python's signal documentation)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":
