@@ -89,6 +89,7 @@ def main(argv=None) -> int:
     )
     args_ = _inputs(args.batch)
     pallas_fn, xla_fn = _fns(args.part, cfg)
+    prov = benchmark_block("sweeps/pallas_compile.py", vars(args))
 
     def emit(**row):
         row = dict(
@@ -100,7 +101,7 @@ def main(argv=None) -> int:
             **row,
         )
         print(json.dumps(row), flush=True)
-        row["provenance"] = benchmark_block("sweeps/pallas_compile.py", vars(args))
+        row["provenance"] = prov
         if args.out:
             with open(args.out, "a", encoding="utf-8") as f:
                 f.write(json.dumps(row) + "\n")
