@@ -2,7 +2,7 @@
 machine's CPU cores, in one run of at most ``--budget-s`` seconds (290), compile included.
 
     PYTHONPATH=. python sweeps/gpu_study_benchmark.py [--out DIR] [--budget-s 290]
-        [--parts throughput,ch5,study,cpu,bits] [--kernel K]
+        [--parts throughput,ch5,study,cpu,bits|settings] [--kernel K] [--settings S]
         [--scenarios A,B] [--slots 4096,32768] [--block 128 --warps 4] [--smoke]
 
 From the repository root on a machine whose jax has GPU support; nothing to install. Parts,
@@ -28,6 +28,10 @@ reports what it measured), each a function that ``sweeps/gpu_benchmark.py`` also
   defaults), for the baseline and the ratio;
 * ``bits``: 256 ``thesis-vbar`` runs at two slot counts on the GPU: do they give the same
   bits (checked on the CPU by the tests; on a GPU not yet)?
+* ``settings`` (only when named in ``--parts``): ``thesis-vbar``'s maneuvers/s under the
+  accelerator's engine settings changed one at a time (``SETTINGS``, or ``--settings
+  "slots=4096/slots=4096,iterations=8"``): slots, solver iterations per tick, ticks per
+  segment, refresh.
 
 Rows go to ``OUT/gpu_study_benchmark.jsonl`` as they are measured; the table is printed at
 the end. ``--smoke`` runs tiny sizes on whatever device there is (the CPU here): the script's
@@ -67,9 +71,22 @@ SHARES = {
     "study": 0.18,
     "cpu": 0.14,
     "bits": 0.08,
+    "settings": 0.5,  # only when asked for (--parts settings): not in DEFAULT_PARTS
 }
+DEFAULT_PARTS = tuple(p for p in SHARES if p != "settings")
 
 SMOKE = dict(slots=(32,), n_steps=40, ch5=(4, 3), study_runs=1_000_000)
+# The accelerator's engine settings one at a time (part "settings", thesis-vbar): the
+# device's choices at 4 096 slots first, then each with one setting changed; a variant's
+# budget is its weight's share of the part's.
+SETTINGS = (
+    ({"slots": 4096}, 1.0),
+    ({"slots": 4096, "iterations": 8}, 1.0),
+    ({"slots": 4096, "ticks_per_segment": 512}, 0.6),  # the same program: no compile
+    ({"slots": 4096, "refresh": "masked"}, 1.0),
+    ({"slots": 16384}, 1.8),  # a wave of runs takes longer: more of the budget
+    ({"slots": 4096, "iterations": 2}, 1.0),
+)
 
 
 class Recorder:
@@ -114,10 +131,13 @@ def throughput(
     smoke: bool = False,
     refresh: str | None = None,
     kernel: str | None = None,
+    part: str | None = None,
+    **engine,
 ) -> dict:
     """Maneuvers/s of ``scenario`` through ``slots`` slots on the default device: a queue of
     3 x slots runs (x0 perturbed by 2 %), cut at ``budget_s`` (compile included); ``refresh``
-    overrides the engine's choice, ``kernel`` the Newton step's form (SolverSettings)."""
+    and ``engine`` (other :class:`EngineConfig` fields) override the engine's choices,
+    ``kernel`` the Newton step's form (SolverSettings)."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import arrays_source, auto_config, compile_engine
 
@@ -132,7 +152,7 @@ def throughput(
     sp = sc.solver_params()
     n = 3 * slots
     source = arrays_source(perturbed_states(x0, n))
-    cfg = auto_config(slots=slots, refresh=refresh)
+    cfg = auto_config(slots=slots, refresh=refresh, **engine)
     t0 = time.perf_counter()
     compile_engine(loop, source, params, sp, cfg)
     compile_s = time.perf_counter() - t0
@@ -141,7 +161,7 @@ def throughput(
     out = _run_until(loop, source, n, params, sp, cfg, deadline, marks)
     rate_all = out["done"] / out["seconds"] if out["seconds"] > 0 else float("nan")
     return dict(
-        part="throughput" if refresh is None else "refresh",
+        part=part or ("throughput" if refresh is None else "refresh"),
         scenario=scenario,
         slots=cfg.n_slots,
         device=str(jax.devices(cfg.platform)[0].device_kind),
@@ -308,6 +328,45 @@ def _table_checks(df) -> dict:
     )
 
 
+# ------------------------------------------------------------------------------- settings
+
+
+def parse_settings(text: str | None) -> list[tuple[dict, float]]:
+    """``"slots=4096/slots=4096,iterations=8"`` -> [({"slots": 4096}, 1.0), ...]: engine
+    settings (:class:`EngineConfig` fields; integers where they parse) a variant, equal
+    weights; None: ``SETTINGS``."""
+    if not text:
+        return list(SETTINGS)
+    out = []
+    for variant in (v for v in text.split("/") if v):
+        values = {}
+        for pair in variant.split(","):
+            key, _, value = pair.partition("=")
+            values[key.strip()] = int(value) if value.strip().isdigit() else value.strip()
+        out.append((values, 1.0))
+    return out
+
+
+def engine_settings(budget_s: float, smoke: bool = False, text: str | None = None) -> list[dict]:
+    """thesis-vbar's maneuvers/s under each engine-settings variant (``parse_settings``),
+    each within its share of ``budget_s`` (compile included)."""
+    variants = parse_settings(text)
+    total = sum(w for _, w in variants)
+    rows = []
+    for values, weight in variants:
+        values = dict(values)
+        if smoke:
+            values["slots"] = SMOKE["slots"][0]
+        slots = values.pop("slots", SLOTS[0])
+        try:
+            row = throughput("thesis-vbar", slots, weight / total * budget_s, smoke,
+                             part="settings", **values)  # fmt: skip
+            rows.append(dict(row, variant=", ".join(f"{k}={v}" for k, v in values.items())))
+        except Exception as err:  # one variant's failure is reported; the next still run
+            rows.append(dict(part="settings", variant=str(values), error=f"{err}"[:300]))
+    return rows
+
+
 # ----------------------------------------------------------------------------------- bits
 
 
@@ -346,9 +405,10 @@ def format_table(rows: list[dict]) -> str:
     gpu = next((r for r in rows if r.get("part") == "study"), None)
     for r in rows:
         p = r.get("part")
-        if p in ("throughput", "refresh"):
+        if p in ("throughput", "refresh", "settings") and "error" not in r:
             cut = "" if r["complete"] else f" (cut at {r['runs']} of {r['queued']})"
             how = r["engine"].split(", ")[3] if p == "refresh" else ""
+            how = f"[{r.get('variant') or 'as chosen'}]" if p == "settings" else how
             out.append(
                 f"{r['scenario']:<16} {r['slots']:>6} slots: {r['maneuvers_per_s']:>9.0f} "
                 f"maneuvers/s{cut}, compile {r['compile_s']:.1f} s {how}".rstrip()
@@ -388,13 +448,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="results/gpu", help="directory for the JSON lines")
     ap.add_argument("--budget-s", type=float, default=None, help="seconds in all (290)")
-    ap.add_argument("--parts", default=",".join(SHARES), help="comma-separated parts")
+    ap.add_argument("--parts", default=",".join(DEFAULT_PARTS), help="comma-separated parts")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes: test the script")
     ap.add_argument("--kernel", default=None, help="the Newton step's form for throughput rows")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="throughput's scenarios")
     ap.add_argument("--slots", default=None, help="throughput's slot counts (4096,32768)")
     ap.add_argument("--block", type=int, default=None, help="the kernels' problems a program")
     ap.add_argument("--warps", type=int, default=None, help="the kernels' warps a program")
+    ap.add_argument(
+        "--settings",
+        default=None,
+        help="the settings part's variants: NAME=VALUE pairs joined by ',', variants by '/'"
+        " (default: SETTINGS)",
+    )
     args = ap.parse_args(argv)
     tile = {k: v for k, v in (("block", args.block), ("num_warps", args.warps)) if v}
     for name, v in tile.items():
@@ -456,6 +522,9 @@ def main(argv=None) -> int:
                 rec.add(**study(allowed, args.smoke, "cpu", devices=cores, part="cpu"))
             elif name == "bits":
                 rec.add(**bits(allowed, args.smoke))
+            elif name == "settings":
+                for row in engine_settings(allowed, args.smoke, args.settings):
+                    rec.add(**row)
         except Exception as err:  # a part's failure is reported, the next parts still run
             rec.add(part=name, error=f"{type(err).__name__}: {err}")
         carried = max(0.0, allowed - (time.perf_counter() - t0))

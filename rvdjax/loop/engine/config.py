@@ -143,10 +143,12 @@ CPU_DEFAULTS = dict(slots=256, chunk=32, iterations=3, ticks_per_segment=256)
 # On a CPU the masked refresh (one vmap per chunk, no gathers) was measured against the
 # compacted one on the 2-core VM (docs/history.md, "A tick in few kernels").
 CPU_REFRESH = "masked"
-# Accelerators: one chunk of every slot (a kernel per operation for all slots; its launch
-# latency, not the arithmetic, sets a tick's time), as many slots as memory allows up to
-# ACCEL_MAX_SLOTS, the compacted refresh. Not measured on a GPU in this repository yet: the
-# GPU benchmark (sweeps/gpu_study_benchmark.py) measures them.
+# Accelerators: one chunk of every slot (a kernel per operation for all slots), as many slots
+# as memory allows up to ACCEL_MAX_SLOTS, the compacted refresh. Measured one at a time on one
+# H200 (thesis-vbar, 2026-11-27, docs/benchmark.md): at 4 096 slots 8 iterations a tick flew
+# 7 % slower, 2 iterations, 512 ticks a segment or the masked refresh within 4 %; the rate
+# grew with the slots to about 1 800 maneuvers/s at 32 768 and stayed there at 65 536 (a
+# solver iteration's memory traffic, not launches, bounds it there).
 ACCEL_MAX_SLOTS = 65536
 ACCEL_MEMORY_SHARE = 0.5  # of the device's memory for the engine (slots, ring, temporaries)
 ACCEL_TEMP_FACTOR = 8  # temporaries of a tick per byte of slot state (Riccati factors, steps)
@@ -237,7 +239,7 @@ def auto_config(
             refresh="compacted",
             assign="any",
         )
-        notes.append("accelerator settings not yet tuned one by one on a GPU")
+        notes.append("the accelerator defaults (measured one by one on an H200)")
     per_device = values["slots"]
     if n_runs is not None:
         need = max(1, math.ceil(n_runs / devices))
