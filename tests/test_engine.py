@@ -243,21 +243,19 @@ def test_the_segment_program_lowers_for_a_gpu():
 
 
 def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
-    """The devices' programs compiled ahead in threads (several devices on a host with cores
-    to spare) are found by the later calls: no compile at the call, the same result."""
+    """The devices' programs compiled ahead, in threads (several devices on a host with cores
+    to spare) or one after another, are found by the later calls: no compile at the call
+    (whose time the engine counts as the device's), the same result."""
     from jax import monitoring
 
     from rvdjax.loop.engine.stream import compile_side_by_side, compile_threads
 
-    assert compile_threads(4, cores=2) == 1  # the 2-core VM: one after another, at the call
+    assert compile_threads(4, cores=2) == 1  # the 2-core VM: one after another
     assert compile_threads(16, cores=16) == 8 and compile_threads(2, cores=16) == 2
 
     def f(x, k):
         return jax.lax.fori_loop(0, k, lambda i, y: jnp.sin(y) @ y.T / 8 + x, x)
 
-    program = jax.jit(f)
-    per_device = [(jnp.full((8, 8), v), jnp.int32(3)) for v in (0.1, 0.2)]
-    assert compile_side_by_side(program, per_device, threads=1) == 1
     compiles = []
 
     def count(event, duration, **_):
@@ -266,10 +264,15 @@ def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
 
     monitoring.register_event_duration_secs_listener(count)
     try:
-        assert compile_side_by_side(program, per_device, threads=2) == 2
-        ahead = len(compiles)
-        out = [program(*a) for a in per_device]
+        for threads in (1, 2):  # one after another (this VM), side by side
+            program = jax.jit(f)
+            n = 7 + threads  # a program of its own shape: none in jit's cache yet
+            per_device = [(jnp.full((n, n), v), jnp.int32(3)) for v in (0.1, 0.2)]
+            before = len(compiles)
+            assert compile_side_by_side(program, per_device, threads=threads) == threads
+            ahead = len(compiles)
+            out = [program(*a) for a in per_device]
+            assert ahead > before and len(compiles) == ahead, threads  # none at the calls
+            np.testing.assert_array_equal(out[1], jax.jit(f)(*per_device[1]))
     finally:
         monitoring.unregister_event_duration_listener(count)
-    assert ahead >= 1 and len(compiles) == ahead
-    np.testing.assert_array_equal(out[1], jax.jit(f)(*per_device[1]))

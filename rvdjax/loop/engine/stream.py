@@ -113,7 +113,7 @@ def run_stream(
     Returns:
         {"run": (n,) positions and "metrics" (with ``keep``), "done": runs finished,
         "ticks", "seconds" (wall time), "device_busy_s" (the device's time running segments),
-        "compile_s" (the first dispatch: the compile, unless cached), "host_s" (the host's own
+        "compile_s" (the set-up and the compile before the first dispatch), "host_s" (the host's own
         work: collection and ``on_results``), "segments", "config"}.
     """
     if loop.config.settings.backend != "rvdjax":
@@ -166,19 +166,20 @@ def run_stream(
             (e, data[d], *args, params_d[d], sp_d[d], ticks, jnp.int32(d), jnp.int32(D))
             for d, e in enumerate(engs)
         ]
-        first = not clock.pending and not clock.busy
-        if first:
+        if "dispatched" not in timing:  # the programs compiled before the first call
             compile_side_by_side(segment, per_device, pack if cfg.n_chunks > 1 else None)
+            timing["compile_s"] = time.perf_counter() - t_setup
+            timing["dispatched"] = True
+        # The device's time starts at the call, not at its return: on a GPU the call returns
+        # only when the segment is done (the busy share read 1e-4 on an H100 timed from the
+        # return), most likely because XLA:GPU reads a while loop's condition back on the
+        # calling thread. So the programs are compiled before the first call, which is then
+        # timed like the others: timed from its return, its segment counted as compile time
+        # and not as the device's (on an H200, 2026-11-27, thesis-vbar's busy share read 0.45
+        # with 512 ticks a segment, three segments a run, against 0.82 with 128).
         called = time.perf_counter()
         out = [segment(*a) for a in per_device]
-        returned = time.perf_counter()
-        if first:  # the set-up and the first dispatch compile the programs
-            timing["compile_s"] = returned - t_setup
-        # The device's time starts at the call, not at its return. Timed from the return, the
-        # busy share read 1e-4 on an H100: the call returned only when the segment was done,
-        # most likely because XLA:GPU reads a while loop's condition back on the calling
-        # thread (not yet confirmed with a profile).
-        clock.dispatched(returned if first else called, [e.ticks for e in out])
+        clock.dispatched(called, [e.ticks for e in out])
         return out
 
     engs = dispatch(engs, block, upcoming)
@@ -264,23 +265,26 @@ def compile_threads(devices: int, cores: int | None = None) -> int:
 
 def compile_side_by_side(segment, per_device, pack=None, threads: int | None = None) -> int:
     """Compile the segment program (and the packing program) for every device before the
-    first dispatch, :func:`compile_threads` at a time; returns the threads used (1: nothing
-    done here, each device compiles at its first call). ``jax.jit`` keeps one executable per
+    first dispatch, :func:`compile_threads` at a time; returns the threads used (1: one device
+    after another). ``jax.jit`` keeps one executable per
     device, so dispatched one device after another the programs compile one after another:
     thesis-vbar's segment took 7.0, 12.9 and 30.4 s to compile for 1, 2 and 4 host devices
     on the 2-core VM, where side by side gained nothing (12.9 and 31.8 s, the cores already
     busy). XLA compiles without the interpreter lock, so on a host with more cores the
     compiles overlap. The later calls find these executables in jit's cache: the same
-    program, so the same bits."""
+    program, so the same bits, and no compile inside a call (whose time the engine counts as
+    the device's)."""
     threads = compile_threads(len(per_device)) if threads is None else threads
-    if threads <= 1:
-        return 1
 
     def one(args):
         segment.lower(*args).compile()
         if pack is not None:
             pack.lower(args[0]).compile()
 
+    if threads <= 1:
+        for args in per_device:
+            one(args)
+        return 1
     with ThreadPoolExecutor(max_workers=threads) as pool:
         list(pool.map(one, per_device))
     return threads
