@@ -173,10 +173,10 @@ def run_stream(
         # The device's time starts at the call, not at its return: on a GPU the call returns
         # only when the segment is done (the busy share read 1e-4 on an H100 timed from the
         # return), most likely because XLA:GPU reads a while loop's condition back on the
-        # calling thread. So the programs are compiled before the first call, which is then
-        # timed like the others: timed from its return, its segment counted as compile time
-        # and not as the device's (on an H200, 2026-11-27, thesis-vbar's busy share read 0.45
-        # with 512 ticks a segment, three segments a run, against 0.82 with 128).
+        # calling thread. So the programs are compiled before the first call and every call
+        # is timed from its start. (The first call used to compile too and was timed from its
+        # return, so its segment counted as nobody's time: on an H200, 2026-11-27,
+        # thesis-vbar's busy share read 0.45 with 512 ticks a segment against 0.82 with 128.)
         called = time.perf_counter()
         out = [segment(*a) for a in per_device]
         clock.dispatched(called, [e.ticks for e in out])
@@ -266,8 +266,8 @@ def compile_threads(devices: int, cores: int | None = None) -> int:
 def compile_side_by_side(segment, per_device, pack=None, threads: int | None = None) -> int:
     """Compile the segment program (and the packing program) for every device before the
     first dispatch, :func:`compile_threads` at a time; returns the threads used (1: one device
-    after another). ``jax.jit`` keeps one executable per
-    device, so dispatched one device after another the programs compile one after another:
+    after another). ``jax.jit`` keeps one executable per device, so dispatched one device
+    after another the programs compile one after another:
     thesis-vbar's segment took 7.0, 12.9 and 30.4 s to compile for 1, 2 and 4 host devices
     on the 2-core VM, where side by side gained nothing (12.9 and 31.8 s, the cores already
     busy). XLA compiles without the interpreter lock, so on a host with more cores the
