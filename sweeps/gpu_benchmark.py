@@ -58,17 +58,18 @@ class Recorder:
     def __init__(self, path):
         self.path, self.rows = path, []
 
-    def add(self, **row):
+    def add(self, **row) -> dict:
         row = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in row.items()}
         self.rows.append(row)
         with open(self.path, "a", encoding="utf-8") as f:
-            f.write(json.dumps(row) + "\n")
+            f.write(json.dumps(row, default=str) + "\n")
         shown = {k: v for k, v in row.items() if v is not None and k != "provenance"}
         print("  " + ", ".join(f"{k}={_fmt(v)}" for k, v in shown.items()), flush=True)
         if "provenance" in row:
             from rvdjax.provenance import format_provenance
 
             print("  provenance: " + "; ".join(format_provenance(row["provenance"])), flush=True)
+        return row
 
 
 def _fmt(v):

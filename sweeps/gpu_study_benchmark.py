@@ -41,7 +41,6 @@ own test.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -57,6 +56,7 @@ if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
+from gpu_benchmark import Recorder  # noqa: E402  (rows to JSON lines as they come)
 
 import rvdjax  # noqa: E402, F401  (float64, XLA options)
 
@@ -87,30 +87,6 @@ SETTINGS = (
     ({"slots": 16384}, 1.8),  # a wave of runs takes longer: more of the budget
     ({"slots": 4096, "iterations": 2}, 1.0),
 )
-
-
-class Recorder:
-    """Rows appended to a JSON-lines file as they come, and kept for the table."""
-
-    def __init__(self, path: str):
-        self.path, self.rows = path, []
-
-    def add(self, **row) -> dict:
-        row = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in row.items()}
-        self.rows.append(row)
-        with open(self.path, "a", encoding="utf-8") as f:
-            f.write(json.dumps(row, default=str) + "\n")
-        shown = {k: v for k, v in row.items() if k != "provenance"}
-        print("  " + ", ".join(f"{k}={_fmt(v)}" for k, v in shown.items()), flush=True)
-        if "provenance" in row:
-            from rvdjax.provenance import format_provenance
-
-            print("  provenance: " + "; ".join(format_provenance(row["provenance"])), flush=True)
-        return row
-
-
-def _fmt(v) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
 def _platform(smoke: bool) -> str:

@@ -98,15 +98,12 @@ def child(variant: str, out: str, budget_s: float, smoke: bool) -> None:
         answers[f"{mode}_{n}_objective"] = np.asarray(sol.objective)
         answers[f"{mode}_{n}_iterations"] = np.asarray(sol.iterations)
 
+    def engine() -> None:
+        budget = min(0.45 * budget_s, left() - 10)
+        rec.add(**gpu_study_benchmark.throughput("thesis-vbar", slots, budget, smoke))
+
     plan = [
-        (
-            "engine",
-            lambda: rec.add(
-                **gpu_study_benchmark.throughput(
-                    "thesis-vbar", slots, min(0.45 * budget_s, left() - 10), smoke
-                )
-            ),
-        ),  # fmt: skip
+        ("engine", engine),
         ("qp accurate", lambda: qp("accurate", n_qp)),
         ("qp alone", lambda: qp("accurate", 1)),
         ("maneuver", lambda: gpu_benchmark._maneuver_row(rec, gpu, "auto")),
