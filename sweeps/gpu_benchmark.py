@@ -15,7 +15,9 @@ Parts (``python sweeps/gpu_benchmark.py [qp|study|all]``, from the repository ro
   maneuver per MPC step on the GPU and on one CPU core; float32 paper mode (NONFINITE count
   and objective error against float64); compile times, XLA's planned memory per program, the
   GPU's peak memory, the kernels per solver iteration counted in the compiled GPU program,
-  and each form's objective error against the first's.
+  and each form's objective error against the first's. ``--padded-blocks`` adds each form at
+  the largest batch with the block kernels' arrays padded to a power of two of entries (the
+  layout until 2026-11-28), for a before/after in one run.
 * ``study``: the batch engine at GPU scale (``sweeps/gpu_study_benchmark.py``).
 
 Every row is appended to ``OUT/gpu_benchmark.jsonl`` as it is measured (so a run cut short
@@ -314,6 +316,7 @@ def qp_part(
     unrolls=(),
     cpu=True,
     hlo_dir=None,
+    padded=False,
 ) -> None:
     t_start = time.perf_counter()
     sizes = sizes or (SMOKE_SIZES if smoke else SIZES)
@@ -332,6 +335,8 @@ def qp_part(
     fast = [k for k in kernels if k != "pallas"]
     plan = [("gpu", m, k, n) for m in ("accurate", "paper") for n in reversed(sizes) for k in fast]
     plan += [("unroll", u, sizes[-1]) for u in unrolls]
+    if padded:  # the block kernels' arrays padded to a power of two of entries, as until 11-28
+        plan += [("padded", m, k, sizes[-1]) for m in ("accurate", "paper") for k in fast]
     if cpu:
         plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes[1:]]
     if "pallas" in kernels:  # accurate mode first: the default; block I/O first (compiles fast)
@@ -366,6 +371,13 @@ def qp_part(
                 with unrolled.configured(unroll=u):
                     label = f"unrolled, {u} stages a trip"
                     _gpu_row(rec, gpu, "accurate", "unrolled", n, host[n], label=label)
+            elif item[0] == "padded":
+                _, mode, kernel, n = item
+                with lanes.configured(padded_blocks=True):
+                    label = f"{kernel}, padded blocks"
+                    _gpu_row(
+                        rec, gpu, mode, kernel, n, host[n], ref=refs.get((mode, n)), label=label
+                    )
             elif item[0] == "cpu":
                 _cpu_row(rec, item[1], item[3], host[item[3]])
             elif item[0] == "tile":
@@ -439,6 +451,12 @@ def main(argv=None) -> int:
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
     ap.add_argument("--no-cpu", action="store_true", help="leave out the CPU cores' rows")
     ap.add_argument("--hlo", action="store_true", help="write the largest batch's HLO to --out")
+    ap.add_argument(
+        "--padded-blocks",
+        action="store_true",
+        help="also each form at the largest batch with the block kernels' arrays padded to a"
+        " power of two of entries (the layout until 2026-11-28)",
+    )
     args = ap.parse_args(argv)
     kernels = tuple(k for k in args.kernels.split(",") if k)
     forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
@@ -474,6 +492,7 @@ def main(argv=None) -> int:
             unrolls,
             cpu=not args.no_cpu,
             hlo_dir=args.out if args.hlo else None,
+            padded=args.padded_blocks,
         )
     if args.part in ("study", "all"):
         sys.path.insert(0, os.path.dirname(__file__))

@@ -85,3 +85,108 @@ def test_xla_flags_bad_input_is_one_line_and_status_2(argv, message, capsys, tmp
     out = capsys.readouterr().out
     assert out.startswith(message) and out.count("\n") == 1
     assert not (tmp_path / "out").exists()  # nothing written, no variant started
+
+
+_HLO = """HloModule m, is_scheduled=true
+
+FileNames
+1 "/x/rvdjax/solver/primal_dual.py"
+2 "/x/rvdjax/solver/stagewise.py"
+
+FunctionNames
+1 "pd_iteration"
+2 "mv"
+
+FileLocations
+1 {file_name_id=1 function_name_id=1 line=10 end_line=10 column=1 end_column=2}
+2 {file_name_id=2 function_name_id=2 line=24 end_line=24 column=1 end_column=2}
+
+StackFrames
+1 {file_location_id=1 parent_frame_id=1}
+2 {file_location_id=2 parent_frame_id=1}
+
+%fused_a (p0: f64[4,8]) -> f64[4,8] {
+  %p0 = f64[4,8]{1,0} parameter(0)
+  ROOT %m = f64[4,8]{1,0} multiply(%p0, %p0), metadata={op_name="mul" stack_frame_id=2}
+}
+
+%body (t: (s64[], f64[4,8])) -> (s64[], f64[4,8]) {
+  %t = (s64[], f64[4,8]{1,0}) parameter(0)
+  %i = s64[] get-tuple-element(%t), index=0
+  %v = f64[4,8]{1,0} get-tuple-element(%t), index=1
+  %f = f64[4,8]{1,0} fusion(%v), kind=kLoop, calls=%fused_a
+  ROOT %r = (s64[], f64[4,8]{1,0}) tuple(%i, %f)
+}
+
+ENTRY %main (x: f64[4,8]) -> f64[4,8] {
+  %x = f64[4,8]{1,0} parameter(0)
+  %pallas_call.1 = f32[4,8]{1,0} custom-call(%x), custom_call_target="__gpu$xla.gpu.triton", metadata={op_name="k" stack_frame_id=1}
+  %init = (s64[], f64[4,8]{1,0}) tuple(%c, %pallas_call.1)
+  %w = (s64[], f64[4,8]{1,0}) while(%init), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"3"}}
+  ROOT %out = f64[4,8]{1,0} get-tuple-element(%w), index=1
+}
+"""  # noqa: E501
+
+
+def test_gpu_traffic_counts_launches_bytes_and_sources():
+    """sweeps/gpu_traffic.py's count on a hand-written program: a Pallas kernel reading 256
+    bytes and writing 128, then a loop of 3 trips whose fused body reads and writes 256; both
+    attributed to the solver's line that called them (through the small-product helper)."""
+    saved = os.environ.get("JAX_SKIP_CUDA_CONSTRAINTS_CHECK")
+    gt = _import("gpu_traffic")
+    if saved is None:
+        os.environ.pop("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", None)
+    t = gt.traffic(_HLO)
+    assert (t["launches"], t["read"], t["written"], t["loops"]) == (4, 4 * 256, 128 + 3 * 256, 1)
+    assert t["pallas"] == [1, 256, 128]
+    assert t["by_source"] == {"primal_dual.py:10 pd_iteration": [4, 4 * 256 + 128 + 3 * 256]}
+    assert gt.nbytes("(s64[], f64[4,8]{1,0}, pred[3])") == 8 + 256 + 3
+
+
+def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
+    gt = _import("gpu_traffic")
+    assert gt.main(["--kernels", "xla,bogus", "--out", str(tmp_path)]) == 2
+    assert "--kernels" in capsys.readouterr().out
+    assert gt.main(["--batch", "0", "--out", str(tmp_path)]) == 2
+    assert "--batch must be >= 1" in capsys.readouterr().out
+    if gt._cuda_missing() is None:
+        pytest.skip("a CUDA plugin is installed here")
+    assert gt.main(["--out", str(tmp_path)]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "jax[cuda13]" in out[0]
+
+
+_HLO_IN_PLACE = """HloModule m, is_scheduled=true
+
+%fused_dus (p0: f64[30,8], p1: f64[8], p2: s32[]) -> f64[30,8] {
+  %p0 = f64[30,8]{1,0} parameter(0)
+  %p1 = f64[8]{0} parameter(1)
+  %p2 = s32[] parameter(2)
+  %b = f64[1,8]{1,0} bitcast(%p1)
+  %z = s32[] constant(0)
+  ROOT %d = f64[30,8]{1,0} dynamic-update-slice(%p0, %b, %p2, %z)
+}
+
+%fused_ds (q0: f64[30,8], q1: s32[]) -> f64[1,8] {
+  %q0 = f64[30,8]{1,0} parameter(0)
+  %q1 = s32[] parameter(1)
+  %z2 = s32[] constant(0)
+  ROOT %s = f64[1,8]{1,0} dynamic-slice(%q0, %q1, %z2), dynamic_slice_sizes={1,8}
+}
+
+ENTRY %main (x: f64[30,8], v: f64[8], i: s32[]) -> f64[1,8] {
+  %x = f64[30,8]{1,0} parameter(0)
+  %v = f64[8]{0} parameter(1)
+  %i = s32[] parameter(2)
+  %u = f64[30,8]{1,0} fusion(%x, %v, %i), kind=kLoop, calls=%fused_dus
+  ROOT %r = f64[1,8]{1,0} fusion(%u, %i), kind=kLoop, calls=%fused_ds
+}
+"""
+
+
+def test_gpu_traffic_counts_in_place_updates_and_slices_by_their_size():
+    """A fusion that writes one row of a (30, 8) array in place reads the row's 64 bytes and
+    the index, and writes 64; one that reads a row through a dynamic slice reads 64 + 4."""
+    gt = _import("gpu_traffic")
+    t = gt.traffic(_HLO_IN_PLACE)
+    assert (t["launches"], t["read"], t["written"]) == (2, 68 + 68, 64 + 64)

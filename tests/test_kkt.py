@@ -145,3 +145,48 @@ def test_residual_and_refinement_against_the_dense_system():
     fixed = K.kkt_refine(kkt, g_u, g_x, rp, off, "riccati")
     for a, want in zip(fixed, ref, strict=True):
         np.testing.assert_allclose(np.asarray(a), want, rtol=1e-9, atol=1e-9)
+
+
+def test_block_chunks_cover_every_entry():
+    """The block kernels read and write a stage of E entries as they are, in at most two
+    overlapping power-of-two chunks (lanes._chunks): every entry covered, none past the end.
+    The solver's iterates with these kernels are test_kernels.py's; the same numbers as the
+    padded form, to the bit, the slow test below."""
+    for e in range(1, 70):
+        chunks = lanes._chunks(e)
+        assert len(chunks) <= 2
+        assert all(s & (s - 1) == 0 and 0 <= o and o + s <= e for o, s in chunks)
+        assert set().union(*(range(o, o + s) for o, s in chunks)) == set(range(e))
+
+
+@pytest.mark.slow  # interpreted kernels, 15 s
+def test_block_kernels_read_and_write_the_arrays_as_they_are():
+    """The block kernels on the arrays as they are give the numbers of the form that pads every
+    array to a power of two of entries, to the bit: the factorisation, a step with it stored
+    and both in one kernel, the model per problem or shared (interpreted; fastmpc-3d's stage
+    sizes, none of them a power of two)."""
+    n, nx, nu, b = 3, 6, 3, 8
+    rng = np.random.default_rng(3)
+
+    def spd(k):
+        X = rng.standard_normal((n, b, k, k))
+        return jnp.asarray(np.moveaxis(X @ np.swapaxes(X, -1, -2) + k * np.eye(k), 1, -1))
+
+    A = np.eye(nx)[None, :, :, None] + 0.2 * rng.standard_normal((n, nx, nx, b))
+    M = jnp.asarray(np.concatenate([rng.standard_normal((n, nx, nu, b)), A], 2))
+    mats = (spd(nu), spd(nx))
+    rhs = tuple(jnp.asarray(rng.standard_normal((n, k, b))) for k in (nu, nx, nx))
+
+    def run(padded, model):
+        cfg = lanes.KernelConfig(block=b, interpret=True, block_io=True, padded_blocks=padded)
+        f = lanes.factor(model, *mats, cfg=cfg)
+        return (
+            f,
+            lanes.apply(model, *f, *rhs, cfg=cfg),
+            lanes.factor_solve(model, *mats, *rhs, cfg=cfg),
+        )
+
+    for model in (M, M[..., 0]):
+        got, want = run(False, model), run(True, model)
+        for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))

@@ -72,8 +72,8 @@ class KernelConfig:
             "pallas-fused"``). On an H200 (2026-11-26) Triton compiled :func:`factor` alone
             in 51 s and :func:`apply` in about 3 s; the fused kernel did not finish in 165 s
             on an H100, so it is off by default.
-        block_io: load and store a stage's block of each array at once (entries flattened
-            and padded to a power of two, split into lane vectors and joined back inside
+        block_io: load and store a stage's block of each array at once (entries flattened,
+            in at most two power-of-two chunks, split into lane vectors and joined back inside
             the kernel) instead of entry by entry (the solver: ``kernel="pallas-block-io"``).
             Triton's compile time is its coalescing pass, which costs about (loads and
             stores) x (kernel size)^2 (``sweeps/triton_compile_profile.py``); this cuts the
@@ -81,10 +81,16 @@ class KernelConfig:
         solve_block_io: with ``block_io``, the solves (:func:`apply`) load and store blocks
             too; without it (the solver: ``kernel="pallas-block-factor"``) only the
             factorisation does, and the solves read the factorisation, the model and the
-            right-hand sides entry by entry, straight from their arrays: a solve's kernel is
-            small enough to compile in seconds either way, and its operands then need no
-            padding to a power of two (on an H100 the pads and the slices back took about a
-            fifth of an accurate-mode solve with the block-I/O kernels, docs/benchmark.md).
+            right-hand sides entry by entry, straight from their arrays (a solve's kernel is
+            small enough to compile in seconds either way).
+        padded_blocks: with ``block_io``, the block arrays hold each stage's entries padded to a
+            power of two (one load or store a stage, but a padded copy of every input and a
+            slice of every output outside the kernel), instead of the entries as they are,
+            read and written in two overlapping power-of-two chunks (:func:`_chunks`). The
+            padded form was the only one until 2026-11-28; in the program compiled for an
+            H100 its pads and slices moved 123 of an accurate iteration's 765 KB a problem
+            (``sweeps/gpu_traffic.py``, docs/benchmark.md). It stays for comparison
+            (``sweeps/gpu_benchmark.py --padded-blocks``).
 
     The solver takes ``fused``, ``block_io`` and ``solve_block_io`` from its kernel name, and the
     rest from :func:`default_config`.
@@ -96,6 +102,7 @@ class KernelConfig:
     fused: bool = False
     block_io: bool = False
     solve_block_io: bool = True
+    padded_blocks: bool = False
 
 
 _DEFAULT = [KernelConfig()]
@@ -250,11 +257,28 @@ def _forward(dx, M, K, k, r, P, p):
 
 
 class _Block:
-    """A ``[stage][entry][problem]`` ref, entries flattened and padded to a power of two, whose
-    stage is loaded and stored as one block (``KernelConfig.block_io``)."""
+    """A ``[stage][entry][problem]`` ref, entries flattened, whose stage is loaded and stored as
+    a block (``KernelConfig.block_io``). Triton's blocks have a power-of-two size: an array of
+    E entries a stage is read and written in the two overlapping power-of-two chunks that cover
+    it (:func:`_chunks`), or, with ``KernelConfig.padded_blocks``, as one block of an array
+    padded to a power of two of entries."""
 
-    def __init__(self, ref):
+    def __init__(self, ref, padded: bool = False):
         self.ref, self.dtype = ref, ref.dtype
+        e = ref.shape[1]
+        self.chunks = ((0, e),) if padded else _chunks(e)
+
+
+def _chunks(e: int) -> tuple[tuple[int, int], ...]:
+    """(offset, size) of the power-of-two chunks that cover ``e`` entries: the whole when e is
+    a power of two, else two of the largest power of two below e, one from each end (they
+    overlap; a store writes the shared entries twice with the same values). No padded copy of
+    an array is then needed on either side of a kernel (on an H100 the pads and the slices
+    back moved about a sixth of an accurate iteration's bytes, docs/solver.md)."""
+    if e & (e - 1) == 0:
+        return ((0, e),)
+    c = 1 << (e.bit_length() - 1)
+    return ((0, c), (e - c, c))
 
 
 def _interleaved(vals):
@@ -266,11 +290,20 @@ def _interleaved(vals):
     return jnp.stack([a, b], axis=-1).reshape(a.shape[0], 2 * a.shape[1])
 
 
+def _block_entries(ref: _Block, t):
+    """The lane vectors of stage t's entries, read chunk by chunk."""
+    flat = []
+    for off, size in ref.chunks:
+        x = ref.ref[t, off : off + size]
+        rows = [v.reshape(v.shape[-1]) for v in jnp.split(x, size, axis=0)]
+        flat += rows[len(flat) - off :]  # an overlap's entries come from the first chunk
+    return flat
+
+
 def _load(ref, t, *shape):
     """The (shape) entries of stage t of a [stage][entry...][problem] ref."""
     if isinstance(ref, _Block):
-        x = ref.ref[t]
-        flat = [v.reshape(v.shape[-1]) for v in jnp.split(x, x.shape[0], axis=0)]
+        flat = _block_entries(ref, t)
         if len(shape) == 1:
             return flat[: shape[0]]
         return [flat[i * shape[1] : (i + 1) * shape[1]] for i in range(shape[0])]
@@ -286,7 +319,8 @@ def _store(ref, t, X):
         zero = jnp.zeros_like(like)
         flat = [zero if v is None else v for v in flat]
         flat += [zero] * (ref.ref.shape[1] - len(flat))
-        ref.ref[t] = _interleaved(flat).T
+        for off, size in ref.chunks:
+            ref.ref[t, off : off + size] = _interleaved(flat[off : off + size]).T
         return
     if not isinstance(X[0], list):
         for i, v in enumerate(X):
@@ -311,7 +345,7 @@ def _untri(flat, n):
     return P
 
 
-def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, model_batched, *refs):
+def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
@@ -321,7 +355,9 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, model_batched, *ref
     """
     refs = list(refs)
     if block_io:
-        refs = [r if i == 0 and not model_batched else _Block(r) for i, r in enumerate(refs)]
+        refs = [
+            r if i == 0 and not model_batched else _Block(r, padded) for i, r in enumerate(refs)
+        ]
     M_ref = refs[0]
     pos = 1
     if factorise:
@@ -449,14 +485,16 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
     entries = [s[1:] for s in out_shapes]
-    if block_io:  # [stage][entry][problem], the entries padded to a power of two
-        M = _flat(M) if model_batched else M
-        mats, rhs = [_flat(m) for m in mats], [_flat(r) for r in rhs]
-        out_shapes = [(N, _pow2(math.prod(e))) for e in entries]
+    padded = cfg.padded_blocks
+    if block_io:  # [stage][entry][problem] (the entries padded to a power of two: padded)
+        flat = functools.partial(_flat, padded=padded)
+        M = flat(M) if model_batched else M
+        mats, rhs = [flat(m) for m in mats], [flat(r) for r in rhs]
+        out_shapes = [(N, _entries(math.prod(e), padded)) for e in entries]
     out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
     ins = [M, *mats, *rhs]
     kernel = functools.partial(
-        _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, model_batched
+        _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched
     )
     res = pl.pallas_call(
         kernel,
@@ -475,15 +513,16 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
     return [r[..., :b] for r in res]
 
 
-def _pow2(n: int) -> int:
-    return 1 << (n - 1).bit_length()
+def _entries(n: int, padded: bool) -> int:
+    """Entries a stage of a block array holds: n, or n padded to a power of two."""
+    return 1 << (n - 1).bit_length() if padded else n
 
 
-def _flat(a):
-    """(N, entries..., b) -> (N, E, b), E the entries' count padded to a power of two."""
+def _flat(a, padded: bool = False):
+    """(N, entries..., b) -> (N, E, b): a reshape, or a padded copy (``padded``)."""
     e = math.prod(a.shape[1:-1])
     a = a.reshape(a.shape[0], e, a.shape[-1])
-    return jnp.pad(a, ((0, 0), (0, _pow2(e) - e), (0, 0)))
+    return jnp.pad(a, ((0, 0), (0, _entries(e, padded) - e), (0, 0)))
 
 
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig()):

@@ -1,0 +1,436 @@
+"""A solver iteration's GPU memory traffic, read from the program XLA compiles for a GPU, on a
+machine without one.
+
+    pip install "jax[cuda13]==$(python -c 'import jax; print(jax.__version__)')"  # no GPU needed
+    python sweeps/gpu_traffic.py [--batch 65536] [--kernels auto,pallas,pallas-block-io]
+        [--mode accurate] [--target h100|h200] [--padded-blocks] [--top 12] [--out DIR]
+
+XLA compiles for a GPU it is not running on ("deviceless" ahead-of-time compilation: a
+``jax.experimental.topologies`` description of one H100 or H200, the CUDA plugin's compiler
+and Triton's, no driver). The program is one iteration of ``jit(vmap(iterate))`` on
+``--batch`` fastmpc-3d first-step QPs (each with its own copy of the model, as
+``sweeps/gpu_benchmark.py`` solves them). In the optimised program every launch (a fusion, a
+Pallas kernel, a copy; a ``while`` loop's body counted once per trip) reads its operands and
+writes its outputs through device memory; their sizes, per problem, are the iteration's
+traffic. At these batch sizes an iteration is bound by that traffic: on an H100 the ratios of
+the forms' bytes matched the ratios of their measured times to 5 % (docs/benchmark.md), so
+a change that moves fewer bytes is measured here before a GPU is lent. The traffic divided by
+the card's bandwidth is the time the iteration cannot go below.
+
+Prints one row per form (launches, KB read and written a problem, the Pallas kernels' share,
+that bound at ``--batch``, the compile's seconds on this machine, Triton's included) and each
+form's largest sources of traffic by line of the solver's code; rows go to
+``OUT/gpu_traffic.jsonl``. Without a CUDA build of jaxlib it says so in one line and exits
+with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import re
+import sys
+import time
+
+# The CUDA plugin checks its libraries against a driver at start; there is none here.
+os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")
+
+_DEVICE = """gpu_device_info {{
+  threads_per_block_limit: 1024
+  threads_per_warp: 32
+  shared_memory_per_block: 49152
+  shared_memory_per_core: 233472
+  threads_per_core_limit: 2048
+  core_count: 132
+  fpus_per_core: 128
+  block_dim_limit_x: 2147483647
+  block_dim_limit_y: 65535
+  block_dim_limit_z: 65535
+  memory_bandwidth: {bandwidth}
+  l2_cache_size: 52428800
+  clock_rate_ghz: 1.98
+  device_memory_size: {memory}
+  shared_memory_per_block_optin: 232448
+  cuda_compute_capability {{
+    major: 9
+  }}
+  registers_per_core_limit: 65536
+  registers_per_block_limit: 65536
+}}
+platform_name: "CUDA"
+dnn_version_info {{
+  major: 9
+  minor: 8
+}}
+runtime_version {{
+  major: 13
+  minor: 0
+  patch: 0
+}}
+device_description_str: "{name}"
+"""
+# (name, bytes/s, memory bytes): the cards' data sheets (both Hopper, 132 SMs)
+TARGETS = {
+    "h100": ("NVIDIA H100 80GB HBM3", 3.35e12, 84929347584),
+    "h200": ("NVIDIA H200", 4.8e12, 150754820096),
+}
+KERNELS = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
+
+_SIZES = {"f64": 8, "s64": 8, "u64": 8, "f32": 4, "s32": 4, "u32": 4, "f16": 2, "bf16": 2}
+_SIZES.update({"s16": 2, "u16": 2, "s8": 1, "u8": 1, "pred": 1})
+_SHAPE = re.compile(r"\b(" + "|".join(_SIZES) + r")\[([\d,]*)\]")
+_INSTR = re.compile(r"\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*?)\s([\w\-]+)\((.*)")
+_HEAD = re.compile(r"^(ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$")
+_FREE = {"parameter", "constant", "tuple", "get-tuple-element", "bitcast", "after-all"}
+
+
+def nbytes(text: str) -> int:
+    """Bytes of every array shape written in ``text`` (an HLO shape or a tuple of them)."""
+    total = 0
+    for dtype, dims in _SHAPE.findall(text):
+        n = 1
+        for d in dims.split(","):
+            if d:
+                n *= int(d)
+        total += n * _SIZES[dtype]
+    return total
+
+
+def _computations(hlo: str) -> tuple[dict, str]:
+    comps, cur, entry = {}, None, None
+    for line in hlo.splitlines():
+        m = _HEAD.match(line)
+        if m and not line.startswith(" "):
+            cur = m.group(2)
+            comps[cur] = []
+            entry = cur if m.group(1) else entry
+        elif cur and line.startswith("  "):
+            comps[cur].append(line)
+    return comps, entry
+
+
+def _section(hlo: str, name: str) -> list[str]:
+    parts = hlo.split("\n" + name + "\n")
+    return parts[1].split("\n\n")[0].splitlines() if len(parts) > 1 else []
+
+
+def _source_lines(hlo: str, keep=("solver/",)):
+    """stack_frame_id -> "file:line function" of the innermost frame whose file is in the
+    package's solver (else the innermost frame), from the HLO's stack-frame tables."""
+    files = {
+        int(a): b.strip('"') for a, b in (ln.split(" ", 1) for ln in _section(hlo, "FileNames"))
+    }
+    funcs = {
+        int(a): b.strip('"') for a, b in (ln.split(" ", 1) for ln in _section(hlo, "FunctionNames"))
+    }
+    locs = {}
+    for ln in _section(hlo, "FileLocations"):
+        m = re.match(r"(\d+) \{file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", ln)
+        if m:
+            f = files[int(m.group(2))]
+            locs[int(m.group(1))] = (f, funcs[int(m.group(3))], int(m.group(4)))
+    frames = {}
+    for ln in _section(hlo, "StackFrames"):
+        m = re.match(r"(\d+) \{file_location_id=(\d+) parent_frame_id=(\d+)", ln)
+        if m:
+            frames[int(m.group(1))] = (int(m.group(2)), int(m.group(3)))
+
+    def where(fid: int) -> str:
+        chain, seen = [], set()
+        while fid in frames and fid not in seen:
+            seen.add(fid)
+            loc, fid = frames[fid]
+            chain.append(locs[loc])
+        for f, fn, line in chain:
+            if any(k in f for k in keep) and not f.endswith(("stagewise.py", "lanes.py")):
+                return f"{os.path.basename(f)}:{line} {fn}"
+        if chain:
+            f, fn, line = chain[0]
+            return f"{os.path.basename(f)}:{line} {fn}"
+        return "?"
+
+    return where
+
+
+def _in_place(comps: dict, fused: str, shapes: dict):
+    """For a fusion whose root is a dynamic-update-slice (or a tuple of them): the positions
+    of the fusion's operands it updates in place and the bytes of the updates, else None."""
+    lines = comps.get(fused, [])
+    params, roots = {}, []
+    for ln in lines:
+        m = _INSTR.match(ln)
+        if not m:
+            continue
+        name, _, op, rest = m.groups()
+        if op == "parameter":
+            params[name] = int(re.match(r"(\d+)", rest).group(1))
+        if ln.lstrip().startswith("ROOT"):
+            roots = [(name, op, rest)]
+    if not roots:
+        return None
+    name, op, rest = roots[0]
+    ops = {}
+    for ln in lines:
+        m = _INSTR.match(ln)
+        if m:
+            ops[m.group(1)] = (m.group(3), m.group(4))
+    targets = [name] if op == "dynamic-update-slice" else []
+    if op == "tuple":
+        targets = re.findall(r"%([\w.\-]+)", rest.split(")")[0])
+        if not all(ops.get(t, ("",))[0] == "dynamic-update-slice" for t in targets):
+            return None
+    if not targets:
+        return None
+    aliased, update = [], 0
+    for t in targets:
+        buf, upd = re.findall(r"%([\w.\-]+)", ops[t][1].split(")")[0])[:2]
+        if buf not in params:
+            return None
+        aliased.append(params[buf])
+        update += shapes.get(upd, 0)
+    return aliased, update
+
+
+def _sliced_reads(comps: dict, fused: str, shapes: dict) -> dict:
+    """{operand position: bytes} for a fusion's parameters that it only reads through
+    (dynamic-)slices: a stage of a stacked array read inside a loop."""
+    params, users = {}, {}
+    for ln in comps.get(fused, []):
+        m = _INSTR.match(ln)
+        if not m:
+            continue
+        name, shape, op, rest = m.groups()
+        if op == "parameter":
+            params[name] = int(re.match(r"(\d+)", rest).group(1))
+            continue
+        for i, o in enumerate(re.findall(r"%([\w.\-]+)", rest.split("), ")[0])):
+            users.setdefault(o, []).append((op, i, nbytes(shape)))
+    out = {}
+    for name, k in params.items():
+        uses = users.get(name, [])
+        if uses and all(op in ("dynamic-slice", "slice") and i == 0 for op, i, _ in uses):
+            out[k] = sum(b for _, _, b in uses)
+    return out
+
+
+def traffic(hlo: str) -> dict:
+    """Launches and bytes of an optimised GPU program (``compiled.as_text()``): every fusion,
+    custom call (a Pallas kernel among them) and other launch reads its operands and writes its
+    outputs once; a ``while`` body counts once per trip (its ``known_trip_count``, else once).
+    Returns launches, read and written bytes, the Pallas kernels' (``pallas``: launches, read,
+    written), the ``while`` loops met (``loops``) and bytes by source line (``by_source``:
+    {source: [launches, bytes]}). A launch that updates part of an array in place (a
+    dynamic-update-slice, alone or at a fusion's root) reads its other operands and writes the
+    update only; a fusion that reads an operand only through slices reads the slices."""
+    comps, entry = _computations(hlo)
+    where = _source_lines(hlo)
+    shapes: dict[str, int] = {}
+    for lines in comps.values():
+        for ln in lines:
+            m = _INSTR.match(ln)
+            if m:
+                shapes[m.group(1)] = nbytes(m.group(2))
+    out = dict(launches=0, read=0, written=0, pallas=[0, 0, 0], loops=0)
+    by_source: dict[str, list] = collections.defaultdict(lambda: [0, 0])
+
+    def source(ln: str) -> str:
+        called = re.search(r"calls=%?([\w.\-]+)", ln)
+        frames = []
+        if called and called.group(1) in comps:
+            for inner in comps[called.group(1)]:
+                frames += re.findall(r"stack_frame_id=(\d+)", inner)
+        frames = frames or re.findall(r"stack_frame_id=(\d+)", ln)
+        if not frames:
+            return "(no source)"
+        # the solver's own lines before the small-product helpers they call, where both appear
+        ranked = collections.Counter(where(int(f)) for f in frames).most_common()
+        own = [s for s, _ in ranked if not s.startswith(("stagewise.py", "lanes.py"))]
+        return own[0] if own else ranked[0][0]
+
+    def walk(comp: str, times: int):
+        for ln in comps.get(comp, []):
+            m = _INSTR.match(ln)
+            if not m:
+                continue
+            name, shape, op, rest = m.groups()
+            if op in _FREE:
+                continue
+            if op == "while":
+                out["loops"] += 1
+                body = re.search(r"body=%?([\w.\-]+)", ln).group(1)
+                trips = re.search(r'known_trip_count":\{"n":"(\d+)"', ln)
+                walk(body, times * (int(trips.group(1)) if trips else 1))
+                continue
+            if op in ("call", "conditional"):
+                for c in re.findall(r"%([\w.\-]+)", ln.split("(", 1)[1].split(")", 1)[1]):
+                    if c in comps:
+                        walk(c, times)
+                continue
+            operands = re.findall(r"%([\w.\-]+)", rest.split("), ")[0])
+            read, written = sum(shapes.get(o, 0) for o in operands), nbytes(shape)
+            called = re.search(r"calls=%?([\w.\-]+)", ln)
+            place = _in_place(comps, called.group(1), shapes) if op == "fusion" and called else None
+            if place is None and op == "dynamic-update-slice":
+                place = ([0], shapes.get(operands[1], 0) if len(operands) > 1 else 0)
+            if place is not None:  # the buffer stays where it is: read and write the update
+                aliased, update = place
+                read -= sum(shapes.get(operands[i], 0) for i in aliased if i < len(operands))
+                written = update
+            if op == "fusion" and called:
+                for i, b in _sliced_reads(comps, called.group(1), shapes).items():
+                    if i < len(operands) and (place is None or i not in place[0]):
+                        read -= shapes.get(operands[i], 0) - b
+            out["launches"] += times
+            out["read"] += times * read
+            out["written"] += times * written
+            if "pallas" in name or "__gpu$xla.gpu.triton" in ln:
+                p = out["pallas"]
+                p[0] += times
+                p[1] += times * read
+                p[2] += times * written
+            src = by_source[source(ln)]
+            src[0] += times
+            src[1] += times * (read + written)
+
+    walk(entry, 1)
+    out["by_source"] = dict(by_source)
+    return out
+
+
+def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
+    import jax
+    from jax.experimental import topologies
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    import rvdjax  # noqa: F401  (float64)
+    from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
+    from rvdjax.solver import SolverParams, SolverSettings
+    from rvdjax.solver.driver import iterate, start
+
+    name, bandwidth, memory = TARGETS[target]
+    config = _DEVICE.format(name=name, bandwidth=int(bandwidth), memory=memory)
+    topo = topologies.get_topology_desc(platform="cuda", target_config=config, topology="1x1x1")
+    sharding = NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
+    settings = (SolverSettings.paper if mode == "paper" else SolverSettings)(kernel=kernel)
+    params = SolverParams.for_settings(settings)
+    # shapes from a small batch started on the host; the GPU program for ``batch`` problems
+    small = fastmpc3d_first_step_batch(perturbed_x0(0, 4))
+    ocps, state = jax.jit(jax.vmap(lambda o: start(o, settings, params)))(small)
+
+    def spec(a):
+        return jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype, sharding=sharding)
+
+    ocps, state = jax.tree.map(spec, ocps), jax.tree.map(spec, state)
+    step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s)))
+    return step.lower(ocps, state).compile().as_text()
+
+
+def _cuda_missing() -> str | None:
+    import importlib.util
+
+    try:
+        found = any(importlib.util.find_spec(f"jax_plugins.xla_cuda{v}") for v in (12, 13))
+    except ImportError:  # no jax_plugins namespace at all
+        found = False
+    if found:
+        return None
+    return (
+        "gpu_traffic: needs jax's CUDA plugin (pip install 'jax[cuda13]' at this jax's "
+        "version); no GPU is needed"
+    )
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batch", type=int, default=65536, help="QPs in the batch (>= 1)")
+    ap.add_argument("--kernels", default="auto", help=f"forms, comma-separated: {KERNELS}")
+    ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
+    ap.add_argument("--target", choices=tuple(TARGETS), default="h100")
+    ap.add_argument("--padded-blocks", action="store_true", help="the block kernels' padded form")
+    ap.add_argument("--top", type=int, default=12, help="sources of traffic printed per form")
+    ap.add_argument("--out", default="results/gpu-traffic", help="directory for the rows")
+    ap.add_argument("--hlo", action="store_true", help="also write each compiled program to --out")
+    args = ap.parse_args(argv)
+    kernels = [k for k in args.kernels.split(",") if k]
+    bad = [k for k in kernels if k not in KERNELS]
+    if bad or not kernels:
+        print(f"gpu_traffic: --kernels must be among {', '.join(KERNELS)}, got {args.kernels!r}")
+        return 2
+    if args.batch < 1:
+        print(f"gpu_traffic: --batch must be >= 1, got {args.batch}")
+        return 2
+    from rvdjax.outputs import check_dir
+
+    check_dir(args.out, "--out")
+    missing = _cuda_missing()
+    if missing:
+        print(missing)
+        return 2
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "gpu_traffic.jsonl")
+    from rvdjax.provenance import benchmark_block
+    from rvdjax.solver import lanes
+
+    provenance = benchmark_block("sweeps/gpu_traffic.py", vars(args))
+    bandwidth = TARGETS[args.target][1]
+    rows = []
+    for kernel in kernels:
+        t0 = time.perf_counter()
+        with lanes.configured(padded_blocks=args.padded_blocks):
+            hlo = _compile(kernel, args.batch, args.mode, args.target)
+        t = traffic(hlo)
+        if args.hlo:
+            name = f"hlo_{kernel}{'_padded' if args.padded_blocks else ''}_{args.mode}.txt"
+            with open(os.path.join(args.out, name), "w", encoding="utf-8") as f:
+                f.write(hlo)
+        compile_s = time.perf_counter() - t0
+        per = 1e3 * args.batch
+        row = dict(
+            kernel=kernel + (", padded blocks" if args.padded_blocks else ""),
+            mode=args.mode,
+            target=args.target,
+            batch=args.batch,
+            launches=t["launches"],
+            read_kb=t["read"] / per,
+            written_kb=t["written"] / per,
+            pallas_launches=t["pallas"][0],
+            pallas_kb=(t["pallas"][1] + t["pallas"][2]) / per,
+            bound_ms=1e3 * (t["read"] + t["written"]) / bandwidth,
+            compile_s=compile_s,
+            loops=t["loops"],
+            by_source={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
+            provenance=provenance,
+        )
+        rows.append(row)
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(row) + "\n")
+    print(
+        f"one {args.mode} iteration of {args.batch} fastmpc-3d QPs compiled for an "
+        f"{TARGETS[args.target][0]} (no GPU used); KB a problem:"
+    )
+    print(
+        "| form | launches | read | written | total | Pallas kernels (launches, KB) | bound "
+        "| compile |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        total = r["read_kb"] + r["written_kb"]
+        print(
+            f"| {r['kernel']} | {r['launches']} | {r['read_kb']:.1f} | {r['written_kb']:.1f} | "
+            f"{total:.1f} | {r['pallas_launches']}, {r['pallas_kb']:.1f} | "
+            f"{r['bound_ms']:.2f} ms | {r['compile_s']:.1f} s |"
+        )
+    for r in rows:
+        print(f"\n{r['kernel']}: largest sources (launches, KB a problem)")
+        top = sorted(r["by_source"].items(), key=lambda kv: -kv[1][1])[: args.top]
+        for src, (n, kb) in top:
+            print(f"  {kb:7.1f} KB {n:4d}  {src}")
+    print(f"rows: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
