@@ -2,8 +2,9 @@
 machine without one.
 
     pip install "jax[cuda13]==$(python -c 'import jax; print(jax.__version__)')"  # no GPU needed
-    python sweeps/gpu_traffic.py [--batch 65536] [--kernels auto,pallas,pallas-block-io]
-        [--mode accurate] [--target h100|h200] [--padded-blocks] [--top 12] [--out DIR]
+    python sweeps/gpu_traffic.py [qp] [--batch 65536] [--kernels auto,pallas,pallas-block-io]
+        [--mode accurate] [--target h100|h200] [--padded-blocks] [--top 12] [--out DIR] [--hlo]
+    python sweeps/gpu_traffic.py engine [--scenario thesis-vbar] [--slots 4096] [--target h100]
 
 XLA compiles for a GPU it is not running on ("deviceless" ahead-of-time compilation: a
 ``jax.experimental.topologies`` description of one H100 or H200, the CUDA plugin's compiler
@@ -16,6 +17,9 @@ traffic. At these batch sizes an iteration is bound by that traffic: on an H100 
 the forms' bytes matched the ratios of their measured times to 5 % (docs/benchmark.md), so
 a change that moves fewer bytes is measured here before a GPU is lent. The traffic divided by
 the card's bandwidth is the time the iteration cannot go below.
+
+``engine``: one tick of the batch engine's segment program (the engine's settings for a GPU),
+by the engine's scopes: the solver iterations, the refresh, the ring and the rest.
 
 Prints one row per form (launches, KB read and written a problem, the Pallas kernels' share,
 that bound at ``--batch``, the compile's seconds on this machine, Triton's included) and each
@@ -215,7 +219,7 @@ def _sliced_reads(comps: dict, fused: str, shapes: dict) -> dict:
     return out
 
 
-def traffic(hlo: str) -> dict:
+def traffic(hlo: str, start: str | None = None, key=None) -> dict:
     """Launches and bytes of an optimised GPU program (``compiled.as_text()``): every fusion,
     custom call (a Pallas kernel among them) and other launch reads its operands and writes its
     outputs once; a ``while`` body counts once per trip (its ``known_trip_count``, else once).
@@ -223,7 +227,9 @@ def traffic(hlo: str) -> dict:
     written), the ``while`` loops met (``loops``) and bytes by source line (``by_source``:
     {source: [launches, bytes]}). A launch that updates part of an array in place (a
     dynamic-update-slice, alone or at a fusion's root) reads its other operands and writes the
-    update only; a fusion that reads an operand only through slices reads the slices."""
+    update only; a fusion that reads an operand only through slices reads the slices.
+    ``start``: the computation to count from (default the entry, once); ``key(line)``: what
+    ``by_source`` groups by (default the solver's source line)."""
     comps, entry = _computations(hlo)
     where = _source_lines(hlo)
     shapes: dict[str, int] = {}
@@ -290,30 +296,36 @@ def traffic(hlo: str) -> dict:
                 p[0] += times
                 p[1] += times * read
                 p[2] += times * written
-            src = by_source[source(ln)]
+            src = by_source[key(ln) if key else source(ln)]
             src[0] += times
             src[1] += times * (read + written)
 
-    walk(entry, 1)
+    walk(start or entry, 1)
     out["by_source"] = dict(by_source)
     return out
 
 
-def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
-    import jax
+def _sharding(target: str):
+    """A sharding on one compile-only GPU of ``target`` (no device needed)."""
     from jax.experimental import topologies
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
+
+    name, bandwidth, memory = TARGETS[target]
+    config = _DEVICE.format(name=name, bandwidth=int(bandwidth), memory=memory)
+    topo = topologies.get_topology_desc(platform="cuda", target_config=config, topology="1x1x1")
+    return NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
+
+
+def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
+    import jax
 
     import rvdjax  # noqa: F401  (float64)
     from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
     from rvdjax.solver import SolverParams, SolverSettings
     from rvdjax.solver.driver import iterate, start
 
-    name, bandwidth, memory = TARGETS[target]
-    config = _DEVICE.format(name=name, bandwidth=int(bandwidth), memory=memory)
-    topo = topologies.get_topology_desc(platform="cuda", target_config=config, topology="1x1x1")
-    sharding = NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
+    sharding = _sharding(target)
     settings = (SolverSettings.paper if mode == "paper" else SolverSettings)(kernel=kernel)
     params = SolverParams.for_settings(settings)
     # shapes from a small batch started on the host; the GPU program for ``batch`` problems
@@ -326,6 +338,98 @@ def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
     ocps, state = jax.tree.map(spec, ocps), jax.tree.map(spec, state)
     step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s)))
     return step.lower(ocps, state).compile().as_text()
+
+
+def _compile_engine(scenario: str, slots: int, target: str):
+    """One device's segment program of the batch engine for ``scenario`` with the engine's
+    accelerator settings (:func:`rvdjax.loop.engine.config.auto_config` on a GPU: every slot in
+    one chunk, 4 solver iterations a tick, 128 ticks a segment, the compacted refresh in
+    groups of a quarter of the slots, runs to any free slot), compiled for ``target``: (HLO
+    text, the EngineConfig)."""
+    import jax
+
+    import rvdjax  # noqa: F401  (float64)
+    from rvdjax.bench import perturbed_states
+    from rvdjax.loop import engine as E
+    from rvdjax.loop.engine import config as C
+    from rvdjax.loop.engine.stream import _abstract_args
+    from rvdjax.scenarios import FlightOptions, get_scenario
+    from rvdjax.solver import SolverParams
+
+    sharding = _sharding(target)
+    flight = get_scenario(scenario).flight(FlightOptions())
+    loop, params = flight.loop, flight.params
+    sp = SolverParams.for_settings(loop.config.settings)
+    source = E.arrays_source(perturbed_states(flight.x0, 8))
+    cfg = E.EngineConfig(
+        slots=slots,
+        chunk=slots,
+        iterations=C.ACCEL_ITERATIONS,
+        ticks_per_segment=C.ACCEL_TICKS,
+        refresh="compacted",
+        assign="any",
+        group=max(1, slots // C.ACCEL_REFRESH_SHARE),
+        platform="cuda",
+    )
+    args = _abstract_args(loop, cfg, source, params, sp)
+    args = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), args)
+    return E.segment_program(loop, cfg, source.fn).lower(*args).compile().as_text(), cfg
+
+
+def tick(hlo: str) -> dict:
+    """:func:`traffic` of one tick of an engine segment program (the body of its loop over
+    ticks), grouped by the engine's scopes: the solver iterations, the refresh (advance,
+    refill, the next MPC step's start), the ring and the rest (the compacted refresh's
+    gathers and scatters of the slots, the tick's bookkeeping)."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import tick_kernels
+
+    comps, entry = tick_kernels.parse(hlo)
+    return traffic(hlo, start=tick_kernels.tick_body(comps, entry), key=tick_kernels.scope)
+
+
+def engine_main(args, provenance, path) -> int:
+    t0 = time.perf_counter()
+    hlo, cfg = _compile_engine(args.scenario, args.slots, args.target)
+    compile_s = time.perf_counter() - t0
+    if args.hlo:
+        with open(os.path.join(args.out, f"hlo_engine_{args.scenario}.txt"), "w") as f:
+            f.write(hlo)
+    t = tick(hlo)
+    per = 1e3 * args.slots
+    row = dict(
+        part="engine",
+        scenario=args.scenario,
+        slots=args.slots,
+        target=args.target,
+        iterations_per_tick=cfg.iterations,
+        launches=t["launches"],
+        read_kb=t["read"] / per,
+        written_kb=t["written"] / per,
+        pallas_launches=t["pallas"][0],
+        bound_ms=1e3 * (t["read"] + t["written"]) / TARGETS[args.target][1],
+        compile_s=compile_s,
+        by_scope={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
+        provenance=provenance,
+    )
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps(row) + "\n")
+    total = row["read_kb"] + row["written_kb"]
+    print(
+        f"one tick of the batch engine, {args.scenario} at {args.slots} slots, compiled for an "
+        f"{TARGETS[args.target][0]} (no GPU used; {cfg.iterations} solver iterations a tick):"
+    )
+    print(
+        f"{row['launches']} launches ({row['pallas_launches']} Pallas kernels), "
+        f"{total:.0f} KB a slot ({row['read_kb']:.0f} read, {row['written_kb']:.0f} written), "
+        f"{row['bound_ms']:.2f} ms at the card's bandwidth; compiled in {compile_s:.1f} s"
+    )
+    print("| scope | launches | KB a slot | share |")
+    print("| --- | --- | --- | --- |")
+    for k, (n, kb) in sorted(row["by_scope"].items(), key=lambda kv: -kv[1][1]):
+        print(f"| {k} | {n} | {kb:.0f} | {kb / total:.0%} |")
+    print(f"rows: {path}")
+    return 0
 
 
 def _cuda_missing() -> str | None:
@@ -345,7 +449,10 @@ def _cuda_missing() -> str | None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--batch", type=int, default=65536, help="QPs in the batch (>= 1)")
+    ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine"))
+    ap.add_argument("--batch", type=int, default=65536, help="qp: QPs in the batch (>= 1)")
+    ap.add_argument("--scenario", default="thesis-vbar", help="engine: the scenario")
+    ap.add_argument("--slots", type=int, default=4096, help="engine: slots (>= 1)")
     ap.add_argument("--kernels", default="auto", help=f"forms, comma-separated: {KERNELS}")
     ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
     ap.add_argument("--target", choices=tuple(TARGETS), default="h100")
@@ -359,9 +466,17 @@ def main(argv=None) -> int:
     if bad or not kernels:
         print(f"gpu_traffic: --kernels must be among {', '.join(KERNELS)}, got {args.kernels!r}")
         return 2
-    if args.batch < 1:
-        print(f"gpu_traffic: --batch must be >= 1, got {args.batch}")
-        return 2
+    for name in ("batch", "slots"):
+        if getattr(args, name) < 1:
+            print(f"gpu_traffic: --{name} must be >= 1, got {getattr(args, name)}")
+            return 2
+    if args.part == "engine":
+        from rvdjax.scenarios import SCENARIOS
+
+        if args.scenario not in SCENARIOS:
+            print(f"gpu_traffic: --scenario must be a named scenario (rvdjax list), got "
+                  f"{args.scenario!r}")  # fmt: skip
+            return 2
     from rvdjax.outputs import check_dir
 
     check_dir(args.out, "--out")
@@ -375,6 +490,8 @@ def main(argv=None) -> int:
     from rvdjax.solver import lanes
 
     provenance = benchmark_block("sweeps/gpu_traffic.py", vars(args))
+    if args.part == "engine":
+        return engine_main(args, provenance, path)
     bandwidth = TARGETS[args.target][1]
     rows = []
     for kernel in kernels:

@@ -149,6 +149,10 @@ def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
     assert "--kernels" in capsys.readouterr().out
     assert gt.main(["--batch", "0", "--out", str(tmp_path)]) == 2
     assert "--batch must be >= 1" in capsys.readouterr().out
+    assert gt.main(["engine", "--slots", "0", "--out", str(tmp_path)]) == 2
+    assert "--slots must be >= 1" in capsys.readouterr().out
+    assert gt.main(["engine", "--scenario", "nowhere", "--out", str(tmp_path)]) == 2
+    assert "--scenario" in capsys.readouterr().out
     if gt._cuda_missing() is None:
         pytest.skip("a CUDA plugin is installed here")
     assert gt.main(["--out", str(tmp_path)]) == 2

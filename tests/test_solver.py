@@ -629,3 +629,22 @@ def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate)
         )
 
     assert tracking(u) < 0.5 * tracking(init.u)
+
+
+def test_iterate_leaves_a_finished_or_frozen_solve_unchanged():
+    """A solve that met its stopping test, and one frozen before it did (the batch engine's
+    free slots), come back from one more iteration with every field's values as they were;
+    the same iteration moves a solve that is neither (so the check could fail). Accurate
+    mode, where a stopped solve takes a step of length zero."""
+    from rvdjax.solver import freeze, iterate, start
+
+    ocp, params = random_ocp(3, SHAPE_CLASSES["small"]), SolverParams()
+    ocp, st = start(ocp, ACCURATE, params)
+    step = jax.jit(lambda s: iterate(ocp, ACCURATE, params, s))
+    moved = step(st)
+    assert not np.array_equal(np.asarray(moved.core.u), np.asarray(st.core.u))
+    for state in (freeze(st), jax.lax.while_loop(lambda s: ~s.core.done, step, st)):
+        again = step(state)
+        assert bool(state.core.done)
+        for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(again), strict=True):
+            np.testing.assert_array_equal(np.asarray(b), np.asarray(a))

@@ -172,11 +172,13 @@ def iterate(ocp: OCP, settings: SolverSettings, params: SolverParams, state: Sol
     returned unchanged."""
     params = _prepared(params, ocp.B.dtype)
     rows = rows_in(ocp)
-    if settings.mode == "accurate":
-        new = pd_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
-    else:
-        new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     stop = finished(settings, state)
+    if settings.mode == "accurate":  # a step of length zero where stopped
+        core = pd_iteration(
+            ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, stop
+        )
+        return state._replace(core=core)
+    new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
 
