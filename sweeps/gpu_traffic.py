@@ -388,6 +388,19 @@ def tick(hlo: str) -> dict:
     return traffic(hlo, start=tick_kernels.tick_body(comps, entry), key=tick_kernels.scope)
 
 
+def _fields(t: dict, per: float, bandwidth: float) -> dict:
+    """A row's figures from :func:`traffic`'s count: per ``per`` (1e3 x problems or slots:
+    KB each) and the time the bytes take at ``bandwidth``."""
+    return dict(
+        launches=t["launches"],
+        read_kb=t["read"] / per,
+        written_kb=t["written"] / per,
+        pallas_launches=t["pallas"][0],
+        pallas_kb=(t["pallas"][1] + t["pallas"][2]) / per,
+        bound_ms=1e3 * (t["read"] + t["written"]) / bandwidth,
+    )
+
+
 def engine_main(args, provenance, path) -> int:
     t0 = time.perf_counter()
     hlo, cfg = _compile_engine(args.scenario, args.slots, args.target)
@@ -403,11 +416,7 @@ def engine_main(args, provenance, path) -> int:
         slots=args.slots,
         target=args.target,
         iterations_per_tick=cfg.iterations,
-        launches=t["launches"],
-        read_kb=t["read"] / per,
-        written_kb=t["written"] / per,
-        pallas_launches=t["pallas"][0],
-        bound_ms=1e3 * (t["read"] + t["written"]) / TARGETS[args.target][1],
+        **_fields(t, per, TARGETS[args.target][1]),
         compile_s=compile_s,
         by_scope={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
         provenance=provenance,
@@ -510,12 +519,7 @@ def main(argv=None) -> int:
             mode=args.mode,
             target=args.target,
             batch=args.batch,
-            launches=t["launches"],
-            read_kb=t["read"] / per,
-            written_kb=t["written"] / per,
-            pallas_launches=t["pallas"][0],
-            pallas_kb=(t["pallas"][1] + t["pallas"][2]) / per,
-            bound_ms=1e3 * (t["read"] + t["written"]) / bandwidth,
+            **_fields(t, per, bandwidth),
             compile_s=compile_s,
             loops=t["loops"],
             by_source={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
