@@ -128,9 +128,10 @@ def pd_iteration(
     params: SolverParams,
     stop=False,
 ) -> PDState:
-    """One Mehrotra predictor-corrector iteration from ``st``; where ``stop`` (a traced bool),
-    ``st`` itself (a step of length zero: the frozen state costs no pass of its own over the
-    arrays, which on a GPU was a sixteenth of a batch engine iteration's memory traffic)."""
+    """One Mehrotra predictor-corrector iteration from ``st``; where ``stop`` (a bool, traced
+    or not), ``st`` itself: a step of length zero, so that a finished solve costs no select
+    over the state's arrays (docs/benchmark.md, "A stopped solve's step of length zero")."""
+    stop = jnp.asarray(stop, bool)
     method, kernel = settings.method, settings.kernel
     su = st.su
     sx = st.s - st.g
