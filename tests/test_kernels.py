@@ -166,7 +166,12 @@ def _triton_calls(text):
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps;
         # loops: the solve, the start's drift of the warm-start inputs
-        *((SolverSettings(), 4, 2, v) for v in ("pallas", "pallas-block-io", "auto")),
+        # (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
+        *(
+            pytest.param(SolverSettings(), 4, 2, v, marks=pytest.mark.slow)
+            for v in ("pallas", "pallas-block-io")
+        ),
+        (SolverSettings(), 4, 2, "auto"),
         # paper: factorisation + step; loops: the solve, the drift, the line search (the
         # count of launches and loops is the mode's, whichever kernels run them)
         (SolverSettings.paper(), 2, 3, "auto"),
