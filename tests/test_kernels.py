@@ -60,8 +60,18 @@ def _random(name, n):
     return stack_ocps([random_ocp(seed, SHAPE_CLASSES[name]) for seed in range(n)])
 
 
+# The default GPU form and the unrolled loops in every run; the opt-in kernel forms in the slow
+# run (the suite's 10 minutes on 2 cores).
 @pytest.mark.parametrize(
-    "kernel", ["pallas", "pallas-block-io", "pallas-block-factor", "pallas-fused", "unrolled"]
+    "kernel",
+    [
+        *(
+            pytest.param(k, marks=pytest.mark.slow)
+            for k in ("pallas", "pallas-block-io", "pallas-fused")
+        ),
+        "pallas-block-factor",
+        "unrolled",
+    ],
 )
 @pytest.mark.parametrize(
     "case",
