@@ -17,7 +17,9 @@ Parts (``python sweeps/gpu_benchmark.py [qp|study|all]``, from the repository ro
   GPU's peak memory, the kernels per solver iteration counted in the compiled GPU program,
   and each form's objective error against the first's. ``--padded-blocks`` adds each form at
   the largest batch with the block kernels' arrays padded to a power of two of entries (the
-  layout until 2026-11-28), for a before/after in one run.
+  layout until 2026-11-28), for a before/after in one run. ``--shared-model`` adds each form
+  at the largest batch with one copy of the model (A, B, c, Q, R) for the whole batch, as the
+  batch engine solves a Monte Carlo's MPC steps, instead of one per problem.
 * ``study``: the batch engine at GPU scale (``sweeps/gpu_study_benchmark.py``).
 
 Every row is appended to ``OUT/gpu_benchmark.jsonl`` as it is measured (so a run cut short
@@ -48,7 +50,15 @@ import numpy as np  # noqa: E402
 import rvdjax  # noqa: E402, F401  (float64)
 from rvdjax import devices  # noqa: E402
 from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0  # noqa: E402
-from rvdjax.solver import SolverSettings, Status, lanes, solve, unrolled  # noqa: E402
+from rvdjax.solver import (  # noqa: E402
+    SolverParams,
+    SolverSettings,
+    Status,
+    driver,
+    lanes,
+    solve,
+    unrolled,
+)
 
 SIZES = (1, 16384, 65536)
 SMOKE_SIZES = (1, 64, 256)
@@ -191,13 +201,51 @@ def _settings(mode: str, kernel: str) -> SolverSettings:
     return SolverSettings.paper(kernel=kernel) if mode == "paper" else SolverSettings(kernel=kernel)
 
 
+def _solve_shared(ocp, settings: SolverSettings):
+    """:func:`rvdjax.solver.solve`'s loop (start, iterate until finished, finish) with the
+    model fields (A, B, c, Q, R) passed through as they are (``trusted_model``), so that under
+    ``vmap(in_axes=...)`` one model serves every problem unbatched, as in the batch engine."""
+    params = SolverParams.for_settings(settings)
+    o, st = driver.start(ocp, settings, params, trusted_model=True)
+    st = jax.lax.while_loop(
+        lambda s: ~driver.finished(settings, s),
+        lambda s: driver.iterate(o, settings, params, s),
+        st,
+    )
+    return driver.with_objective(o, driver.finish(o, settings, params, st))
+
+
+def _shared(ocps_host):
+    """(the batch with one copy of the model, vmap's in_axes for it): the fastmpc-3d QPs
+    differ only in x0 and the keep-out rows linearised about it; A, B, c, Q, R are one."""
+    axes = type(ocps_host)(*(None if f in driver.MODEL_FIELDS else 0 for f in ocps_host._fields))
+    fields = zip(ocps_host._fields, ocps_host, strict=True)
+    one = type(ocps_host)(*(a[0] if f in driver.MODEL_FIELDS else a for f, a in fields))
+    return one, axes
+
+
 def _gpu_row(
-    rec, device, mode, kernel, n, ocps_host, dtype="float64", ref=None, label=None, hlo_dir=None
+    rec,
+    device,
+    mode,
+    kernel,
+    n,
+    ocps_host,
+    dtype="float64",
+    ref=None,
+    label=None,
+    hlo_dir=None,
+    shared=False,
 ):
     """One jit(vmap(solve)) row on ``device``; returns the solutions (host). With ``hlo_dir``
-    the compiled program's HLO text is written there."""
+    the compiled program's HLO text is written there; with ``shared`` one model serves the
+    batch (:func:`_solve_shared`)."""
     settings = _settings(mode, kernel)
-    fn = jax.jit(jax.vmap(lambda o: solve(o, settings)))
+    if shared:
+        ocps_host, axes = _shared(ocps_host)
+        fn = jax.jit(jax.vmap(lambda o: _solve_shared(o, settings), in_axes=(axes,)))
+    else:
+        fn = jax.jit(jax.vmap(lambda o: solve(o, settings)))
     ocps = jax.device_put(ocps_host, device)
     t0 = time.perf_counter()
     compiled = fn.lower(ocps).compile()
@@ -317,6 +365,7 @@ def qp_part(
     cpu=True,
     hlo_dir=None,
     padded=False,
+    shared=False,
 ) -> None:
     t_start = time.perf_counter()
     sizes = sizes or (SMOKE_SIZES if smoke else SIZES)
@@ -337,6 +386,8 @@ def qp_part(
     plan += [("unroll", u, sizes[-1]) for u in unrolls]
     if padded:  # the block kernels' arrays padded to a power of two of entries, as until 11-28
         plan += [("padded", m, k, sizes[-1]) for m in ("accurate", "paper") for k in fast]
+    if shared:  # one model for the batch (the engine's case): model reads leave the traffic
+        plan += [("shared", m, k, sizes[-1]) for m in ("accurate", "paper") for k in fast]
     if cpu:
         plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes[1:]]
     if "pallas" in kernels:  # accurate mode first: the default; block I/O first (compiles fast)
@@ -378,6 +429,11 @@ def qp_part(
                     _gpu_row(
                         rec, gpu, mode, kernel, n, host[n], ref=refs.get((mode, n)), label=label
                     )
+            elif item[0] == "shared":
+                _, mode, kernel, n = item
+                label = f"{kernel}, shared model"
+                ref = refs.get((mode, n))
+                _gpu_row(rec, gpu, mode, kernel, n, host[n], ref=ref, label=label, shared=True)
             elif item[0] == "cpu":
                 _cpu_row(rec, item[1], item[3], host[item[3]])
             elif item[0] == "tile":
@@ -457,6 +513,11 @@ def main(argv=None) -> int:
         help="also each form at the largest batch with the block kernels' arrays padded to a"
         " power of two of entries (the layout until 2026-11-28)",
     )
+    ap.add_argument(
+        "--shared-model",
+        action="store_true",
+        help="also each form at the largest batch with one model (A, B, c, Q, R) for every QP",
+    )
     args = ap.parse_args(argv)
     kernels = tuple(k for k in args.kernels.split(",") if k)
     forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
@@ -493,6 +554,7 @@ def main(argv=None) -> int:
             cpu=not args.no_cpu,
             hlo_dir=args.out if args.hlo else None,
             padded=args.padded_blocks,
+            shared=args.shared_model,
         )
     if args.part in ("study", "all"):
         sys.path.insert(0, os.path.dirname(__file__))

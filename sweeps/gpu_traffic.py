@@ -159,8 +159,10 @@ def _source_lines(hlo: str, keep=("solver/",)):
 
 
 def _in_place(comps: dict, fused: str, shapes: dict):
-    """For a fusion whose root is a dynamic-update-slice (or a tuple of them): the positions
-    of the fusion's operands it updates in place and the bytes of the updates, else None."""
+    """For a fusion whose root is a dynamic-update-slice or a scatter (or a tuple of them): the
+    positions of the fusion's operands it updates in place and the bytes of the updates, else
+    None. (XLA's GPU backend writes both into their operand's buffer; where that buffer is
+    still needed, copy insertion adds a ``copy``, counted as a launch of its own.)"""
     lines = comps.get(fused, [])
     params, roots = {}, []
     for ln in lines:
@@ -180,21 +182,30 @@ def _in_place(comps: dict, fused: str, shapes: dict):
         m = _INSTR.match(ln)
         if m:
             ops[m.group(1)] = (m.group(3), m.group(4))
-    targets = [name] if op == "dynamic-update-slice" else []
+    targets = [name] if op in _UPDATES else []
     if op == "tuple":
         targets = re.findall(r"%([\w.\-]+)", rest.split(")")[0])
-        if not all(ops.get(t, ("",))[0] == "dynamic-update-slice" for t in targets):
+        if not all(ops.get(t, ("",))[0] in _UPDATES for t in targets):
             return None
     if not targets:
         return None
     aliased, update = [], 0
     for t in targets:
-        buf, upd = re.findall(r"%([\w.\-]+)", ops[t][1].split(")")[0])[:2]
+        buf, upd = _update_operands(ops[t][0], re.findall(r"%([\w.\-]+)", ops[t][1].split(")")[0]))
         if buf not in params:
             return None
         aliased.append(params[buf])
         update += shapes.get(upd, 0)
     return aliased, update
+
+
+# ops that write part of their first operand's buffer in place: (op, position of the update)
+_UPDATES = {"dynamic-update-slice": 1, "scatter": 2}
+
+
+def _update_operands(op: str, operands: list) -> tuple:
+    """(the updated buffer, the update) among an in-place op's operands."""
+    return operands[0], operands[_UPDATES[op]] if len(operands) > _UPDATES[op] else None
 
 
 def _sliced_reads(comps: dict, fused: str, shapes: dict) -> dict:
@@ -278,8 +289,8 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
             read, written = sum(shapes.get(o, 0) for o in operands), nbytes(shape)
             called = re.search(r"calls=%?([\w.\-]+)", ln)
             place = _in_place(comps, called.group(1), shapes) if op == "fusion" and called else None
-            if place is None and op == "dynamic-update-slice":
-                place = ([0], shapes.get(operands[1], 0) if len(operands) > 1 else 0)
+            if place is None and op in _UPDATES:
+                place = ([0], shapes.get(_update_operands(op, operands)[1], 0))
             if place is not None:  # the buffer stays where it is: read and write the update
                 aliased, update = place
                 read -= sum(shapes.get(operands[i], 0) for i in aliased if i < len(operands))
@@ -317,13 +328,16 @@ def _sharding(target: str):
     return NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
 
 
-def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
+def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool = False) -> str:
+    """The optimised GPU program of one solver iteration on ``batch`` fastmpc-3d QPs; with
+    ``shared_model`` the model fields (A, B, c, Q, R) carry no batch axis (one model for every
+    problem, as the batch engine solves a Monte Carlo's MPC steps)."""
     import jax
 
     import rvdjax  # noqa: F401  (float64)
     from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
     from rvdjax.solver import SolverParams, SolverSettings
-    from rvdjax.solver.driver import iterate, start
+    from rvdjax.solver.driver import MODEL_FIELDS, iterate, start
 
     sharding = _sharding(target)
     settings = (SolverSettings.paper if mode == "paper" else SolverSettings)(kernel=kernel)
@@ -332,11 +346,15 @@ def _compile(kernel: str, batch: int, mode: str, target: str) -> str:
     small = fastmpc3d_first_step_batch(perturbed_x0(0, 4))
     ocps, state = jax.jit(jax.vmap(lambda o: start(o, settings, params)))(small)
 
-    def spec(a):
-        return jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype, sharding=sharding)
+    def spec(a, batched=True):
+        shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
+        return jax.ShapeDtypeStruct(shape, a.dtype, sharding=sharding)
 
-    ocps, state = jax.tree.map(spec, ocps), jax.tree.map(spec, state)
-    step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s)))
+    shared = {f for f in MODEL_FIELDS if shared_model}
+    axes = type(ocps)(*(None if f in shared else 0 for f in ocps._fields))
+    ocps = type(ocps)(*(spec(getattr(ocps, f), f not in shared) for f in ocps._fields))
+    state = jax.tree.map(spec, state)
+    step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s), in_axes=(axes, 0)))
     return step.lower(ocps, state).compile().as_text()
 
 
@@ -466,6 +484,9 @@ def main(argv=None) -> int:
     ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
     ap.add_argument("--target", choices=tuple(TARGETS), default="h100")
     ap.add_argument("--padded-blocks", action="store_true", help="the block kernels' padded form")
+    ap.add_argument(
+        "--shared-model", action="store_true", help="qp: one model (A, B, c, Q, R) for every QP"
+    )
     ap.add_argument("--top", type=int, default=12, help="sources of traffic printed per form")
     ap.add_argument("--out", default="results/gpu-traffic", help="directory for the rows")
     ap.add_argument("--hlo", action="store_true", help="also write each compiled program to --out")
@@ -506,7 +527,7 @@ def main(argv=None) -> int:
     for kernel in kernels:
         t0 = time.perf_counter()
         with lanes.configured(padded_blocks=args.padded_blocks):
-            hlo = _compile(kernel, args.batch, args.mode, args.target)
+            hlo = _compile(kernel, args.batch, args.mode, args.target, args.shared_model)
         t = traffic(hlo)
         if args.hlo:
             name = f"hlo_{kernel}{'_padded' if args.padded_blocks else ''}_{args.mode}.txt"
@@ -515,7 +536,9 @@ def main(argv=None) -> int:
         compile_s = time.perf_counter() - t0
         per = 1e3 * args.batch
         row = dict(
-            kernel=kernel + (", padded blocks" if args.padded_blocks else ""),
+            kernel=kernel
+            + (", padded blocks" if args.padded_blocks else "")
+            + (", shared model" if args.shared_model else ""),
             mode=args.mode,
             target=args.target,
             batch=args.batch,

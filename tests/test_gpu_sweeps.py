@@ -194,3 +194,68 @@ def test_gpu_traffic_counts_in_place_updates_and_slices_by_their_size():
     gt = _import("gpu_traffic")
     t = gt.traffic(_HLO_IN_PLACE)
     assert (t["launches"], t["read"], t["written"]) == (2, 68 + 68, 64 + 64)
+
+
+_HLO_SCATTER = """HloModule m, is_scheduled=true
+
+%add (a: f64[], b: f64[]) -> f64[] {
+  %a = f64[] parameter(0)
+  %b = f64[] parameter(1)
+  ROOT %c = f64[] add(%a, %b)
+}
+
+%fused_scatter (p0: f64[30,8], p1: s32[2,1], p2: f64[8,2]) -> f64[30,8] {
+  %p0 = f64[30,8]{1,0} parameter(0)
+  %p1 = s32[2,1]{1,0} parameter(1)
+  %p2 = f64[8,2]{1,0} parameter(2)
+  %t = f64[2,8]{1,0} transpose(%p2), dimensions={1,0}
+  ROOT %s = f64[30,8]{1,0} scatter(%p0, %p1, %t), update_window_dims={1}, \
+inserted_window_dims={0}, scatter_dims_to_operand_dims={0}, index_vector_dim=1, to_apply=%add
+}
+
+ENTRY %main (x: f64[30,8], i: s32[2,1], v: f64[8,2], w: f64[2,8]) -> f64[30,8] {
+  %x = f64[30,8]{1,0} parameter(0)
+  %i = s32[2,1]{1,0} parameter(1)
+  %v = f64[8,2]{1,0} parameter(2)
+  %w = f64[2,8]{1,0} parameter(3)
+  %u = f64[30,8]{1,0} fusion(%x, %i, %v), kind=kInput, calls=%fused_scatter
+  ROOT %r = f64[30,8]{1,0} scatter(%u, %i, %w), update_window_dims={1}, \
+inserted_window_dims={0}, scatter_dims_to_operand_dims={0}, index_vector_dim=1, to_apply=%add
+}
+"""
+
+
+def test_gpu_traffic_counts_scatters_in_place():
+    """A scatter of two rows into a (30, 8) array, fused or alone, updates its operand's buffer
+    in place (as XLA's GPU backend does): it reads the 8 bytes of indices and the 128 bytes of
+    rows and writes the 128, not the whole 1 920-byte array."""
+    gt = _import("gpu_traffic")
+    t = gt.traffic(_HLO_SCATTER)
+    assert (t["launches"], t["read"], t["written"]) == (2, 2 * (8 + 128), 2 * 128)
+
+
+def test_shared_model_rows_solve_the_same_qps():
+    """gpu_benchmark's --shared-model rows: one copy of the fastmpc-3d model (A, B, c, Q, R)
+    under vmap, the rest per problem, gives vmap(solve)'s solutions bit for bit, with the model
+    left unbatched (not broadcast back to one copy per problem)."""
+    import jax
+
+    from rvdjax.solver import SolverSettings, solve
+
+    gb = _import("gpu_benchmark")
+    ocps = gb._ocps(3)
+    one, axes = gb._shared(ocps)
+    assert one.A.shape == ocps.A.shape[1:] and one.x0.shape == ocps.x0.shape
+    assert axes.A is None and axes.Fx == 0
+    settings = SolverSettings()
+    want = jax.jit(jax.vmap(lambda o: solve(o, settings)))(ocps)
+    fn = jax.jit(jax.vmap(lambda o: gb._solve_shared(o, settings), in_axes=(axes,)))
+    copies = [
+        line
+        for line in str(fn.trace(one).jaxpr).splitlines()
+        if "f64[3,30,6,6] = broadcast_in_dim" in line or "f64[3,30,6,6] = select_n" in line
+    ]
+    assert not copies  # no per-problem copy of A (the model stays unbatched)
+    got = fn(one)
+    for name in ("u", "x", "nu", "objective", "status", "iterations"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)), getattr(want, name))

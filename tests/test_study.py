@@ -259,17 +259,6 @@ def test_a_killed_study_resumes_to_the_same_table_bit_for_bit(study_env):
     _frames_equal(read_table(out), reference)
 
 
-def test_four_devices_give_the_same_table(study_env):
-    root, env, reference = study_env
-    out = root / "devices"
-    # (the optimisation level of the tests' XLA_FLAGS kept: the reference is flown at it)
-    flags = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-    env4 = {**env, "XLA_FLAGS": flags.strip()}
-    r = _cli(["--runs", str(RUNS), "--out", str(out), "--devices", "4", *ARGS], env4, timeout=600)
-    assert r.returncode == 0, r.stderr
-    _frames_equal(read_table(out), reference)
-
-
 def _slurm_job() -> tuple[int, int]:
     """A Slurm job id whose coordinator port (JAX: 61440 + id mod 4096) is free here."""
     for _ in range(50):
@@ -284,14 +273,21 @@ def _slurm_job() -> tuple[int, int]:
     raise RuntimeError("no free port in 61440-65535")
 
 
-def test_two_processes_through_jax_distributed_give_the_same_table(study_env):
+def test_two_processes_of_two_devices_give_the_same_table(study_env):
     """Two processes as Slurm's srun would start them on two nodes (its environment
     simulated; the second reads it with --coordinator auto, the first is given the same
-    coordinator explicitly), each with 12 slots instead of 4: the same table, bit for bit."""
+    coordinator explicitly), each with two devices (``--devices 2``) and 12 slots instead of
+    4: the slots split over four devices in two processes, and the same table, bit for bit.
+    (One test for devices and processes: each spawns interpreters that compile the study,
+    about 20 s of the suite's time apiece.)"""
     root, env, reference = study_env
     out = root / "distributed"
     job, port = _slurm_job()
     args = [a if a != "4" or ARGS[i - 1] != "--slots" else "12" for i, a in enumerate(ARGS)]
+    args += ["--devices", "2"]
+    # (the optimisation level of the tests' XLA_FLAGS kept: the reference is flown at it)
+    flags = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = {**env, "XLA_FLAGS": flags.strip()}
     slurm = dict(
         SLURM_JOB_ID=str(job), SLURM_STEP_NODELIST="localhost", SLURM_NTASKS="2",
         SLURM_PROCID="1", SLURM_LOCALID="0",
@@ -313,6 +309,9 @@ def test_two_processes_through_jax_distributed_give_the_same_table(study_env):
         assert p.returncode == 0, err
     files = {f.name.split("-")[1] for f in (out / "runs").glob("part-*.parquet")}
     assert files == {"P000", "P001"}  # each process wrote its own parts
+    config = json.loads((out / "config.json").read_text())
+    envs = config["provenance"]["environments"].values()
+    assert [e["device_count"] for e in envs] == [4]  # two processes of two devices each
     _frames_equal(read_table(out), reference)
 
 
