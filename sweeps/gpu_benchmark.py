@@ -491,6 +491,18 @@ def format_table(rows) -> str:
     return "\n".join(out)
 
 
+def _positive_ints(text: str, name: str):
+    """Comma-separated integers >= 1, or False after one line naming ``name``."""
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        print(f"{name} must be integers >= 1, comma-separated, got {text!r}")
+        return False
+    return values
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("part", nargs="?", default="all", choices=("qp", "study", "all"))
@@ -525,8 +537,13 @@ def main(argv=None) -> int:
     if bad:
         print(f"--kernels: unknown {', '.join(sorted(bad))}; choose from {', '.join(forms)}")
         return 2
-    sizes = tuple(int(v) for v in args.sizes.split(",")) if args.sizes else None
-    unrolls = tuple(int(v) for v in args.unrolls.split(",") if v)
+    sizes = _positive_ints(args.sizes, "--sizes") if args.sizes else None
+    unrolls = _positive_ints(args.unrolls, "--unrolls") if args.unrolls else ()
+    if sizes is False or unrolls is False:
+        return 2
+    if args.budget_s is not None and not args.budget_s > 0:
+        print(f"--budget-s must be > 0 seconds, got {args.budget_s}")
+        return 2
     budget = args.budget_s or (60.0 if args.smoke else 290.0)
     from rvdjax.outputs import check_dir
 

@@ -336,7 +336,7 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
 
     import rvdjax  # noqa: F401  (float64)
     from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
-    from rvdjax.solver import SolverParams, SolverSettings
+    from rvdjax.solver import SolverParams, SolverSettings, tracing_for_cuda
     from rvdjax.solver.driver import MODEL_FIELDS, iterate, start
 
     sharding = _sharding(target)
@@ -355,7 +355,8 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
     ocps = type(ocps)(*(spec(getattr(ocps, f), f not in shared) for f in ocps._fields))
     state = jax.tree.map(spec, state)
     step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s), in_axes=(axes, 0)))
-    return step.lower(ocps, state).compile().as_text()
+    with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
+        return step.lower(ocps, state).compile().as_text()
 
 
 def _compile_engine(scenario: str, slots: int, target: str):
@@ -372,7 +373,7 @@ def _compile_engine(scenario: str, slots: int, target: str):
     from rvdjax.loop.engine import config as C
     from rvdjax.loop.engine.stream import _abstract_args
     from rvdjax.scenarios import FlightOptions, get_scenario
-    from rvdjax.solver import SolverParams
+    from rvdjax.solver import SolverParams, tracing_for_cuda
 
     sharding = _sharding(target)
     flight = get_scenario(scenario).flight(FlightOptions())
@@ -391,7 +392,8 @@ def _compile_engine(scenario: str, slots: int, target: str):
     )
     args = _abstract_args(loop, cfg, source, params, sp)
     args = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), args)
-    return E.segment_program(loop, cfg, source.fn).lower(*args).compile().as_text(), cfg
+    with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
+        return E.segment_program(loop, cfg, source.fn).lower(*args).compile().as_text(), cfg
 
 
 def tick(hlo: str) -> dict:

@@ -259,3 +259,21 @@ def test_shared_model_rows_solve_the_same_qps():
     got = fn(one)
     for name in ("u", "x", "nu", "objective", "status", "iterations"):
         np.testing.assert_array_equal(np.asarray(getattr(got, name)), getattr(want, name))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["qp", "--sizes", "0,64"], "--sizes must be integers >= 1"),
+        (["qp", "--sizes", "1,abc"], "--sizes must be integers >= 1"),
+        (["qp", "--unrolls", "-2"], "--unrolls must be integers >= 1"),
+        (["qp", "--budget-s", "0"], "--budget-s must be > 0"),
+        (["qp", "--kernels", "cuda"], "--kernels: unknown cuda"),
+    ],
+)
+def test_gpu_benchmark_refuses_bad_input_in_one_line(argv, message, tmp_path, capsys):
+    gb = _import("gpu_benchmark")
+    assert gb.main([*argv, "--out", str(tmp_path / "out")]) == 2
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and message in out[0]
+    assert not (tmp_path / "out").exists()  # refused before anything is written

@@ -15,7 +15,16 @@ import pytest
 from ocp_factory import SHAPE_CLASSES, random_ocp
 
 from rvdjax.problems import fastmpc3d_first_step, stack_ocps
-from rvdjax.solver import SolverParams, SolverSettings, Status, iterate, lanes, solve, start
+from rvdjax.solver import (
+    SolverParams,
+    SolverSettings,
+    Status,
+    iterate,
+    lanes,
+    solve,
+    start,
+    tracing_for_cuda,
+)
 from rvdjax.solver.riccati import AUTO_ON_CUDA
 
 # Problems are padded to a tile of ``block`` lanes: a small tile keeps the interpreter cheap.
@@ -163,7 +172,8 @@ def test_kernel_gradients_match_central_differences():
 
 
 def _cuda_text(fn, *args):
-    return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+    with tracing_for_cuda():
+        return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
 
 
 def _triton_calls(text):
@@ -212,6 +222,22 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
     cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops
+
+
+def test_a_cpu_process_traces_the_cpu_form_alone():
+    """Without a GPU backend, ``kernel="auto"`` traces XLA's loops alone (no kernel traced for
+    a program that can only run on the CPU); inside ``tracing_for_cuda`` the CUDA form is in
+    the trace too, also for a solve whose CPU-only trace was cached before."""
+    one = fastmpc3d_first_step(obstacles=True)
+    settings = SolverSettings.paper()
+
+    def fn(o):
+        return solve(o, settings)
+
+    assert "pallas_call" not in str(jax.make_jaxpr(fn)(one))
+    with tracing_for_cuda():
+        inside = str(jax.make_jaxpr(fn)(one))
+    assert "pallas_call" in inside and "platform_index" in inside
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():

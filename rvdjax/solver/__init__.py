@@ -50,6 +50,7 @@ from rvdjax.solver.driver import (
     start,
     with_objective,
 )
+from rvdjax.solver.riccati import tracing_for_cuda
 from rvdjax.solver.start import drift_plan, shift_solution, warm_start
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
@@ -72,6 +73,7 @@ __all__ = [
     "solve_batch",
     "solve_if",
     "start",
+    "tracing_for_cuda",
     "warm_start",
     "with_objective",
 ]

@@ -11,6 +11,7 @@ convention as in :mod:`rvdjax.solver.kkt`.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 from typing import Any, NamedTuple
@@ -32,6 +33,7 @@ __all__ = [
     "KERNELS",
     "kernel_on",
     "riccati_factor_solve",
+    "tracing_for_cuda",
 ]
 
 
@@ -352,6 +354,49 @@ def _factor_flags(in_batched) -> RiccatiFactor:
     return RiccatiFactor(bool(bA or bB), True, True, True, True)
 
 
+_CUDA_TRACE = [None]  # None: from this process's backends; True: forced (tracing_for_cuda)
+
+
+@functools.cache
+def _process_has_gpu() -> bool:
+    """Whether this process has a GPU backend (backends do not change once they are up)."""
+    try:
+        return bool(jax.devices("gpu"))
+    except RuntimeError:  # no GPU backend (a CPU-only jaxlib, or no driver)
+        return False
+
+
+def _cuda_branch() -> bool:
+    """Whether programs traced now keep the CUDA form beside the CPU's (see
+    :func:`tracing_for_cuda`)."""
+    forced = _CUDA_TRACE[0]
+    return _process_has_gpu() if forced is None else forced
+
+
+@contextlib.contextmanager
+def tracing_for_cuda():
+    """Trace the Newton step's CUDA form (the GPU kernels) inside the block whatever devices
+    this process has, so that a program traced here can be lowered for a CUDA GPU without one
+    (``jax.export`` with ``platforms=["cuda"]``, ``lower(lowering_platforms=("cuda",))``, a
+    compile for a described GPU).
+
+    Outside it, a process without a GPU backend traces the CPU's form alone: the form is
+    chosen by ``lax.platform_dependent``, which traces every branch, and tracing the kernels'
+    entry-wise algebra for programs that can only run on the CPU took a fifth of the time of
+    tests/test_paper_mode.py (43 s with it, 34 s without, 2026-11-28). A process with a GPU
+    traces both forms, as before. Entering clears JAX's caches when the setting changes: a
+    jitted function would otherwise reuse a trace that has only the CPU's form. (Traces made
+    inside the block keep both forms; reused on the CPU afterwards, they lower its form.)"""
+    old = _CUDA_TRACE[0]
+    if not _cuda_branch():
+        jax.clear_caches()
+    _CUDA_TRACE[0] = True
+    try:
+        yield
+    finally:
+        _CUDA_TRACE[0] = old
+
+
 def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
     "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
@@ -367,12 +412,17 @@ def _by_platform(kernel: str, xla, pallas, *args):
     (the kernels are only interpreted there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
+    cuda = _cuda_branch()  # a program that can only run on the CPU traces its form alone
     if kernel == "auto":
+        if not cuda:
+            return xla(*args)
         return lax.platform_dependent(
             *args, cuda=functools.partial(pallas, (AUTO_ON_CUDA, False)), default=xla
         )
     if not kernel.startswith("pallas"):
         return xla(*args)
+    if not cuda:
+        return pallas((kernel, True), *args)
     return lax.platform_dependent(
         *args,
         cuda=functools.partial(pallas, (kernel, False)),

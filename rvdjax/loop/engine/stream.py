@@ -4,6 +4,7 @@ programs compiled or exported ahead of a run."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import time
@@ -30,7 +31,7 @@ from rvdjax.loop.kernel import (
     Loop,
     Metrics,
 )
-from rvdjax.solver import SolverParams
+from rvdjax.solver import SolverParams, tracing_for_cuda
 
 
 def _resolve(loop, config, source: Source, params, sp, n_runs):
@@ -446,9 +447,9 @@ def export_segment(
     # jax.export refuses by default because their serialised form is not kept compatible
     # across jax versions; this export checks the lowering and is never stored.
     triton = jax.export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")
-    return jax.export.export(program, platforms=list(platforms), disabled_checks=[triton])(
-        *_abstract_args(loop, config, source, params, sp)
-    )
+    exporter = jax.export.export(program, platforms=list(platforms), disabled_checks=[triton])
+    with tracing_for_cuda() if "cuda" in platforms else contextlib.nullcontext():
+        return exporter(*_abstract_args(loop, config, source, params, sp))
 
 
 def fly_batch(
