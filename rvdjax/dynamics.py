@@ -102,10 +102,17 @@ def mean_motion(altitude_m=None, semi_major_axis_m=None):
         )
     if altitude_m is not None:
         check_positive("altitude_m", altitude_m, "m")
-        a = R_EARTH + jnp.asarray(altitude_m, dtype=float)
-    else:
-        check_positive("semi_major_axis_m", semi_major_axis_m, "m")
-        a = jnp.asarray(semi_major_axis_m, dtype=float)
+        return _mean_motion(R_EARTH + jnp.asarray(altitude_m, dtype=float))
+    check_positive("semi_major_axis_m", semi_major_axis_m, "m")
+    return _mean_motion(jnp.asarray(semi_major_axis_m, dtype=float))
+
+
+# The models' and discretisations' arithmetic is jitted (checks stay outside, on the values
+# as given): building a scenario's parameters ran it op by op, and each eager op's first call
+# compiles a program of its own, about 1 s of a 6 s `rvdjax run` (2026-11-28). The jitted
+# results are the same bits (every registered scenario's parameters compared).
+@jax.jit
+def _mean_motion(a):
     return jnp.sqrt(MU_EARTH / a**3)
 
 
@@ -128,8 +135,11 @@ def cw_continuous(n, mass):
     """
     check_positive("n (mean motion)", n, "rad/s")
     check_positive("mass", mass, "kg")
-    n = jnp.asarray(n, dtype=float)
-    mass = jnp.asarray(mass, dtype=float)
+    return _cw_continuous(jnp.asarray(n, dtype=float), jnp.asarray(mass, dtype=float))
+
+
+@jax.jit
+def _cw_continuous(n, mass):
     z = jnp.zeros(())
     Ac = jnp.array(
         [
@@ -160,8 +170,11 @@ def planar3dof_continuous(mass, inertia):
     """
     check_positive("mass", mass, "kg")
     check_positive("inertia", inertia, "kg m^2")
-    mass = jnp.asarray(mass, dtype=float)
-    inertia = jnp.asarray(inertia, dtype=float)
+    return _planar3dof(jnp.asarray(mass, dtype=float), jnp.asarray(inertia, dtype=float))
+
+
+@jax.jit
+def _planar3dof(mass, inertia):
     Ac = jnp.block([[jnp.zeros((3, 3)), jnp.eye(3)], [jnp.zeros((3, 3)), jnp.zeros((3, 3))]])
     inv = jnp.stack([1.0 / mass, 1.0 / mass, 1.0 / inertia])
     Bc = jnp.concatenate([jnp.zeros((3, 3)), jnp.diag(inv)])
@@ -180,7 +193,11 @@ def planar2dof_continuous(mass):
         (Ac (4, 4), Bc (4, 2)) with Bc = [0; I / mass].
     """
     check_positive("mass", mass, "kg")
-    mass = jnp.asarray(mass, dtype=float)
+    return _planar2dof(jnp.asarray(mass, dtype=float))
+
+
+@jax.jit
+def _planar2dof(mass):
     Ac = jnp.block([[jnp.zeros((2, 2)), jnp.eye(2)], [jnp.zeros((2, 2)), jnp.zeros((2, 2))]])
     Bc = jnp.concatenate([jnp.zeros((2, 2)), jnp.eye(2) / mass])
     return Ac, Bc
@@ -213,6 +230,11 @@ def discretize_zoh(Ac, Bc, ts):
         raise ValueError(f"Bc must have shape ({Ac.shape[0]}, nu), got {Bc.shape}")
     check_finite("Ac", Ac)
     check_finite("Bc", Bc)
+    return _zoh(Ac, Bc, ts)
+
+
+@jax.jit
+def _zoh(Ac, Bc, ts):
     nx, nu = Bc.shape
     M = jnp.zeros((nx + nu, nx + nu))
     M = M.at[:nx, :nx].set(Ac).at[:nx, nx:].set(Bc)
@@ -245,6 +267,12 @@ def discretize_impulsive(Ac, ts, nv: int | None = None):
         nv = nx // 2
     if not (isinstance(nv, (int, np.integer)) and 1 <= nv <= nx):
         raise ValueError(f"nv (number of velocity states) must be an integer in [1, {nx}]")
+    return _impulsive(Ac, ts, int(nv))
+
+
+@functools.partial(jax.jit, static_argnames="nv")
+def _impulsive(Ac, ts, nv: int):
+    nx = Ac.shape[0]
     Ad = expm(Ac * ts)
     Bbar = jnp.concatenate([jnp.zeros((nx - nv, nv)), jnp.eye(nv)])
     return Ad, Ad @ Bbar

@@ -158,10 +158,13 @@ def circular_orbit(altitude_m, inclination_rad=0.0, raan_rad=0.0, arg_lat_rad=0.
         Orbit with |r| = a and |v| = sqrt(mu / a), v perpendicular to r (prograde).
     """
     check_positive("altitude_m", altitude_m, "m")
-    a = R_EARTH + jnp.asarray(altitude_m, dtype=float)
-    i = jnp.asarray(inclination_rad, dtype=float)
-    raan = jnp.asarray(raan_rad, dtype=float)
-    u = jnp.asarray(arg_lat_rad, dtype=float)
+    f = partial(jnp.asarray, dtype=float)
+    return _circular_orbit(f(altitude_m), f(inclination_rad), f(raan_rad), f(arg_lat_rad))
+
+
+@jax.jit  # one compile instead of one per eager op (rvdjax.dynamics._mean_motion)
+def _circular_orbit(altitude_m, i, raan, u) -> Orbit:
+    a = R_EARTH + altitude_m
     # Unit vectors: P toward the ascending node, Q 90 deg ahead in the orbit plane.
     p = jnp.stack([jnp.cos(raan), jnp.sin(raan), jnp.zeros_like(raan)])
     q = jnp.stack([-jnp.sin(raan) * jnp.cos(i), jnp.cos(raan) * jnp.cos(i), jnp.sin(i)])
