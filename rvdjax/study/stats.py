@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats as _st
 
 __all__ = [
     "clopper_pearson_lower",
@@ -25,6 +24,14 @@ __all__ = [
 
 # p99.73 is the 3-sigma point of a normal distribution, the figure GNC reviews quote.
 PERCENTILES = (50.0, 95.0, 99.73)
+
+
+def _beta_ppf(q, a, b):
+    # scipy.stats imported here, not with the module: it takes about 0.6 s, and every
+    # command line call imports this module (the study command's parsers).
+    from scipy import stats
+
+    return stats.beta.ppf(q, a, b)
 
 
 def _check_confidence(confidence: float) -> None:
@@ -42,7 +49,7 @@ def clopper_pearson_lower(successes: int, runs: int, confidence: float = 0.9) ->
         return 0.0
     if successes == 0:
         return 0.0
-    return float(_st.beta.ppf(1.0 - confidence, successes, runs - successes + 1))
+    return float(_beta_ppf(1.0 - confidence, successes, runs - successes + 1))
 
 
 def clopper_pearson_upper(successes: int, runs: int, confidence: float = 0.9) -> float:
@@ -52,7 +59,7 @@ def clopper_pearson_upper(successes: int, runs: int, confidence: float = 0.9) ->
         raise ValueError(f"successes must be in [0, runs={runs}], got {successes}")
     if successes == runs:
         return 1.0
-    return float(_st.beta.ppf(confidence, successes + 1, runs - successes))
+    return float(_beta_ppf(confidence, successes + 1, runs - successes))
 
 
 def zero_failure_runs(reliability: float, confidence: float = 0.9) -> int:
