@@ -202,17 +202,12 @@ def _settings(mode: str, kernel: str) -> SolverSettings:
 
 
 def _solve_shared(ocp, settings: SolverSettings):
-    """:func:`rvdjax.solver.solve`'s loop (start, iterate until finished, finish) with the
-    model fields (A, B, c, Q, R) passed through as they are (``trusted_model``), so that under
-    ``vmap(in_axes=...)`` one model serves every problem unbatched, as in the batch engine."""
+    """:func:`rvdjax.solver.solve`'s loop with the model fields (A, B, c, Q, R) passed through
+    as they are (``trusted_model``), so that under ``vmap(in_axes=...)`` one model serves every
+    problem unbatched, as in the batch engine."""
     params = SolverParams.for_settings(settings)
-    o, st = driver.start(ocp, settings, params, trusted_model=True)
-    st = jax.lax.while_loop(
-        lambda s: ~driver.finished(settings, s),
-        lambda s: driver.iterate(o, settings, params, s),
-        st,
-    )
-    return driver.with_objective(o, driver.finish(o, settings, params, st))
+    sol, o, _ = driver._forward_state(ocp, params, None, settings, trusted_model=True)
+    return driver.with_objective(o, sol)
 
 
 def _shared(ocps_host):

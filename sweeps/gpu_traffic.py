@@ -532,7 +532,10 @@ def main(argv=None) -> int:
             hlo = _compile(kernel, args.batch, args.mode, args.target, args.shared_model)
         t = traffic(hlo)
         if args.hlo:
-            name = f"hlo_{kernel}{'_padded' if args.padded_blocks else ''}_{args.mode}.txt"
+            variant = ("_padded" if args.padded_blocks else "") + (
+                "_shared" if args.shared_model else ""
+            )
+            name = f"hlo_{kernel}{variant}_{args.mode}.txt"
             with open(os.path.join(args.out, name), "w", encoding="utf-8") as f:
                 f.write(hlo)
         compile_s = time.perf_counter() - t0

@@ -236,8 +236,10 @@ def with_objective(ocp: OCP, sol: Solution) -> Solution:
     return sol._replace(objective=jnp.where(failed, jnp.inf, J))
 
 
-def _forward_state(ocp, params, init, settings):
-    ocp_safe, state = start(ocp, settings, params, init)
+def _forward_state(ocp, params, init, settings, trusted_model: bool = False):
+    """The solve loop: :func:`start` (``trusted_model`` as there), :func:`iterate` until
+    finished, :func:`finish`. Returns (solution, the OCP iterated on, the final state)."""
+    ocp_safe, state = start(ocp, settings, params, init, trusted_model)
 
     def cond(st):
         return ~finished(settings, st)
