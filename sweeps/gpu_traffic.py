@@ -88,6 +88,7 @@ _SHAPE = re.compile(r"\b(" + "|".join(_SIZES) + r")\[([\d,]*)\]")
 _INSTR = re.compile(r"\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*?)\s([\w\-]+)\((.*)")
 _HEAD = re.compile(r"^(ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$")
 _FREE = {"parameter", "constant", "tuple", "get-tuple-element", "bitcast", "after-all"}
+_MOVES = {"copy", "transpose", "reshape"}
 
 
 def nbytes(text: str) -> int:
@@ -233,7 +234,10 @@ def _sliced_reads(comps: dict, fused: str, shapes: dict) -> dict:
 def traffic(hlo: str, start: str | None = None, key=None) -> dict:
     """Launches and bytes of an optimised GPU program (``compiled.as_text()``): every fusion,
     custom call (a Pallas kernel among them) and other launch reads its operands and writes its
-    outputs once; a ``while`` body counts once per trip (its ``known_trip_count``, else once).
+    outputs once; a ``while`` body counts once per trip (its ``known_trip_count``, else once);
+    a ``conditional`` counts one branch, the one that does work (the heaviest of them): a
+    branch that only copies its operands out is the engine refresh's skip of a group with
+    nothing to load or prepare, which a group of thousands of slots does not take.
     Returns launches, read and written bytes, the Pallas kernels' (``pallas``: launches, read,
     written), the ``while`` loops met (``loops``) and bytes by source line (``by_source``:
     {source: [launches, bytes]}). A launch that updates part of an array in place (a
@@ -280,10 +284,17 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
                 trips = re.search(r'known_trip_count":\{"n":"(\d+)"', ln)
                 walk(body, times * (int(trips.group(1)) if trips else 1))
                 continue
-            if op in ("call", "conditional"):
-                for c in re.findall(r"%([\w.\-]+)", ln.split("(", 1)[1].split(")", 1)[1]):
-                    if c in comps:
-                        walk(c, times)
+            called = [
+                c
+                for c in re.findall(r"%([\w.\-]+)", ln.split("(", 1)[1].split(")", 1)[1])
+                if c in comps
+            ]
+            if op == "call":
+                for c in called:
+                    walk(c, times)
+                continue
+            if op == "conditional":  # one branch runs: the one that moves the most
+                branch(called, times)
                 continue
             operands = re.findall(r"%([\w.\-]+)", rest.split("), ")[0])
             read, written = sum(shapes.get(o, 0) for o in operands), nbytes(shape)
@@ -310,6 +321,42 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
             src = by_source[key(ln) if key else source(ln)]
             src[0] += times
             src[1] += times * (read + written)
+
+    def snapshot():
+        return dict(out, pallas=list(out["pallas"])), {k: list(v) for k, v in by_source.items()}
+
+    def restore(state):
+        out.clear()
+        out.update(state[0])
+        by_source.clear()
+        by_source.update(state[1])
+
+    def moves_only(comp: str) -> bool:
+        """Whether ``comp`` only moves data: copies, transposes, (fused) layout changes."""
+        for ln in comps.get(comp, []):
+            m = _INSTR.match(ln)
+            if not m or m.group(3) in _FREE or m.group(3) in _MOVES:
+                continue
+            called = re.search(r"calls=%?([\w.\-]+)", ln)
+            if m.group(3) == "fusion" and called and moves_only(called.group(1)):
+                continue
+            return False
+        return True
+
+    def branch(names, times):
+        # the branch that does work, the heaviest if several: a branch that only copies its
+        # operands out (in the layouts the other branch gives them) is the skip of a refresh
+        # with nothing to load or prepare, which a group of thousands of slots does not take
+        working = [c for c in names if not moves_only(c)] or names
+        before, best = snapshot(), None
+        for c in working:
+            walk(c, times)
+            moved = (out["read"] + out["written"], out["launches"])
+            if best is None or moved > best[0]:
+                best = (moved, snapshot())
+            restore(before)
+        if best is not None:
+            restore(best[1])
 
     walk(start or entry, 1)
     out["by_source"] = dict(by_source)

@@ -234,6 +234,67 @@ def test_gpu_traffic_counts_scatters_in_place():
     assert (t["launches"], t["read"], t["written"]) == (2, 2 * (8 + 128), 2 * 128)
 
 
+_HLO_COND = """HloModule m, is_scheduled=true
+
+%fused_m (p0: f64[4,8]) -> f64[4,8] {
+  %p0 = f64[4,8]{1,0} parameter(0)
+  ROOT %m = f64[4,8]{1,0} multiply(%p0, %p0)
+}
+
+%work (a: (f64[4,8], f64[4,8])) -> (f64[4,8], f64[4,8]) {
+  %a = (f64[4,8]{1,0}, f64[4,8]{1,0}) parameter(0)
+  %x = f64[4,8]{1,0} get-tuple-element(%a), index=0
+  %y = f64[4,8]{1,0} get-tuple-element(%a), index=1
+  %f = f64[4,8]{1,0} fusion(%x), kind=kLoop, calls=%fused_m
+  %g = f64[4,8]{1,0} fusion(%y), kind=kLoop, calls=%fused_m
+  %h = f64[4,8]{1,0} fusion(%f), kind=kLoop, calls=%fused_m
+  ROOT %r = (f64[4,8]{1,0}, f64[4,8]{1,0}) tuple(%h, %g)
+}
+
+%skip (b: (f64[4,8], f64[4,8])) -> (f64[4,8], f64[4,8]) {
+  %b = (f64[4,8]{1,0}, f64[4,8]{1,0}) parameter(0)
+  %x = f64[4,8]{1,0} get-tuple-element(%b), index=0
+  %y = f64[4,8]{1,0} get-tuple-element(%b), index=1
+  %cx = f64[4,8]{1,0} copy(%x)
+  %cy = f64[4,8]{1,0} copy(%y)
+  ROOT %r = (f64[4,8]{1,0}, f64[4,8]{1,0}) tuple(%cx, %cy)
+}
+
+ENTRY %main (p: pred[], x: f64[4,8], y: f64[4,8]) -> (f64[4,8], f64[4,8]) {
+  %p = pred[] parameter(0)
+  %x = f64[4,8]{1,0} parameter(1)
+  %y = f64[4,8]{1,0} parameter(2)
+  %t = (f64[4,8]{1,0}, f64[4,8]{1,0}) tuple(%x, %y)
+  ROOT %c = (f64[4,8]{1,0}, f64[4,8]{1,0}) conditional(%p, %t, %t), true_computation=%work, false_computation=%skip
+}
+"""  # noqa: E501
+
+
+def test_gpu_traffic_counts_one_branch_of_a_conditional():
+    """Only one branch of a conditional runs: the count takes the branch that works (three
+    fusions, each reading and writing 256 bytes) and leaves out one that only copies its
+    operands out (two copies), whichever order the branches are listed in; with no working
+    branch, the heaviest copy branch."""
+    gt = _import("gpu_traffic")
+    swapped = _HLO_COND.replace(
+        "true_computation=%work, false_computation=%skip",
+        "true_computation=%skip, false_computation=%work",
+    )
+    for hlo in (_HLO_COND, swapped):
+        t = gt.traffic(hlo)
+        assert (t["launches"], t["read"], t["written"]) == (3, 3 * 256, 3 * 256)
+    # a working branch lighter than the copies (one fusion: 512 bytes against 1 024) is
+    # still the one counted
+    light = _HLO_COND.replace("  %g = f64[4,8]{1,0} fusion(%y), kind=kLoop, calls=%fused_m\n", "")
+    light = light.replace("  %h = f64[4,8]{1,0} fusion(%f), kind=kLoop, calls=%fused_m\n", "")
+    light = light.replace("tuple(%h, %g)", "tuple(%f, %y)")
+    t = gt.traffic(light)
+    assert (t["launches"], t["read"], t["written"]) == (1, 256, 256)
+    only_copies = _HLO_COND.replace("true_computation=%work", "true_computation=%skip")
+    t = gt.traffic(only_copies)
+    assert (t["launches"], t["read"], t["written"]) == (2, 2 * 256, 2 * 256)
+
+
 def test_shared_model_rows_solve_the_same_qps():
     """gpu_benchmark's --shared-model rows: one copy of the fastmpc-3d model (A, B, c, Q, R)
     under vmap, the rest per problem, gives vmap(solve)'s solutions bit for bit, with the model

@@ -185,16 +185,17 @@ def _triton_calls(text):
     "settings, kernels, loops, variant",
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps;
-        # loops: the solve, the start's drift of the warm-start inputs
-        # (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
+        # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on
+        # a GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form,
+        # 10-15 s each)
         *(
-            pytest.param(SolverSettings(), 4, 2, v, marks=pytest.mark.slow)
+            pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io")
         ),
-        (SolverSettings(), 4, 2, "auto"),
-        # paper: factorisation + step; loops: the solve, the drift, the line search (the
-        # count of launches and loops is the mode's, whichever kernels run them)
-        (SolverSettings.paper(), 2, 3, "auto"),
+        (SolverSettings(), 4, 1, "auto"),
+        # paper: factorisation + step; loops: the solve, the line search (the count of
+        # launches and loops is the mode's, whichever kernels run them)
+        (SolverSettings.paper(), 2, 2, "auto"),
     ],
 )
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
@@ -202,24 +203,25 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, whose
     Triton kernels on a CUDA GPU are those of ``AUTO_ON_CUDA``, launch for launch) hold the
     Riccati sweeps as ``kernels`` Triton kernels and no loop over stages beyond the solve
-    loop, the start's drift and (paper mode) the line search; ``kernel="xla"`` keeps XLA's
-    loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops."""
+    loop and (paper mode) the line search: the start's drift is unrolled; ``kernel="xla"``
+    keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
-    batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
-    single = _cuda_text(lambda o: solve(o, settings), one)
-    for text in (batched, single):
-        assert text.count("__gpu$xla.gpu.triton") == kernels
-        assert text.count("stablehlo.while") == loops
-    if variant != "auto":
-        return
-    chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
-    chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
-    assert _triton_calls(batched) == _triton_calls(chosen)
-    xla = dataclasses.replace(settings, kernel="xla")
-    gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
-    assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
+    with tracing_for_cuda():  # one clear of JAX's caches for the test's four lowerings
+        batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
+        single = _cuda_text(lambda o: solve(o, settings), one)
+        for text in (batched, single):
+            assert text.count("__gpu$xla.gpu.triton") == kernels
+            assert text.count("stablehlo.while") == loops
+        if variant != "auto":
+            return
+        chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
+        chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
+        assert _triton_calls(batched) == _triton_calls(chosen)
+        xla = dataclasses.replace(settings, kernel="xla")
+        gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
+        assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
     cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops
 
@@ -238,6 +240,38 @@ def test_a_cpu_process_traces_the_cpu_form_alone():
     with tracing_for_cuda():
         inside = str(jax.make_jaxpr(fn)(one))
     assert "pallas_call" in inside and "platform_index" in inside
+
+
+def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
+    """The start's drift (x_{t+1} = A_t x_t + B_t u_t + c_t) and a cold plan's: one loop over
+    the stages lowered for the CPU, none lowered for a CUDA GPU (every trip of a loop there is
+    several launches); the states those of the recursion written out in NumPy, and traced
+    for both platforms the same on the CPU, bit for bit."""
+    from rvdjax.solver.start import drift, drift_plan
+
+    ocp = fastmpc3d_first_step(obstacles=True)
+    u = jax.random.normal(jax.random.key(3), (ocp.N, ocp.nu)) * 0.01
+    x, ref = np.asarray(ocp.x0), []
+    for t in range(ocp.N):
+        x = (
+            np.asarray(ocp.A[t]) @ x
+            + np.asarray(ocp.B[t]) @ np.asarray(u[t])
+            + np.asarray(ocp.c[t])
+        )
+        ref.append(x)
+    got = jax.jit(drift)(ocp, u)
+    np.testing.assert_allclose(got, np.stack(ref), rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+    def cold(o):
+        return drift_plan(o.A, o.x0, o.N, o.nu).x
+
+    for fn, args in ((drift, (ocp, u)), (cold, (ocp,))):
+        assert jax.jit(fn).trace(*args).lower().as_text().count("stablehlo.while") == 1
+        with tracing_for_cuda():
+            both = jax.jit(fn)(*args)
+            cuda = jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+        assert cuda.count("stablehlo.while") == 0
+        np.testing.assert_array_equal(both, jax.jit(fn)(*args))
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():

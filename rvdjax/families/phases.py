@@ -34,7 +34,6 @@ with rho = lambda.
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jax import lax
 
 from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
@@ -73,7 +72,7 @@ from rvdjax.families.phases_inputs import (  # noqa: F401  (the family's inputs,
 )
 from rvdjax.loop.family import Family, Hooks, Tuning, lazy
 from rvdjax.ocp import OCP
-from rvdjax.solver import Plan
+from rvdjax.solver import drift_plan
 
 __all__ = [
     "Params",
@@ -175,14 +174,7 @@ def initial_plan(p: Params, fc: Config, g, x0):
     N = _N(fc)
     stage = jnp.arange(N)
     A = jnp.where((stage < fc.N[0])[:, None, None], p.A[0], jnp.eye(6, dtype=p.A.dtype))
-
-    def body(x, A_t):
-        x = A_t @ x
-        return x, x
-
-    _, xs = lax.scan(body, x0, A)
-    nu = 6 if fc.rendezvous_cost == "lp" else 3
-    return Plan(jnp.zeros((N, nu), x0.dtype), xs, jnp.zeros(xs.shape, xs.dtype))
+    return drift_plan(A, x0, N, 6 if fc.rendezvous_cost == "lp" else 3)
 
 
 def observe(p, fc, g, x, t, plan):
