@@ -208,20 +208,19 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
-    with tracing_for_cuda():  # one clear of JAX's caches for the test's four lowerings
-        batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
-        single = _cuda_text(lambda o: solve(o, settings), one)
-        for text in (batched, single):
-            assert text.count("__gpu$xla.gpu.triton") == kernels
-            assert text.count("stablehlo.while") == loops
-        if variant != "auto":
-            return
-        chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
-        chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
-        assert _triton_calls(batched) == _triton_calls(chosen)
-        xla = dataclasses.replace(settings, kernel="xla")
-        gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
-        assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
+    batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
+    single = _cuda_text(lambda o: solve(o, settings), one)
+    for text in (batched, single):
+        assert text.count("__gpu$xla.gpu.triton") == kernels
+        assert text.count("stablehlo.while") == loops
+    if variant != "auto":
+        return
+    chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
+    chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
+    assert _triton_calls(batched) == _triton_calls(chosen)
+    xla = dataclasses.replace(settings, kernel="xla")
+    gpu_xla = _cuda_text(jax.vmap(lambda o: solve(o, xla)), ocps)
+    assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
     cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops
 
