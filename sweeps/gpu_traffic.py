@@ -284,17 +284,14 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
                 trips = re.search(r'known_trip_count":\{"n":"(\d+)"', ln)
                 walk(body, times * (int(trips.group(1)) if trips else 1))
                 continue
-            called = [
-                c
-                for c in re.findall(r"%([\w.\-]+)", ln.split("(", 1)[1].split(")", 1)[1])
-                if c in comps
-            ]
-            if op == "call":
-                for c in called:
-                    walk(c, times)
-                continue
-            if op == "conditional":  # one branch runs: the one that moves the most
-                branch(called, times)
+            if op in ("call", "conditional"):
+                after = ln.split("(", 1)[1].split(")", 1)[1]  # the called computations' names
+                called = [c for c in re.findall(r"%([\w.\-]+)", after) if c in comps]
+                if op == "call":
+                    for c in called:
+                        walk(c, times)
+                else:  # one branch runs: the one that works
+                    branch(called, times)
                 continue
             operands = re.findall(r"%([\w.\-]+)", rest.split("), ")[0])
             read, written = sum(shapes.get(o, 0) for o in operands), nbytes(shape)
