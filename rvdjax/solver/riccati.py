@@ -397,6 +397,15 @@ def tracing_for_cuda():
         _CUDA_TRACE[0] = old
 
 
+def cuda_or_default(*args, cuda, default):
+    """``cuda(*args)`` where the program runs on a CUDA GPU, ``default(*args)`` elsewhere
+    (``lax.platform_dependent``, decided when the program is lowered for its device); a
+    process that cannot lower for a GPU traces ``default`` alone (:func:`tracing_for_cuda`)."""
+    if not _cuda_branch():
+        return default(*args)
+    return lax.platform_dependent(*args, cuda=cuda, default=default)
+
+
 def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
     "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
@@ -412,18 +421,13 @@ def _by_platform(kernel: str, xla, pallas, *args):
     (the kernels are only interpreted there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
-    cuda = _cuda_branch()  # a program that can only run on the CPU traces its form alone
     if kernel == "auto":
-        if not cuda:
-            return xla(*args)
-        return lax.platform_dependent(
+        return cuda_or_default(
             *args, cuda=functools.partial(pallas, (AUTO_ON_CUDA, False)), default=xla
         )
     if not kernel.startswith("pallas"):
         return xla(*args)
-    if not cuda:
-        return pallas((kernel, True), *args)
-    return lax.platform_dependent(
+    return cuda_or_default(
         *args,
         cuda=functools.partial(pallas, (kernel, False)),
         default=functools.partial(pallas, (kernel, True)),

@@ -15,7 +15,7 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import Rows
 from rvdjax.solver.kkt import KKT_SOLVERS
-from rvdjax.solver.riccati import _cuda_branch
+from rvdjax.solver.riccati import cuda_or_default
 from rvdjax.solver.types import Plan, Solution, SolverSettings
 
 __all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan", "warm_start"]
@@ -36,9 +36,7 @@ def _stage_scan(step, x0, xs, length=None):
     def scan(unroll):
         return lambda x0: lax.scan(step, x0, xs, length=length, unroll=unroll)[1]
 
-    if not _cuda_branch():
-        return scan(1)(x0)
-    return lax.platform_dependent(x0, cuda=scan(True), default=scan(1))
+    return cuda_or_default(x0, cuda=scan(True), default=scan(1))
 
 
 def drift(ocp: OCP, u):
