@@ -26,7 +26,7 @@ import numpy as np
 from jax import lax
 
 from rvdjax.bench import perturbed_states
-from rvdjax.loop.engine.slots import _strip_model, _with_model
+from rvdjax.loop.engine.slots import _strip_model, _with_model, model_of
 from rvdjax.loop.kernel import Prepared, advance, init, metrics, prepare
 from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver.driver import finish, iterate, start
@@ -43,35 +43,34 @@ def _chunk(name: str, chunk: int, n_iterations: int = ITERATIONS, unbatched: boo
     params, x0, loop = flight.params, flight.x0, flight.loop
     sp = sc.solver_params("accurate")
     settings = loop.config.settings
-    shared = loop.family.model is not None
-    model = loop.family.model(params, loop.config.family_config) if shared else None
 
-    def with_model(ocp):
-        return _with_model(loop, ocp, model) if shared else ocp
+    def with_model(ocp, g):
+        return _with_model(ocp, model_of(loop, params, g))
 
     @jax.jit
     def prepare_start(states):
         def one(st):
             nxt = prepare(loop, params, st)
-            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=shared)
-            return nxt, (_strip_model(loop, ocp) if shared else ocp), solve
+            model = model_of(loop, params, nxt.guidance)
+            ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=model is not None)
+            return nxt, _strip_model(ocp, model), solve
 
         return jax.vmap(one)(states)
 
     @jax.jit
-    def iterations(ocps, solves):
-        def one(ocp, s):
-            ocp = with_model(ocp)
+    def iterations(ocps, gs, solves):
+        def one(ocp, g, s):
+            ocp = with_model(ocp, g)
             return lax.fori_loop(0, n_iterations, lambda _, st: iterate(ocp, settings, sp, st), s)
 
         if unbatched:  # the first problem alone, no batch axis
-            return one(*jax.tree.map(lambda a: a[0], (ocps, solves)))
-        return jax.vmap(one)(ocps, solves)
+            return one(*jax.tree.map(lambda a: a[0], (ocps, gs, solves)))
+        return jax.vmap(one)(ocps, gs, solves)
 
     @jax.jit
     def step_done(states, nxts, ocps, solves):
         def one(st, nxt, ocp, s):
-            ocp = with_model(ocp)
+            ocp = with_model(ocp, nxt.guidance)
             sol = finish(ocp, settings, sp, s)
             new, _ = advance(
                 loop, params, sp, st, Prepared(nxt.guidance, ocp, nxt.hard, None, nxt.nav), sol
@@ -100,11 +99,11 @@ def _timings_us(fn, args, per, repeats=20) -> list[float]:
 
 def iteration_cost(name: str, chunk: int) -> dict:
     states, prepare_start, iterations, _ = _chunk(name, chunk)
-    _, ocps, solves = prepare_start(states)
+    nxts, ocps, solves = prepare_start(states)
     t0 = time.perf_counter()
-    compiled = iterations.lower(ocps, solves).compile()
+    compiled = iterations.lower(ocps, nxts.guidance, solves).compile()
     compile_s = time.perf_counter() - t0
-    per = _timings_us(compiled, (ocps, solves), ITERATIONS * chunk)
+    per = _timings_us(compiled, (ocps, nxts.guidance, solves), ITERATIONS * chunk)
     return dict(
         scenario=name,
         chunk=chunk,
@@ -123,8 +122,9 @@ def unbatched_cost(name: str, chunk: int) -> dict:
         t = {}
         for k in (3, 30):
             states, prepare_start, iterations, _ = _chunk(name, c, n_iterations=k, unbatched=unb)
-            _, ocps, solves = prepare_start(states)
-            t[k] = min(_timings_us(iterations, (ocps, solves), 1, repeats=20 if k == 3 else 5))
+            nxts, ocps, solves = prepare_start(states)
+            args = (ocps, nxts.guidance, solves)
+            t[k] = min(_timings_us(iterations, args, 1, repeats=20 if k == 3 else 5))
         out[key] = (t[30] - t[3]) / 27 / c
         if unb:
             out["call_overhead_us"] = t[3] - 3 * out[key]
@@ -136,12 +136,12 @@ def phase_costs(name: str, chunk: int) -> dict:
     """Microseconds per slot of each phase of an engine tick, for a chunk of slots."""
     states, prepare_start, iterations, step_done = _chunk(name, chunk)
     nxts, ocps, solves = prepare_start(states)
-    solves = iterations(ocps, solves)
+    solves = iterations(ocps, nxts.guidance, solves)
     return dict(
         scenario=name,
         chunk=chunk,
         prepare_start_us=min(_timings_us(prepare_start, (states,), chunk)),
-        iterations_us=min(_timings_us(iterations, (ocps, solves), chunk)),
+        iterations_us=min(_timings_us(iterations, (ocps, nxts.guidance, solves), chunk)),
         step_done_us=min(_timings_us(step_done, (states, nxts, ocps, solves), chunk)),
     )
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +12,7 @@ from flights import flight
 
 from rvdjax.constraints import margins
 from rvdjax.families import phases as ph
+from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
 from rvdjax.scenarios import SCENARIOS
 from rvdjax.scenarios import paper003 as thesis
 from rvdjax.solver import Status, solve
@@ -170,6 +173,47 @@ def test_compare_with_table_3_6(runs, lp_run):
     # the rendezvous phase stays the dominant one
     assert m.phase_delta_v_m_s[nosp, 0] / dv["nosp"] > 0.6
     assert lp.phase_delta_v_m_s[0, 0] / dv["lp"] > 0.6
+
+
+@pytest.mark.parametrize("name", ["thesis-vbar", "thesis-vbar-lp"])
+def test_the_phase_model_is_the_one_the_ocp_has(name):
+    """The model the batch engine rebuilds from a slot's phase instead of storing it is, bit
+    for bit, the A, B, c, Q, R of that phase's OCP; none with the thrusters' finite burns
+    (their B and c follow the plan)."""
+    sc = SCENARIOS[name]
+    p, x0 = sc.build()
+    fc = sc.loop().config.family_config
+    g0 = ph.init(p, fc, x0)
+    plan = ph.initial_plan(p, fc, g0, x0)
+
+    @jax.jit
+    def both(g):
+        return ph.ocp(p, fc, g, x0, jnp.asarray(100.0), plan)[0], ph.model(p, fc, g)
+
+    for phase in range(3):
+        ocp, model = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)))
+        for field, a in zip(("A", "B", "c", "Q", "R"), model, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(getattr(ocp, field)))
+    with_burns, _ = sc.build(thrusters=True)
+    assert ph.model(with_burns, fc, g0) is None
+    assert ph.model(with_burns, dataclasses.replace(fc, finite_burn=False), g0) is not None
+
+
+def test_the_engine_flies_the_cases_as_single_flights(runs):
+    """The four cases through the batch engine (per-run parameters, two slots, so that runs
+    in different phases share a batch; the model rebuilt from each slot's phase) land as
+    their single flights: the same steps, phase times and statuses, delta-v to rounding."""
+    params, _, m = runs
+    x0s = jnp.stack([SCENARIOS[f"thesis-{c}"].build()[1] for c in RUNS])
+    loop = SCENARIOS["thesis-vbar"].loop("accurate", n_steps=200)
+    out = run_batch(
+        loop, arrays_source(x0s, params=params), len(RUNS), config=EngineConfig(slots=2, chunk=2)
+    )
+    e = out["metrics"]
+    np.testing.assert_array_equal(e.steps, m.steps)
+    np.testing.assert_array_equal(e.phase_time_s, m.phase_time_s)
+    np.testing.assert_array_equal(e.status_counts, m.status_counts)
+    np.testing.assert_allclose(e.delta_v_m_s, m.delta_v_m_s, rtol=1e-9)
 
 
 @pytest.mark.slow  # 14 s; `pytest -m slow`

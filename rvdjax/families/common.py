@@ -42,8 +42,9 @@ def tracking_ocp(model, x, x_ref, state_blocks, input_box: Block) -> OCP:
     )
 
 
-def model(p, fc):
-    """(A, B, c, Q, R) of the OCP: time invariant, the terminal weight on the last stage."""
+def model(p, fc, g=None):
+    """(A, B, c, Q, R) of the OCP: time invariant, the terminal weight on the last stage (the
+    same for every guidance state ``g``)."""
     return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
 
 

@@ -219,7 +219,7 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     per_phase = [
         [keep_out, cone_penalty]
         + (
-            [between_samples(keep_out, _coast_back(p.plant.Ac, ts), "keep_out_between")]
+            [between_samples(keep_out, _coast_back(p.plant.Ac, p.ts)[phase], "keep_out_between")]
             if fc.between_samples
             else []
         ),
@@ -232,16 +232,11 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         ],
     ]
 
-    eye = jnp.eye(6, dtype=dtype)
-    A = jnp.where(real[:, None, None], p.A[phase], eye)
     B_phase, c = p.B[phase], jnp.zeros((N, 6), dtype)
-    if p.plant.thrusters is not None and fc.finite_burn:  # the vehicle's burns, not impulses
+    if _finite_burns(p, fc):  # the vehicle's burns, not impulses
         B_phase, c = finite_burn(p, p.A[phase], ts, _plan_dv(fc, g, plan))
         c = jnp.where(real[:, None], c, 0.0)
-    B = jnp.where(real[:, None, None], B_phase, 0.0)
-    Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
-    Q = Q.at[-1].set(p.Q_f[phase])
-    R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
+    A, B, Q, R = _phase_model(p, fc, phase, B_phase)
     r = jnp.zeros((N, 3), dtype)
     box = thrust_box(p.u_max[phase], N, nu=3)
     Fu, fu = box.F, box.f
@@ -253,21 +248,14 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         W = jnp.where((stage < n_real - 1)[:, None, None], p.Q[0], p.Q_f[0])
         Wr = jnp.einsum("tij,tj->ti", W, x_ref)
         per_phase[0].append(cost_rows(W, Wr, name="lp_state_cost").masked(on * p0))
-        Q = jnp.where(p0, 0.0, Q)
         # input: six variables v = [v1; v2] in every phase (one shape). Rendezvous: the split
         # u = v1 - v2 with 0 <= v1, v2 <= u_max, so sum_i R_ii |u_i| = w^T (v1 + v2) at the
         # optimum (R diagonal, checked by :func:`check`): B' = [B, -B], linear cost r = w,
         # R' = LP_REG max(w) I. Approach and docking keep the QP of the thesis exactly: u = v1
         # with its box, B' = [B, 0], and v2 a dummy input with no effect and weight R (its
         # optimum is v2 = 0): R' = diag(R, R).
-        B = jnp.concatenate([B, jnp.where(p0, -B, 0.0)], axis=-1)
+        # (the model's B, Q and R: _phase_model)
         w = jnp.diagonal(p.R[0])
-        R_lp = jnp.where(
-            p0,
-            LP_REG * jnp.max(w) * jnp.eye(6, dtype=dtype),
-            jnp.kron(jnp.eye(2, dtype=dtype), p.R[phase]),
-        )
-        R = jnp.broadcast_to(R_lp, (N, 6, 6))
         r = jnp.where(p0, jnp.broadcast_to(jnp.concatenate([w, w]), (N, 6)), 0.0)
         # hard rows v <= hi, -v <= lo: hi = lo = u_max in approach and docking; in rendezvous
         # the bound v >= 0 is relaxed to v >= -LP_EPS u_max so that v = 0 is strictly
@@ -304,12 +292,60 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     return problem, blocks
 
 
+def _finite_burns(p: Params, fc: Config) -> bool:
+    """Whether the model has the thrusters' finite burns (static: the parameters' structure
+    and the configuration), whose B and c follow each step's plan."""
+    return p.plant.thrusters is not None and fc.finite_burn
+
+
+def _phase_model(p: Params, fc: Config, phase, B_phase):
+    """(A, B, Q, R) of the phase's QP padded to the largest horizon, with the input matrix
+    ``B_phase`` of its real stages: identity dynamics, no input and no weight on the padded
+    stages, Q_f on the last real one; the LP's split inputs with ``rendezvous_cost = "lp"``
+    (:func:`ocp`)."""
+    N = _N(fc)
+    n_real = jnp.asarray(fc.N)[phase]
+    stage = jnp.arange(N)
+    real = stage < n_real
+    dtype = p.A.dtype
+    A = jnp.where(real[:, None, None], p.A[phase], jnp.eye(6, dtype=dtype))
+    B = jnp.where(real[:, None, None], B_phase, 0.0)
+    Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
+    Q = Q.at[-1].set(p.Q_f[phase])
+    R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
+    if fc.rendezvous_cost == "lp":
+        p0 = phase == 0
+        B = jnp.concatenate([B, jnp.where(p0, -B, 0.0)], axis=-1)
+        Q = jnp.where(p0, 0.0, Q)
+        w = jnp.diagonal(p.R[0])
+        R_lp = jnp.where(
+            p0,
+            LP_REG * jnp.max(w) * jnp.eye(6, dtype=dtype),
+            jnp.kron(jnp.eye(2, dtype=dtype), p.R[phase]),
+        )
+        R = jnp.broadcast_to(R_lp, (N, 6, 6))
+    return A, B, Q, R
+
+
+def model(p: Params, fc: Config, g: Guidance):
+    """(A, B, c, Q, R) of the QP of ``g``'s phase (:func:`ocp`'s), which the batch engine
+    rebuilds from the phase instead of storing in every slot; None with finite burns (their
+    B and c follow each step's plan)."""
+    if _finite_burns(p, fc):
+        return None
+    A, B, Q, R = _phase_model(p, fc, g.phase, p.B[g.phase])
+    return A, B, jnp.zeros((_N(fc), 6), A.dtype), Q, R
+
+
 def _coast_back(Ac, ts):
-    """(SUBSAMPLES - 1, 6, 6) e^{-Ac (ts - tau_j)} for tau_j = j ts / SUBSAMPLES: the state at
-    tau_j from the state at ts when nothing fires in between (power series; n ts <= 0.1)."""
-    s = ts * (1.0 - jnp.arange(1, SUBSAMPLES, dtype=Ac.dtype) / SUBSAMPLES)
+    """(..., SUBSAMPLES - 1, 6, 6) e^{-Ac (ts - tau_j)} for tau_j = j ts / SUBSAMPLES, for
+    sample times ``ts`` (...): the state at tau_j from the state at ts when nothing fires in
+    between (power series; n ts <= 0.1). :func:`ocp` takes every phase's and indexes it by
+    the phase: with parameters shared by a batch, one small product for all slots instead
+    of a chain of 12 per slot (on a GPU, 23 launches of a thesis-vbar refresh's 208)."""
+    s = ts[..., None] * (1.0 - jnp.arange(1, SUBSAMPLES, dtype=Ac.dtype) / SUBSAMPLES)
     eye = jnp.eye(Ac.shape[0], dtype=Ac.dtype)
-    M = -s[:, None, None] * Ac[None]
+    M = -s[..., None, None] * Ac
     out = jnp.broadcast_to(eye, M.shape)
     for k in range(12, 0, -1):  # Horner: I + M (I + M / 2 (I + M / 3 (...)))
         out = eye + (M / k) @ out

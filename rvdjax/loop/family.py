@@ -149,7 +149,7 @@ UpdateFn = Callable[
 TruthBlocksFn = Callable[[Params, FConfig, Guidance, Array, Array], Blocks]
 DockErrorFn = Callable[[Params, FConfig, Guidance, Array, Array], Array]
 SubsamplesFn = Callable[[Params, FConfig, Array, Array, Array], tuple[Array, Array]]
-ModelFn = Callable[[Params, FConfig], tuple[Array, Array, Array, Array, Array]]
+ModelFn = Callable[[Params, FConfig, Guidance], tuple[Array, Array, Array, Array, Array] | None]
 
 
 @runtime_checkable
@@ -167,7 +167,9 @@ class GuidanceLaw(Protocol):
       sample_mask)``; ``truth_blocks(params, fconfig, G, x, t) -> blocks``;
     * optional (None when absent): ``dock_error(params, fconfig, G, x, t) -> distance [m]``,
       ``subsamples(params, fconfig, x, u, dt) -> (taus, states)``,
-      ``model(params, fconfig) -> (A, B, c, Q, R)``.
+      ``model(params, fconfig, G) -> (A, B, c, Q, R)``, the OCP's model rebuilt instead of
+      stored by the batch engine, or None where the configuration has none to rebuild
+      (decided from static structure, never from values).
     """
 
     layout: Layout

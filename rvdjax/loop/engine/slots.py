@@ -123,15 +123,26 @@ def arrays_source(x0s, keys=None, params=None, solver=None) -> Source:
     return Source(_pick_arrays, (x0s, keys, as_jax(params), as_jax(solver)))
 
 
-def _strip_model(loop: Loop, ocp: OCP) -> OCP:
-    """The OCP without the model a family rebuilds from its parameters (stored per slot)."""
+def model_of(loop: Loop, params, guidance):
+    """(A, B, c, Q, R) that the family rebuilds from its parameters and a slot's guidance
+    state instead of storing them in every slot, or None (stored). Computed inside the
+    slots' ``vmap``, it stays unbatched where it depends on neither (one model for the
+    batch); the three-phase family's depends on the phase, a few small tables gathered by
+    each fusion that reads it instead of 24 KB a slot read from device memory."""
     if loop.family.model is None:
+        return None
+    return loop.family.model(params, loop.config.family_config, guidance)
+
+
+def _strip_model(ocp: OCP, model) -> OCP:
+    """The OCP without the model a family rebuilds (:func:`model_of`), stored per slot."""
+    if model is None:
         return ocp
     return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in MODEL_FIELDS})
 
 
-def _with_model(loop: Loop, ocp: OCP, model) -> OCP:
-    if loop.family.model is None:
+def _with_model(ocp: OCP, model) -> OCP:
+    if model is None:
         return ocp
     return ocp._replace(**dict(zip(MODEL_FIELDS, model, strict=True)))
 
@@ -144,10 +155,11 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
     s = run.solver if per_run_solver else sp
     state = init(loop, p, run.x0, run.key)
     prep = prepare(loop, p, state)
+    model = model_of(loop, p, prep.guidance)
     ocp, solve_state = start(
-        prep.ocp, loop.config.settings, s, prep.warm, trusted_model=loop.family.model is not None
+        prep.ocp, loop.config.settings, s, prep.warm, trusted_model=model is not None
     )
-    ocp = _strip_model(loop, ocp)
+    ocp = _strip_model(ocp, model)
     solve_state = freeze(solve_state)
     return Slot(
         run=jnp.asarray(-1, jnp.int32),
