@@ -24,6 +24,8 @@ from rvdjax.loop.engine import (
     run_batch,
     run_stream,
 )
+from rvdjax.loop.engine.slots import _strip_model, model_of
+from rvdjax.loop.kernel import init, prepare
 from rvdjax.scenarios import SCENARIOS
 
 SC = SCENARIOS["fastmpc-3d-free"]
@@ -230,6 +232,29 @@ def test_engine_settings_are_chosen_for_the_device():
     assert E.slot_bytes(LOOP, arrays_source(X0S), PARAMS) > 10_000
     with pytest.raises(ValueError, match="unknown engine setting"):
         auto_config(platform="cpu", slotz=3)
+
+
+@pytest.mark.parametrize("name", ["fastmpc-3d", "poseidyn-lqmpc", "spot-2d-a", "thesis-vbar"])
+def test_the_fields_a_family_rebuilds_are_its_ocps(name):
+    """What the engine rebuilds instead of storing per slot (``model_of``: the model, and for
+    these families the linear costs and the input rows) is, bit for bit, the OCP the family
+    builds at a run's first step; fields it rebuilds are stored as scalars."""
+    sc = SCENARIOS[name]
+    params, x0 = sc.build()
+    loop = sc.loop(n_steps=2)
+
+    @jax.jit
+    def first(p, x):
+        prep = prepare(loop, p, init(loop, p, x))
+        return prep.ocp, model_of(loop, p, prep.guidance)
+
+    ocp, fields = first(params, x0)
+    assert set(fields) == {"A", "B", "c", "Q", "R", "Fu", "fu", "q", "r"}
+    for field, a in fields.items():
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(getattr(ocp, field)), field)
+    stripped = _strip_model(ocp, fields)
+    assert all(np.ndim(getattr(stripped, f)) == 0 for f in fields)
+    assert np.ndim(stripped.Fx) == 3 and np.ndim(stripped.u_mask) == 2  # stored
 
 
 def test_the_segment_program_lowers_for_a_gpu():

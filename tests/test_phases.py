@@ -177,9 +177,9 @@ def test_compare_with_table_3_6(runs, lp_run):
 
 @pytest.mark.parametrize("name", ["thesis-vbar", "thesis-vbar-lp"])
 def test_the_phase_model_is_the_one_the_ocp_has(name):
-    """The model the batch engine rebuilds from a slot's phase instead of storing it is, bit
-    for bit, the A, B, c, Q, R of that phase's OCP; none with the thrusters' finite burns
-    (their B and c follow the plan)."""
+    """The fields the batch engine rebuilds from a slot's phase instead of storing them (the
+    model A, B, c, Q, R, the linear costs and the input rows) are, bit for bit, those of that
+    phase's OCP; none with the thrusters' finite burns (their B and c follow the plan)."""
     sc = SCENARIOS[name]
     p, x0 = sc.build()
     fc = sc.loop().config.family_config
@@ -191,8 +191,9 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
         return ph.ocp(p, fc, g, x0, jnp.asarray(100.0), plan)[0], ph.model(p, fc, g)
 
     for phase in range(3):
-        ocp, model = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)))
-        for field, a in zip(("A", "B", "c", "Q", "R"), model, strict=True):
+        ocp, fields = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)))
+        assert set(fields) == {"A", "B", "c", "Q", "R", "q", "r", "Fu", "fu"}
+        for field, a in fields.items():
             np.testing.assert_array_equal(np.asarray(a), np.asarray(getattr(ocp, field)))
     with_burns, _ = sc.build(thrusters=True)
     assert ph.model(with_burns, fc, g0) is None

@@ -12,7 +12,14 @@ import numpy as np
 from rvdjax import checks
 from rvdjax.constraints import thrust_box, velocity_bound
 from rvdjax.disturbances import disturbances as make_disturbances
-from rvdjax.families.common import control, model, sample_time, tracking_ocp, truth_model
+from rvdjax.families.common import (
+    control,
+    model,
+    sample_time,
+    tracking_fixed,
+    tracking_ocp,
+    truth_model,
+)
 from rvdjax.loop.family import Family, Hooks, Layout
 from rvdjax.loop.plant import Plant
 from rvdjax.schema import Schema, make_params_of, positive, value
@@ -145,7 +152,7 @@ FAMILY = Family(
         truth_model=truth_model,
         update=update,
         truth_blocks=truth_blocks,
-        model=model,
+        model=tracking_fixed,
     ),
     make_params=make_params,
 )

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from rvdjax.constraints import Block, stack
+from rvdjax.constraints import Block, stack, thrust_box
 from rvdjax.loop.plant import Plant
 from rvdjax.ocp import OCP, time_invariant_model
 
@@ -19,26 +19,28 @@ def tracking_ocp(model, x, x_ref, state_blocks, input_box: Block) -> OCP:
     """The OCP sum_t (x_t+1 - x_ref,t)' Q_t (x_t+1 - x_ref,t) + u_t' R_t u_t (paper 000 Eq. 1)
     over ``model`` = stage-wise (A, B, c, Q, R), from the state ``x``, with the stacked
     ``state_blocks`` as soft state rows and ``input_box`` as the hard input rows."""
-    A, B, c, Q, R = model
-    N, nx = x_ref.shape
     Fx, fx, rho, x_mask = stack(state_blocks)
     return OCP(
+        x0=x, x_ref=x_ref, Fx=Fx, fx=fx, rho=rho, x_mask=x_mask, **fixed_fields(model, input_box)
+    )
+
+
+def fixed_fields(model, input_box: Block) -> dict:
+    """The fields of :func:`tracking_ocp`'s OCP that do not depend on the state: the model
+    (A, B, c, Q, R), zero linear costs (q, r) and the input rows (Fu, fu, u_mask)."""
+    A, B, c, Q, R = model
+    N, nx = c.shape
+    return dict(
         A=A,
         B=B,
         c=c,
-        x0=x,
         Q=Q,
         R=R,
-        x_ref=x_ref,
-        q=jnp.zeros((N, nx), x.dtype),
-        r=jnp.zeros((N, B.shape[-1]), x.dtype),
+        q=jnp.zeros((N, nx), c.dtype),
+        r=jnp.zeros((N, B.shape[-1]), c.dtype),
         Fu=input_box.F,
         fu=input_box.f,
         u_mask=input_box.mask,
-        Fx=Fx,
-        fx=fx,
-        rho=rho,
-        x_mask=x_mask,
     )
 
 
@@ -46,6 +48,16 @@ def model(p, fc, g=None):
     """(A, B, c, Q, R) of the OCP: time invariant, the terminal weight on the last stage (the
     same for every guidance state ``g``)."""
     return time_invariant_model(p.A, p.B, p.Q, p.R, p.Q_f, fc.N)
+
+
+def tracking_fixed(p, fc, g=None):
+    """The family hook ``model`` of a family whose OCP is ``tracking_ocp(model(p, fc), ...,
+    thrust_box(p.u_max, fc.N))``: :func:`fixed_fields`, the same for every guidance state
+    ``g``, which the batch engine rebuilds instead of storing per slot (runs with shared
+    parameters share them unbatched)."""
+    fields = fixed_fields(model(p, fc), thrust_box(p.u_max, fc.N))
+    del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
+    return fields
 
 
 def control(p, fc, g, sol):

@@ -236,26 +236,71 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
     if _finite_burns(p, fc):  # the vehicle's burns, not impulses
         B_phase, c = finite_burn(p, p.A[phase], ts, _plan_dv(fc, g, plan))
         c = jnp.where(real[:, None], c, 0.0)
-    A, B, Q, R = _phase_model(p, fc, phase, B_phase)
-    r = jnp.zeros((N, 3), dtype)
-    box = thrust_box(p.u_max[phase], N, nu=3)
-    Fu, fu = box.F, box.f
-
     if fc.rendezvous_cost == "lp":
         # 1-norm rendezvous cost (paper 003 Eq. 2.10 about the set point, Sec. 3.6.4):
         #   sum_{i<N} ||Q (x_i - x_s)||_1 + ||R u_i||_1 + ||Q_f (x_N - x_s)||_1
         # state terms: each row of W (Q, Q_f on the terminal stage) gives a cost-row pair
+        # (the inputs' split: _phase_fields)
         W = jnp.where((stage < n_real - 1)[:, None, None], p.Q[0], p.Q_f[0])
         Wr = jnp.einsum("tij,tj->ti", W, x_ref)
         per_phase[0].append(cost_rows(W, Wr, name="lp_state_cost").masked(on * p0))
+
+    blocks = [exclusive(per_phase, phase, name="phase_rows")]
+    Fx, fx, rho, x_mask = stack(blocks)
+    problem = OCP(
+        c=c,
+        x0=x,
+        x_ref=x_ref,
+        Fx=Fx,
+        fx=fx,
+        rho=rho,
+        x_mask=x_mask,
+        **_phase_fields(p, fc, phase, B_phase),
+    )
+    return problem, blocks
+
+
+def _finite_burns(p: Params, fc: Config) -> bool:
+    """Whether the model has the thrusters' finite burns (static: the parameters' structure
+    and the configuration), whose B and c follow each step's plan."""
+    return p.plant.thrusters is not None and fc.finite_burn
+
+
+def _phase_fields(p: Params, fc: Config, phase, B_phase) -> dict:
+    """The OCP's fields that follow from the phase alone, padded to the largest horizon, with
+    the input matrix ``B_phase`` of its real stages: A, B, Q, R (identity dynamics, no input
+    and no weight on the padded stages, Q_f on the last real one), the linear costs q, r and
+    the hard input rows Fu, fu, u_mask (the thrust box)."""
+    N = _N(fc)
+    n_real = jnp.asarray(fc.N)[phase]
+    stage = jnp.arange(N)
+    real = stage < n_real
+    dtype = p.A.dtype
+    A = jnp.where(real[:, None, None], p.A[phase], jnp.eye(6, dtype=dtype))
+    B = jnp.where(real[:, None, None], B_phase, 0.0)
+    Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
+    Q = Q.at[-1].set(p.Q_f[phase])
+    R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
+    r = jnp.zeros((N, 3), dtype)
+    box = thrust_box(p.u_max[phase], N, nu=3)
+    Fu, fu = box.F, box.f
+    if fc.rendezvous_cost == "lp":
         # input: six variables v = [v1; v2] in every phase (one shape). Rendezvous: the split
         # u = v1 - v2 with 0 <= v1, v2 <= u_max, so sum_i R_ii |u_i| = w^T (v1 + v2) at the
         # optimum (R diagonal, checked by :func:`check`): B' = [B, -B], linear cost r = w,
         # R' = LP_REG max(w) I. Approach and docking keep the QP of the thesis exactly: u = v1
         # with its box, B' = [B, 0], and v2 a dummy input with no effect and weight R (its
-        # optimum is v2 = 0): R' = diag(R, R).
-        # (the model's B, Q and R: _phase_model)
+        # optimum is v2 = 0): R' = diag(R, R). The state's cost rows: :func:`ocp`.
+        p0 = phase == 0
+        B = jnp.concatenate([B, jnp.where(p0, -B, 0.0)], axis=-1)
+        Q = jnp.where(p0, 0.0, Q)
         w = jnp.diagonal(p.R[0])
+        R_lp = jnp.where(
+            p0,
+            LP_REG * jnp.max(w) * jnp.eye(6, dtype=dtype),
+            jnp.kron(jnp.eye(2, dtype=dtype), p.R[phase]),
+        )
+        R = jnp.broadcast_to(R_lp, (N, 6, 6))
         r = jnp.where(p0, jnp.broadcast_to(jnp.concatenate([w, w]), (N, 6)), 0.0)
         # hard rows v <= hi, -v <= lo: hi = lo = u_max in approach and docking; in rendezvous
         # the bound v >= 0 is relaxed to v >= -LP_EPS u_max so that v = 0 is strictly
@@ -268,73 +313,28 @@ def ocp(p: Params, fc: Config, g: Guidance, x, t, plan):
         hi = jnp.where(p0, 1.0 - LP_EPS, 1.0) * um
         lo = jnp.where(p0, LP_EPS, 1.0) * um
         fu = jnp.broadcast_to(jnp.concatenate([hi, lo]), (N, 12))
-
-    blocks = [exclusive(per_phase, phase, name="phase_rows")]
-    Fx, fx, rho, x_mask = stack(blocks)
-    problem = OCP(
+    return dict(
         A=A,
         B=B,
-        c=c,
-        x0=x,
         Q=Q,
         R=R,
-        x_ref=x_ref,
         q=jnp.zeros((N, 6), dtype),
         r=r,
         Fu=Fu,
         fu=fu,
         u_mask=jnp.ones(Fu.shape[:2], dtype),
-        Fx=Fx,
-        fx=fx,
-        rho=rho,
-        x_mask=x_mask,
     )
-    return problem, blocks
-
-
-def _finite_burns(p: Params, fc: Config) -> bool:
-    """Whether the model has the thrusters' finite burns (static: the parameters' structure
-    and the configuration), whose B and c follow each step's plan."""
-    return p.plant.thrusters is not None and fc.finite_burn
-
-
-def _phase_model(p: Params, fc: Config, phase, B_phase):
-    """(A, B, Q, R) of the phase's QP padded to the largest horizon, with the input matrix
-    ``B_phase`` of its real stages: identity dynamics, no input and no weight on the padded
-    stages, Q_f on the last real one; the LP's split inputs with ``rendezvous_cost = "lp"``
-    (:func:`ocp`)."""
-    N = _N(fc)
-    n_real = jnp.asarray(fc.N)[phase]
-    stage = jnp.arange(N)
-    real = stage < n_real
-    dtype = p.A.dtype
-    A = jnp.where(real[:, None, None], p.A[phase], jnp.eye(6, dtype=dtype))
-    B = jnp.where(real[:, None, None], B_phase, 0.0)
-    Q = jnp.where((stage < n_real - 1)[:, None, None], p.Q[phase], 0.0)
-    Q = Q.at[-1].set(p.Q_f[phase])
-    R = jnp.broadcast_to(p.R[phase], (N, 3, 3))
-    if fc.rendezvous_cost == "lp":
-        p0 = phase == 0
-        B = jnp.concatenate([B, jnp.where(p0, -B, 0.0)], axis=-1)
-        Q = jnp.where(p0, 0.0, Q)
-        w = jnp.diagonal(p.R[0])
-        R_lp = jnp.where(
-            p0,
-            LP_REG * jnp.max(w) * jnp.eye(6, dtype=dtype),
-            jnp.kron(jnp.eye(2, dtype=dtype), p.R[phase]),
-        )
-        R = jnp.broadcast_to(R_lp, (N, 6, 6))
-    return A, B, Q, R
 
 
 def model(p: Params, fc: Config, g: Guidance):
-    """(A, B, c, Q, R) of the QP of ``g``'s phase (:func:`ocp`'s), which the batch engine
-    rebuilds from the phase instead of storing in every slot; None with finite burns (their
-    B and c follow each step's plan)."""
+    """The OCP's fields that follow from ``g``'s phase (:func:`_phase_fields`, and c = 0),
+    which the batch engine rebuilds instead of storing in every slot; None with finite burns
+    (their B and c follow each step's plan)."""
     if _finite_burns(p, fc):
         return None
-    A, B, Q, R = _phase_model(p, fc, g.phase, p.B[g.phase])
-    return A, B, jnp.zeros((_N(fc), 6), A.dtype), Q, R
+    fields = _phase_fields(p, fc, g.phase, p.B[g.phase])
+    del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
+    return dict(fields, c=jnp.zeros((_N(fc), 6), p.A.dtype))
 
 
 def _coast_back(Ac, ts):

@@ -28,6 +28,7 @@ from rvdjax.families.common import (
     model,
     smooth_excess,
     smooth_norm,
+    tracking_fixed,
     tracking_ocp,
     weight_tunables,
 )
@@ -252,6 +253,7 @@ FAMILY = Family(
     law=Hooks.of(
         globals(),
         **SHARED_HOOKS,
+        model=tracking_fixed,
         layout=LAYOUT,
         n_phases=1,
         config_type=Config,

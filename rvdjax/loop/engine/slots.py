@@ -123,28 +123,58 @@ def arrays_source(x0s, keys=None, params=None, solver=None) -> Source:
     return Source(_pick_arrays, (x0s, keys, as_jax(params), as_jax(solver)))
 
 
-def model_of(loop: Loop, params, guidance):
-    """(A, B, c, Q, R) that the family rebuilds from its parameters and a slot's guidance
-    state instead of storing them in every slot, or None (stored). Computed inside the
-    slots' ``vmap``, it stays unbatched where it depends on neither (one model for the
-    batch); the three-phase family's depends on the phase, a few small tables gathered by
-    each fusion that reads it instead of 24 KB a slot read from device memory."""
+#: The OCP fields besides the model's (A, B, c, Q, R) that a family's ``model`` hook may
+#: rebuild: the linear costs and the hard input rows (Fu and fu together; their mask stays in
+#: the slot, which neutralises the masked rows as the solver's start does).
+ROWS_REBUILT = ("q", "r", "Fu", "fu")
+
+
+def model_of(loop: Loop, params, guidance) -> dict | None:
+    """The OCP fields that the family rebuilds from its parameters and a slot's guidance state
+    instead of storing them in every slot (its ``model`` hook: (A, B, c, Q, R), or a dict of
+    those and any of :data:`ROWS_REBUILT`), or None (all stored). Computed inside the slots'
+    ``vmap``, they stay unbatched where they depend on neither (one model and one input box
+    for the batch); the three-phase family's depend on the phase, a few small tables gathered
+    by each fusion that reads them instead of 31 KB a slot read from device memory."""
     if loop.family.model is None:
         return None
-    return loop.family.model(params, loop.config.family_config, guidance)
+    fields = loop.family.model(params, loop.config.family_config, guidance)
+    if fields is None or isinstance(fields, dict):
+        names = set() if fields is None else set(fields)
+        if fields is not None and (
+            names - set(MODEL_FIELDS) - set(ROWS_REBUILT)
+            or not set(MODEL_FIELDS) <= names
+            or len({"Fu", "fu"} & names) == 1
+        ):
+            raise TypeError(
+                f"{loop.family.name}: model must return (A, B, c, Q, R) or a dict of those and "
+                f"any of q, r and the input rows (Fu and fu together), got {sorted(names)}"
+            )
+        return fields
+    return dict(zip(MODEL_FIELDS, fields, strict=True))
 
 
 def _strip_model(ocp: OCP, model) -> OCP:
-    """The OCP without the model a family rebuilds (:func:`model_of`), stored per slot."""
+    """The OCP without the fields a family rebuilds (:func:`model_of`), stored per slot."""
     if model is None:
         return ocp
-    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in MODEL_FIELDS})
+    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in model})
 
 
 def _with_model(ocp: OCP, model) -> OCP:
+    """The slot's OCP with the fields its family rebuilds: the input rows neutralised where
+    the slot's mask is off (zero row, offset 1), as :func:`rvdjax.solver.start` neutralised
+    the rows it iterates on (``barrier.rows_of``)."""
     if model is None:
         return ocp
-    return ocp._replace(**dict(zip(MODEL_FIELDS, model, strict=True)))
+    if "Fu" in model:
+        on = ocp.u_mask > 0
+        model = dict(
+            model,
+            Fu=jnp.where(on[..., None], model["Fu"], 0.0),
+            fu=jnp.where(on, model["fu"], 1.0),
+        )
+    return ocp._replace(**model)
 
 
 def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) -> Slot:
