@@ -117,9 +117,9 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
     """``cfg.iterations`` solver iterations of every slot. On a CUDA GPU the slot's guidance
     passes an optimisation barrier with the iterate in each iteration, so that the model it
     rebuilds (:func:`~rvdjax.loop.engine.slots.model_of`: thesis-vbar's from the phase) is
-    not hoisted out of the loop and stored, but computed in each fusion that reads it: 11 %
-    fewer bytes a thesis-vbar tick (docs/benchmark.md). On the CPU the program is as before
-    (the hoisted model: the same speed there)."""
+    not hoisted out of the loop and stored, but computed in each fusion that reads it: a tenth
+    fewer bytes a thesis-vbar tick (docs/benchmark.md). On the CPU the hoisted model stays
+    (as fast there)."""
     loop = ctx.loop
     settings = loop.config.settings
 
