@@ -28,10 +28,13 @@ of arrays:
 * optionally ``dock_error(params, fconfig, G, x, t) -> ()``: the distance [m] from the state to
   docking (the smooth quantity the tuning loss integrates, :mod:`rvdjax.tune.loss`), and
   ``tuning``: the family's :class:`Tuning` (what ``rvdjax tune`` may change);
-* optionally ``model(params, fconfig) -> (A, B, c, Q, R)``: the OCP's stage-wise model and
-  weights when they depend on the parameters alone (not on the guidance state). The batch
-  engine then keeps them out of its slots and, when the runs share their parameters, solves
-  every slot's Newton step with one model (larger matrix products, less memory).
+* optionally ``model(params, fconfig, G) -> (A, B, c, Q, R)``, or a dict of those and any of
+  q, r and the input rows Fu, fu: the OCP's fields that follow from the parameters and the
+  guidance state (the three-phase family's from the phase), or None where the configuration
+  has none (decided from static structure). The batch engine then rebuilds them instead of
+  storing them in its slots and, where they depend on neither the guidance state nor
+  per-run parameters, solves every slot's Newton step with one model (larger matrix
+  products, less memory).
 
 The plant (:mod:`rvdjax.loop.plant`) supplies the truth step for the family's :class:`Layout`.
 """
@@ -149,7 +152,7 @@ UpdateFn = Callable[
 TruthBlocksFn = Callable[[Params, FConfig, Guidance, Array, Array], Blocks]
 DockErrorFn = Callable[[Params, FConfig, Guidance, Array, Array], Array]
 SubsamplesFn = Callable[[Params, FConfig, Array, Array, Array], tuple[Array, Array]]
-ModelFn = Callable[[Params, FConfig, Guidance], tuple[Array, Array, Array, Array, Array] | None]
+ModelFn = Callable[[Params, FConfig, Guidance], tuple | dict[str, Array] | None]
 
 
 @runtime_checkable
@@ -167,9 +170,8 @@ class GuidanceLaw(Protocol):
       sample_mask)``; ``truth_blocks(params, fconfig, G, x, t) -> blocks``;
     * optional (None when absent): ``dock_error(params, fconfig, G, x, t) -> distance [m]``,
       ``subsamples(params, fconfig, x, u, dt) -> (taus, states)``,
-      ``model(params, fconfig, G) -> (A, B, c, Q, R)``, the OCP's model rebuilt instead of
-      stored by the batch engine, or None where the configuration has none to rebuild
-      (decided from static structure, never from values).
+      ``model(params, fconfig, G) -> (A, B, c, Q, R)`` or a dict of OCP fields (module
+      docstring), rebuilt instead of stored by the batch engine, or None.
     """
 
     layout: Layout
