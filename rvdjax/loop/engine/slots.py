@@ -23,6 +23,7 @@ from rvdjax.loop.kernel import (
 )
 from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, freeze, start
+from rvdjax.solver.barrier import rows_of
 from rvdjax.solver.driver import MODEL_FIELDS
 
 
@@ -139,19 +140,21 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
     if loop.family.model is None:
         return None
     fields = loop.family.model(params, loop.config.family_config, guidance)
-    if fields is None or isinstance(fields, dict):
-        names = set() if fields is None else set(fields)
-        if fields is not None and (
-            names - set(MODEL_FIELDS) - set(ROWS_REBUILT)
-            or not set(MODEL_FIELDS) <= names
-            or len({"Fu", "fu"} & names) == 1
-        ):
-            raise TypeError(
-                f"{loop.family.name}: model must return (A, B, c, Q, R) or a dict of those and "
-                f"any of q, r and the input rows (Fu and fu together), got {sorted(names)}"
-            )
-        return fields
-    return dict(zip(MODEL_FIELDS, fields, strict=True))
+    if fields is None:
+        return None
+    if not isinstance(fields, dict):
+        return dict(zip(MODEL_FIELDS, fields, strict=True))
+    names = set(fields)
+    if (
+        names - set(MODEL_FIELDS) - set(ROWS_REBUILT)
+        or not set(MODEL_FIELDS) <= names
+        or len({"Fu", "fu"} & names) == 1
+    ):
+        raise TypeError(
+            f"{loop.family.name}: model must return (A, B, c, Q, R) or a dict of those and "
+            f"any of q, r and the input rows (Fu and fu together), got {sorted(names)}"
+        )
+    return fields
 
 
 def _strip_model(ocp: OCP, model) -> OCP:
@@ -167,14 +170,11 @@ def _with_model(ocp: OCP, model) -> OCP:
     the rows it iterates on (``barrier.rows_of``)."""
     if model is None:
         return ocp
+    ocp = ocp._replace(**model)
     if "Fu" in model:
-        on = ocp.u_mask > 0
-        model = dict(
-            model,
-            Fu=jnp.where(on[..., None], model["Fu"], 0.0),
-            fu=jnp.where(on, model["fu"], 1.0),
-        )
-    return ocp._replace(**model)
+        rows = rows_of(ocp)
+        ocp = ocp._replace(Fu=rows.Fu, fu=rows.fu)
+    return ocp
 
 
 def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) -> Slot:
