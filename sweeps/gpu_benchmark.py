@@ -508,7 +508,8 @@ def main(argv=None) -> int:
         "--kernels",
         default="xla,pallas",
         help="Newton-step forms: auto, xla, unrolled, pallas (block I/O, then entry-wise, at"
-        " the largest batch), pallas-block-io, pallas-block-factor (at every batch)",
+        " the largest batch), pallas-block-io, pallas-block-factor, pallas-block-fused (at"
+        " every batch)",
     )
     ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")
@@ -527,7 +528,9 @@ def main(argv=None) -> int:
     )
     args = ap.parse_args(argv)
     kernels = tuple(k for k in args.kernels.split(",") if k)
-    forms = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
+    from rvdjax.solver.types import KERNELS
+
+    forms = tuple(k for k in KERNELS if k != "pallas-fused")  # its compile takes minutes
     bad = set(kernels) - set(forms)
     if bad:
         print(f"--kernels: unknown {', '.join(sorted(bad))}; choose from {', '.join(forms)}")

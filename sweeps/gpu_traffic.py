@@ -80,7 +80,6 @@ TARGETS = {
     "h100": ("NVIDIA H100 80GB HBM3", 3.35e12, 84929347584),
     "h200": ("NVIDIA H200", 4.8e12, 150754820096),
 }
-KERNELS = ("auto", "xla", "unrolled", "pallas", "pallas-block-io", "pallas-block-factor")
 
 _SIZES = {"f64": 8, "s64": 8, "u64": 8, "f32": 4, "s32": 4, "u32": 4, "f16": 2, "bf16": 2}
 _SIZES.update({"s16": 2, "u16": 2, "s8": 1, "u8": 1, "pred": 1})
@@ -403,12 +402,12 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
         return step.lower(ocps, state).compile().as_text()
 
 
-def _compile_engine(scenario: str, slots: int, target: str):
+def _compile_engine(scenario: str, slots: int, target: str, kernel: str = "auto"):
     """One device's segment program of the batch engine for ``scenario`` with the engine's
     accelerator settings (:func:`rvdjax.loop.engine.config.auto_config` on a GPU: every slot in
     one chunk, 4 solver iterations a tick, 128 ticks a segment, the compacted refresh in
-    groups of a quarter of the slots, runs to any free slot), compiled for ``target``: (HLO
-    text, the EngineConfig)."""
+    groups of a quarter of the slots, runs to any free slot), compiled for ``target``, with
+    the Newton step's form ``kernel``: (HLO text, the EngineConfig)."""
     import jax
 
     import rvdjax  # noqa: F401  (float64)
@@ -420,7 +419,9 @@ def _compile_engine(scenario: str, slots: int, target: str):
     from rvdjax.solver import SolverParams, tracing_for_cuda
 
     sharding = _sharding(target)
-    flight = get_scenario(scenario).flight(FlightOptions())
+    sc = get_scenario(scenario)
+    options = FlightOptions()
+    flight = sc.flight(options, settings=sc.settings(options.mode, kernel=kernel))
     loop, params = flight.loop, flight.params
     sp = SolverParams.for_settings(loop.config.settings)
     source = E.arrays_source(perturbed_states(flight.x0, 8))
@@ -467,7 +468,8 @@ def _fields(t: dict, per: float, bandwidth: float) -> dict:
 
 def engine_main(args, provenance, path) -> int:
     t0 = time.perf_counter()
-    hlo, cfg = _compile_engine(args.scenario, args.slots, args.target)
+    kernel = args.kernels.split(",")[0]
+    hlo, cfg = _compile_engine(args.scenario, args.slots, args.target, kernel)
     compile_s = time.perf_counter() - t0
     if args.hlo:
         with open(os.path.join(args.out, f"hlo_engine_{args.scenario}.txt"), "w") as f:
@@ -479,6 +481,7 @@ def engine_main(args, provenance, path) -> int:
         scenario=args.scenario,
         slots=args.slots,
         target=args.target,
+        kernel=kernel,
         iterations_per_tick=cfg.iterations,
         **_fields(t, per, TARGETS[args.target][1]),
         compile_s=compile_s,
@@ -490,7 +493,8 @@ def engine_main(args, provenance, path) -> int:
     total = row["read_kb"] + row["written_kb"]
     print(
         f"one tick of the batch engine, {args.scenario} at {args.slots} slots, compiled for an "
-        f"{TARGETS[args.target][0]} (no GPU used; {cfg.iterations} solver iterations a tick):"
+        f"{TARGETS[args.target][0]} (no GPU used; {cfg.iterations} solver iterations a tick; "
+        f"kernel {kernel}):"
     )
     print(
         f"{row['launches']} launches ({row['pallas_launches']} Pallas kernels), "
@@ -521,6 +525,9 @@ def _cuda_missing() -> str | None:
 
 
 def main(argv=None) -> int:
+    from rvdjax.solver.types import KERNELS as ALL
+
+    KERNELS = tuple(k for k in ALL if k != "pallas-fused")  # its compile takes minutes
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine"))
     ap.add_argument("--batch", type=int, default=65536, help="qp: QPs in the batch (>= 1)")

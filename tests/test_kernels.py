@@ -76,9 +76,9 @@ def _random(name, n):
     [
         *(
             pytest.param(k, marks=pytest.mark.slow)
-            for k in ("pallas", "pallas-block-io", "pallas-fused")
+            for k in ("pallas", "pallas-block-io", "pallas-fused", "pallas-block-factor")
         ),
-        "pallas-block-factor",
+        "pallas-block-fused",
         "unrolled",
     ],
 )
@@ -88,7 +88,8 @@ def _random(name, n):
 )
 def test_kernels_give_the_xla_iterates(case, kernel):
     """The Pallas kernels (interpreted; the factorisation and the first step in one kernel or in
-    two, a stage's arrays loaded and stored entry by entry or as blocks) and the unrolled XLA
+    two, the corrector's step and its refinement in one kernel or in two, a stage's arrays
+    loaded and stored entry by entry or as blocks) and the unrolled XLA
     loops against XLA's loops. The same statuses and iteration counts, and the same answer: to
     1e-10 relative (in norm) in the plan and the multipliers. Both forms round differently
     (fused products, summation inside the kernel), and the Newton matrix's conditioning
@@ -184,18 +185,20 @@ def _triton_calls(text):
 @pytest.mark.parametrize(
     "settings, kernels, loops, variant",
     [
-        # accurate: factorisation, then the predictor, corrector and refinement steps;
-        # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on
-        # a GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form,
-        # 10-15 s each)
+        # accurate: factorisation, then the predictor, corrector and refinement steps (in
+        # "pallas-block-fused", the default on a GPU: the factorisation with the predictor's
+        # step, and the corrector's step with its refinement); loops: the solve alone (the
+        # start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in forms in
+        # the slow run: "auto" lowers the default GPU form, 10-15 s each)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
-            for v in ("pallas", "pallas-block-io")
+            for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
-        (SolverSettings(), 4, 1, "auto"),
+        (SolverSettings(), 2, 1, "auto"),
         # paper: factorisation + step; loops: the solve, the line search (the count of
         # launches and loops is the mode's, whichever kernels run them)
-        (SolverSettings.paper(), 2, 2, "auto"),
+        (SolverSettings.paper(), 1, 2, "auto"),
+        pytest.param(SolverSettings.paper(), 2, 2, "pallas-block-factor", marks=pytest.mark.slow),
     ],
 )
 def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, variant):
@@ -274,7 +277,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is "pallas-block-factor" on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-block-fused" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -284,7 +287,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-factor"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-fused"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"

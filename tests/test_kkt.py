@@ -190,3 +190,50 @@ def test_block_kernels_read_and_write_the_arrays_as_they_are():
         got, want = run(False, model), run(True, model)
         for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
             np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+
+def _refined(kernel, axes=None):
+    fn = functools.partial(K.kkt_solve_refined, method="riccati", kernel=kernel)
+    return jax.jit(fn if axes is None else jax.vmap(fn, in_axes=(axes, 0, 0, 0)))
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
+    """``kkt_solve_refined``: a step and one step of iterative refinement. With the kernel
+    that forms the refinement's residual inside its sweeps ("pallas-block-fused",
+    interpreted: two tiles of 8 lanes, the last padded; and one problem alone), the model
+    per problem or shared by the batch, it gives XLA's two solves with the residual between
+    them to 1e-12, and the dense solve to 1e-9, from a factorisation whose first step is
+    1e-7 off."""
+    batch = 11
+    data = _problems(batch, seed=4)
+    if shared:
+        data = (data[0][:1].repeat(batch, 0), data[1][:1].repeat(batch, 0), *data[2:])
+    kkt = jax.vmap(lambda A, B, Pu, Px: K.kkt_factor(A, B, Pu, Px, "riccati", "xla"))(*data[:4])
+    # A gain perturbed by 1e-7: the first step is then off by about that much and the
+    # refinement moves it (a kernel that skipped it would fail by 1e-7).
+    f = kkt.factor
+    kkt = kkt._replace(
+        factor=f._replace(K=f.K * (1 + 1e-7 * np.cos(np.arange(f.K.size)).reshape(f.K.shape)))
+    )
+    model = None if shared else 0
+    if shared:  # one model for the batch, as the engine's slots share it
+        kkt = kkt._replace(A=kkt.A[0], B=kkt.B[0], factor=kkt.factor._replace(M=kkt.factor.M[0]))
+    axes = K.KKT(model, model, 0, 0, K.RiccatiFactor(model, 0, 0, 0, 0))
+    rhs = data[4:]
+    with lanes.configured(block=8):
+        got = _refined("pallas-block-fused", axes)(kkt, *rhs)
+        first = jax.tree.map(lambda a, x: a if x is None else a[x], kkt, axes)
+        alone = _refined("pallas-block-fused")(first, *(r[0] for r in rhs))
+    want = _refined("xla", axes)(kkt, *rhs)
+    plain = jax.vmap(
+        functools.partial(K.kkt_solve, method="riccati", kernel="xla"), (axes, 0, 0, 0)
+    )
+    assert np.max(np.abs(np.asarray(plain(kkt, *rhs).du - want.du))) > 1e-9  # it moved
+    for g, a, w in zip(got, alone, want, strict=True):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(a), np.asarray(w[0]), rtol=1e-12, atol=1e-12)
+    for i in (0, batch - 1):
+        ref = _dense_kkt(*(a[i] for a in data))
+        for g, r in zip(got, ref, strict=True):
+            np.testing.assert_allclose(np.asarray(g[i]), r, rtol=1e-9, atol=1e-9)

@@ -27,14 +27,17 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from rvdjax.solver import stagewise as sw
-from rvdjax.solver.barrier import dual_residual
 from rvdjax.solver.riccati import (  # noqa: F401  (KERNELS and the Riccati names: re-exported)
+    AUTO_ON_CUDA,
     KERNELS,
+    REFINED_IN_KERNEL,
     NewtonStep,
     RiccatiFactor,
     _shift,
+    cuda_or_default,
+    newton_residual,
     riccati_apply,
+    riccati_apply_refined,
     riccati_factor,
     riccati_factor_solve,
     riccati_solve,
@@ -47,6 +50,7 @@ __all__ = [
     "kkt_factor",
     "kkt_factor_solve",
     "kkt_solve",
+    "kkt_solve_refined",
 ]
 
 
@@ -109,11 +113,7 @@ def kkt_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, method: str, kernel: str 
 def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
     """K z + (g, rp) for z = (du, dx, nu): the residual of the stage-structured Newton system
     (the rows of :func:`dense_solve`'s matrix, applied stage by stage)."""
-    r_u, r_x = dual_residual(
-        kkt, sw.mv(kkt.Phi_u, step.du) + g_u, sw.mv(kkt.Phi_x, step.dx) + g_x, step.nu
-    )
-    r_p = step.dx - sw.mv(kkt.B, step.du) - sw.mv(kkt.A, _shift(step.dx)) + rp
-    return r_u, r_x, r_p
+    return newton_residual(kkt.A, kkt.B, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, step)
 
 
 def kkt_refine(
@@ -124,6 +124,30 @@ def kkt_refine(
     r_u, r_x, r_p = kkt_residual(kkt, g_u, g_x, rp, step)
     d = kkt_solve(kkt, r_u, r_x, r_p, method, kernel)
     return NewtonStep(step.du + d.du, step.dx + d.dx, step.nu + d.nu)
+
+
+def kkt_solve_refined(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto") -> NewtonStep:
+    """:func:`kkt_solve` then :func:`kkt_refine`: with a form of the Newton step in
+    :data:`~rvdjax.solver.riccati.REFINED_IN_KERNEL`, one kernel for both
+    (:func:`~rvdjax.solver.riccati.riccati_apply_refined`)."""
+
+    def two_solves(kkt, g_u, g_x, rp):
+        step = kkt_solve(kkt, g_u, g_x, rp, method, kernel)
+        return kkt_refine(kkt, g_u, g_x, rp, step, method, kernel)
+
+    def in_kernel(kernel):
+        def refined(kkt, g_u, g_x, rp):
+            return riccati_apply_refined(kkt.factor, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, kernel)
+
+        return refined
+
+    if method == "riccati" and kernel in REFINED_IN_KERNEL:
+        return in_kernel(kernel)(kkt, g_u, g_x, rp)
+    if method == "riccati" and kernel == "auto" and AUTO_ON_CUDA in REFINED_IN_KERNEL:
+        return cuda_or_default(
+            kkt, g_u, g_x, rp, cuda=in_kernel(AUTO_ON_CUDA), default=two_solves
+        )  # the CPU's program is the two solves, as before
+    return two_solves(kkt, g_u, g_x, rp)
 
 
 def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto") -> NewtonStep:

@@ -16,18 +16,22 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
 * the gains K, BPA, P (and the backward sweep's k, p) are written once per stage and read
   back by the forward sweep.
 
-Three kernels: :func:`factor_solve` (the backward factorisation together with the backward
+Four kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
-right-hand side with a stored factorisation) and :func:`factor` (no right-hand side). They
-compute the recursion of :mod:`rvdjax.solver.riccati` in the same order (the Joseph form, the
-refined gain K), so their results agree with the XLA form to rounding; ``interpret=True``
-runs them on the CPU for the tests. They run with ``SolverSettings(kernel="pallas")`` (or
-``"pallas-block-io"``, ``"pallas-block-factor"``, ``"pallas-fused"``: :class:`KernelConfig`),
-and ``kernel="auto"`` runs ``"pallas-block-factor"`` when a program is compiled for a CUDA
-GPU. The solver calls :func:`factor` then :func:`apply` unless fused: on one H200 (jax
-0.11.2, CUDA 13, 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and
-:func:`apply` in about 3 s, where :func:`factor_solve` had not finished in 165 s on an H100;
-with block loads and stores the factorisation compiles in seconds (docs/solver.md).
+right-hand side with a stored factorisation), :func:`apply_refined` (that, then one step of
+iterative refinement with the residual formed inside the sweeps) and :func:`factor` (no
+right-hand side). They compute the recursion of :mod:`rvdjax.solver.riccati` in the same
+order (the Joseph form, the refined gain K), so their results agree with the XLA form to
+rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
+``SolverSettings(kernel="pallas")`` (or ``"pallas-block-io"``, ``"pallas-block-factor"``,
+``"pallas-fused"``, ``"pallas-block-fused"``: :class:`KernelConfig`), and ``kernel="auto"``
+runs ``"pallas-block-fused"`` when a program is compiled for a CUDA GPU: an accurate-mode
+iteration is then two kernels, the factorisation with the predictor's step and the
+corrector's step with its refinement. The other forms call :func:`factor` then
+:func:`apply` (and :func:`apply` again for the refinement): on one H200 (jax 0.11.2, CUDA 13,
+2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and :func:`apply` in about
+3 s, where the entry-wise :func:`factor_solve` had not finished in 165 s on an H100; with
+block loads and stores the factorisation compiles in seconds (docs/solver.md).
 
 Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
 axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
@@ -55,6 +59,7 @@ __all__ = [
     "factor",
     "factor_solve",
     "apply",
+    "apply_refined",
 ]
 
 
@@ -68,10 +73,13 @@ class KernelConfig:
             block = 128.
         interpret: run the kernels in Pallas' interpreter (the CPU; tests).
         fused: the solver's factorisation and first step in one kernel (:func:`factor_solve`)
-            instead of :func:`factor` then :func:`apply` (the solver: ``kernel=
-            "pallas-fused"``). On an H200 (2026-11-26) Triton compiled :func:`factor` alone
-            in 51 s and :func:`apply` in about 3 s; the fused kernel did not finish in 165 s
-            on an H100, so it is off by default.
+            instead of :func:`factor` then :func:`apply`, and a step with its refinement in
+            one kernel (:func:`apply_refined`) (the solver: ``kernel="pallas-fused"``, entry
+            by entry, and ``"pallas-block-fused"``, with ``block_io``). On an H200
+            (2026-11-26) Triton compiled the entry-wise :func:`factor` alone in 51 s and
+            :func:`apply` in about 3 s; the entry-wise fused kernel did not finish in 165 s on
+            an H100. With ``block_io`` the program XLA compiles for an H100 here, Triton's
+            kernels included, took 37 s instead of 14 (65 536 fastmpc-3d QPs).
         block_io: load and store a stage's block of each array at once (entries flattened,
             in at most two power-of-two chunks, split into lane vectors and joined back inside
             the kernel) instead of entry by entry (the solver: ``kernel="pallas-block-io"``).
@@ -423,22 +431,123 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batch
     if not with_rhs:
         return
 
-    def forward(t, dx):
+    out = (du_ref, dx_ref, nu_ref)
+    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, du_ref, rp_ref, nu_ref, out)
+
+
+def _forward_sweep(dims, zero, M_ref, K_ref, P_ref, k_ref, r_ref, p_ref, out, add=False):
+    """The forward sweep of one right-hand side, whose affine terms k, p and dynamics
+    residual r are stored a stage each: (du, dx, nu) written to the refs ``out``, or (``add``)
+    added to the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
+    N, nx, nu = dims
+
+    def stage(t, dx):
         dx_next, du, nu_t = _forward(
             list(dx),
             _load(M_ref, t, nx, nu + nx),
             _load(K_ref, t, nu, nx),
-            _load(du_ref, t, nu),
-            _load(rp_ref, t, nx),
+            _load(k_ref, t, nu),
+            _load(r_ref, t, nx),
             _load(P_ref, t, nx, nx),
-            _load(nu_ref, t, nx),
+            _load(p_ref, t, nx),
         )
-        _store(du_ref, t, du)
-        _store(dx_ref, t, dx_next)
-        _store(nu_ref, t, nu_t)
+        for ref, v in zip(out, (du, dx_next, nu_t), strict=True):
+            if add:
+                v = [a + b for a, b in zip(_load(ref, t, len(v)), v, strict=True)]
+            _store(ref, t, v)
         return tuple(dx_next)
 
-    lax.fori_loop(0, N, forward, tuple(zero for _ in range(nx)))
+    lax.fori_loop(0, N, stage, tuple(zero for _ in range(nx)))
+
+
+def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
+    """One program of :func:`apply_refined`: the step of one right-hand side, then one step of
+    iterative refinement against the KKT matrix (:func:`rvdjax.solver.kkt.kkt_refine`), whose
+    residual is formed stage by stage inside the sweeps instead of in a pass of its own.
+
+    refs: M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
+    then the refined one), and k2, p2, rp2 (the correction's affine terms and its dynamics
+    residual, kept between its sweeps).
+    """
+    refs = list(refs)
+    if block_io:
+        refs = [
+            r if i == 0 and not model_batched else _Block(r, padded) for i, r in enumerate(refs)
+        ]
+    M_ref, L_ref, K_ref, BPA_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:10]
+    du_ref, dx_ref, nu_ref, k2_ref, p2_ref, rp2_ref = refs[10:]
+    zero = jnp.zeros((lanes,), Phx_ref.dtype)
+
+    def backward(k_ref, p_ref, rhs, p0):
+        """The backward sweep of rhs(t) -> (g_u[t], r[t], g_x[t-1]): k_t, p_{t+1} stored."""
+
+        def stage(i, p):
+            t = N - 1 - i
+            gu, r, gx_prev = rhs(t)
+            p_new, k = _backward_rhs(
+                list(p),
+                _load(M_ref, t, nx, nu + nx),
+                _load(L_ref, t, nu, nu),
+                _load(BPA_ref, t, nu, nx),
+                _load(P_ref, t, nx, nx),
+                gu,
+                r,
+                gx_prev,
+            )
+            _store(k_ref, t, k)
+            _store(p_ref, t, p)
+            return tuple(p_new)
+
+        lax.fori_loop(0, N, stage, tuple(p0))
+
+    def first_rhs(t):
+        on = t > 0
+        gx_prev = _load(gx_ref, jnp.maximum(t - 1, 0), nx)
+        return _load(gu_ref, t, nu), _load(rp_ref, t, nx), [jnp.where(on, v, 0.0) for v in gx_prev]
+
+    backward(du_ref, nu_ref, first_rhs, _load(gx_ref, N - 1, nx))
+
+    step = (du_ref, dx_ref, nu_ref)
+    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, du_ref, rp_ref, nu_ref, step)
+
+    # The residual K z + (g, rp) of the first step z (kkt.kkt_residual), stage by stage.
+    def r_x(t):
+        """Phi_x dx_t + g_x + nu_t - A_{t+1}^T nu_{t+1} (no last term at t = N - 1)."""
+        Phx = _load(Phx_ref, t, nx, nx)
+        g = [
+            a + b for a, b in zip(_mv(Phx, _load(dx_ref, t, nx)), _load(gx_ref, t, nx), strict=True)
+        ]
+        out = [a + b for a, b in zip(g, _load(nu_ref, t, nx), strict=True)]
+        nxt = jnp.minimum(t + 1, N - 1)
+        A_next, _ = _split(_load(M_ref, nxt, nx, nu + nx), nu)
+        on = t < N - 1
+        At_nu = _mtv(A_next, _load(nu_ref, nxt, nx))
+        return [o - jnp.where(on, v, 0.0) for o, v in zip(out, At_nu, strict=True)]
+
+    def residual_rhs(t):
+        M = _load(M_ref, t, nx, nu + nx)
+        A, B = _split(M, nu)
+        du, dx, nu_t = _load(du_ref, t, nu), _load(dx_ref, t, nx), _load(nu_ref, t, nx)
+        g_u = [
+            a + b
+            for a, b in zip(_mv(_load(Phu_ref, t, nu, nu), du), _load(gu_ref, t, nu), strict=True)
+        ]
+        r_u = [a - b for a, b in zip(g_u, _mtv(B, nu_t), strict=True)]
+        on = t > 0
+        prev = jnp.maximum(t - 1, 0)
+        dx_prev = [jnp.where(on, v, 0.0) for v in _load(dx_ref, prev, nx)]
+        r_p = [
+            a - b - c + d
+            for a, b, c, d in zip(
+                dx, _mv(B, du), _mv(A, dx_prev), _load(rp_ref, t, nx), strict=True
+            )
+        ]
+        _store(rp2_ref, t, r_p)
+        return r_u, r_p, [jnp.where(on, v, 0.0) for v in r_x(prev)]
+
+    backward(k2_ref, p2_ref, residual_rhs, r_x(N - 1))
+
+    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, k2_ref, rp2_ref, p2_ref, step, True)
 
 
 def _compiler_params(cfg: KernelConfig):
@@ -458,12 +567,12 @@ def _pad(a, b_pad):
     return jnp.concatenate([a, jnp.broadcast_to(a[..., -1:], (*a.shape[:-1], b_pad - b))], -1)
 
 
-def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
+def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs, refine=False):
     from jax.experimental import pallas as pl
 
     N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
     b = mats[-1].shape[-1]
-    block_io = cfg.block_io and (factorise or cfg.solve_block_io)
+    block_io = cfg.block_io and (factorise or refine or cfg.solve_block_io)
     lanes = cfg.block
     b_pad = -(-b // lanes) * lanes
     model_batched = M.ndim == 4
@@ -484,6 +593,8 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         out_shapes += [(N, nu, nu), (N, nu, nx), (N, nu, nx), (N, nx, nx)]
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
+    if refine:  # the correction's k, p and dynamics residual between its sweeps
+        out_shapes += [(N, nu), (N, nx), (N, nx)]
     entries = [s[1:] for s in out_shapes]
     padded = cfg.padded_blocks
     if block_io:  # [stage][entry][problem] (the entries padded to a power of two: padded)
@@ -493,9 +604,14 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         out_shapes = [(N, _entries(math.prod(e), padded)) for e in entries]
     out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
     ins = [M, *mats, *rhs]
-    kernel = functools.partial(
-        _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched
-    )
+    if refine:
+        kernel = functools.partial(
+            _refined_kernel, N, nx, nu, lanes, block_io, padded, model_batched
+        )
+    else:
+        kernel = functools.partial(
+            _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched
+        )
     res = pl.pallas_call(
         kernel,
         out_shape=out_shapes,
@@ -504,8 +620,13 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs):
         out_specs=[spec(s.shape) for s in out_shapes],
         interpret=cfg.interpret,
         compiler_params=_compiler_params(cfg),
-        name="rvdjax_riccati" + ("_factor" if factorise else "") + ("_solve" if with_rhs else ""),
+        name="rvdjax_riccati"
+        + ("_factor" if factorise else "")
+        + ("_solve" if with_rhs else "")
+        + ("_refined" if refine else ""),
     )(*ins)
+    if refine:
+        res, entries = res[:3], entries[:3]
     if block_io:
         res = [
             r[:, : math.prod(e)].reshape(N, *e, b_pad) for r, e in zip(res, entries, strict=True)
@@ -545,3 +666,10 @@ def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig
 def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
     """The step (du, dx, nu) of one right-hand side with a stored factorisation."""
     return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp]))
+
+
+def apply_refined(M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation, plus one step
+    of iterative refinement (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the
+    residual needs the Hessian blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too."""
+    return tuple(_call(cfg, False, True, M, [L, K, BPA, P, Phi_u, Phi_x], [g_u, g_x, rp], True))

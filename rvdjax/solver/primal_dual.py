@@ -26,7 +26,7 @@ from rvdjax.solver.barrier import (
     u_slack,
     x_violation,
 )
-from rvdjax.solver.kkt import kkt_factor_solve, kkt_refine, kkt_solve
+from rvdjax.solver.kkt import kkt_factor_solve, kkt_solve_refined
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -108,12 +108,23 @@ def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
     return step, ds, dlam, dmu, dpi, dsu, dsx, Fdx
 
 
-def _max_step(pairs, wmask):
-    """Largest alpha in (0, 1] keeping every (value + alpha * step) >= 0 on active rows."""
-    alpha = jnp.asarray(1.0)
+def _max_step(pairs, wmask, nan_if_not_finite=False):
+    """Largest alpha in (0, 1] keeping every (value + alpha * step) >= 0 on active rows.
+
+    ``nan_if_not_finite``: NaN where a step has a non-finite entry on any row, masked or not
+    (0 * dv is NaN exactly there, and the minimum keeps a NaN), so that the same pass over
+    the rows is also the step's finiteness test: a separate test read every row array again
+    (on a GPU one more pass through device memory, docs/benchmark.md)."""
+    by_shape: dict = {}  # the elementwise minimum of the ratios of one shape, reduced once
     for v, dv, w in zip(*pairs, wmask, strict=True):
         shrink = (w > 0) & (dv < 0)
         ratio = jnp.where(shrink, -v / jnp.where(shrink, dv, -1.0), jnp.inf)
+        if nan_if_not_finite:
+            ratio = ratio + 0.0 * dv
+        old = by_shape.get(ratio.shape)
+        by_shape[ratio.shape] = ratio if old is None else jnp.minimum(old, ratio)
+    alpha = jnp.asarray(1.0)
+    for ratio in by_shape.values():
         alpha = jnp.minimum(alpha, jnp.min(ratio))
     return alpha
 
@@ -187,15 +198,18 @@ def pd_iteration(
         kappa - damp * ds_a * dpi_a,
     )
     g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
-    step = kkt_solve(kkt, g_u, g_x, rp, method, kernel)
-    # The corrector's step is the one taken. Near the solution the Newton matrix is as
-    # ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's residual
-    # depends on how XLA contracts its products (riccati.py): with loops compiled whole, 4 of 32
-    # random N = 60 problems ended NONFINITE without this refinement step.
-    step = kkt_refine(kkt, g_u, g_x, rp, step, method, kernel)
+    # The corrector's step is the one taken, refined once. Near the solution the Newton matrix
+    # is as ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's
+    # residual depends on how XLA contracts its products (riccati.py): with loops compiled
+    # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
+    step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
     step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
-    finite = all_finite((step, ds, dlam, dmu, dpi, dsu, Fdx))
-    alpha = _max_step(((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask)
+    # The rows' steps are finite where this ratio test is not NaN (Fdx is, where ds and dsx
+    # are); the Newton step's own blocks are tested apart.
+    alpha = _max_step(
+        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, True
+    )
+    finite = all_finite(step) & ~jnp.isnan(alpha)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite & ~stop, alpha, 0.0)
 

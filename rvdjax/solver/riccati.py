@@ -21,6 +21,8 @@ import jax.numpy as jnp
 from jax import lax
 
 from rvdjax.solver import lanes, unrolled
+from rvdjax.solver import stagewise as sw
+from rvdjax.solver.barrier import dual_residual
 from rvdjax.solver.stagewise import shift as _shift
 from rvdjax.solver.types import KERNELS  # the Newton step's forms, checked by SolverSettings
 
@@ -33,6 +35,9 @@ __all__ = [
     "KERNELS",
     "kernel_on",
     "riccati_factor_solve",
+    "riccati_apply_refined",
+    "newton_residual",
+    "REFINED_IN_KERNEL",
     "tracing_for_cuda",
 ]
 
@@ -182,6 +187,31 @@ def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
     return NewtonStep(du, dx, nu_new)
 
 
+class _Model(NamedTuple):
+    A: Any
+    B: Any
+
+
+def newton_residual(A, B, Phi_u, Phi_x, g_u, g_x, rp, step: NewtonStep):
+    """K z + (g, rp) for z = (du, dx, nu): the residual of the stage-structured Newton system
+    (the rows of :func:`rvdjax.solver.kkt.dense_solve`'s matrix, applied stage by stage)."""
+    r_u, r_x = dual_residual(
+        _Model(A, B), sw.mv(Phi_u, step.du) + g_u, sw.mv(Phi_x, step.dx) + g_x, step.nu
+    )
+    r_p = step.dx - sw.mv(B, step.du) - sw.mv(A, _shift(step.dx)) + rp
+    return r_u, r_x, r_p
+
+
+def _apply_refined(f: RiccatiFactor, Phi_u, Phi_x, g_u, g_x, rp, ops: _Products) -> NewtonStep:
+    """:func:`_apply`, then one step of iterative refinement: the XLA form of the kernel
+    :func:`rvdjax.solver.lanes.apply_refined`."""
+    nu = f.L.shape[1]
+    A, B = f.M[:, :, nu:], f.M[:, :, :nu]
+    step = _apply(f, g_u, g_x, rp, ops)
+    d = _apply(f, *newton_residual(A, B, Phi_u, Phi_x, g_u, g_x, rp, step), ops)
+    return NewtonStep(*(a + b for a, b in zip(step, d, strict=True)))
+
+
 # ------------------------------------------------------------- batching and differentiation
 #
 # Unbatched, the elementwise form runs (fewer, fused operations on 6x6 blocks). Under
@@ -266,24 +296,26 @@ def _lane_ops(impl):
     "pallas*" kernel name, interpreted or not. The variant is in the name (static in
     SolverSettings, so a program traced with one is never reused for another)."""
     if impl == "unrolled":
-        return unrolled.factor, unrolled.factor_solve, unrolled.apply
+        return unrolled.factor, unrolled.factor_solve, unrolled.apply, None
     kernel, interpret = impl
     cfg = dataclasses.replace(
         lanes.default_config(),
         interpret=interpret,
-        block_io=kernel in ("pallas-block-io", "pallas-block-factor"),
+        block_io=kernel in ("pallas-block-io", "pallas-block-factor", "pallas-block-fused"),
         solve_block_io=kernel != "pallas-block-factor",
-        fused=kernel == "pallas-fused",
+        fused=kernel in ("pallas-fused", "pallas-block-fused"),
     )
-    factor, apply = (functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply))
+    factor, apply, apply_refined = (
+        functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply, lanes.apply_refined)
+    )
     if cfg.fused:
-        return factor, functools.partial(lanes.factor_solve, cfg=cfg), apply
+        return factor, functools.partial(lanes.factor_solve, cfg=cfg), apply, apply_refined
 
     def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp):
         f = factor(M, Phi_u, Phi_x)
         return f, apply(M, *f, g_u, g_x, rp)
 
-    return factor, factor_solve, apply
+    return factor, factor_solve, apply, apply_refined
 
 
 def _model_M(axis_size, A, B, bA, bB, batched: bool):
@@ -304,7 +336,7 @@ def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
     flags = _factor_flags(in_batched)
     M = _model_M(axis_size, A, B, bA, bB, flags.M)
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
-    factor, factor_solve, _ = _lane_ops(impl)
+    factor, factor_solve, _, _ = _lane_ops(impl)
     if not rhs:
         f = factor(_lane_M(M, flags.M), *mats)
         return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
@@ -322,6 +354,20 @@ def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp):
     return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
 
 
+def _pallas_apply_refined_rule(impl, axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp):
+    fb, bPu, bPx, bu, bx, br = in_batched
+    mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
+    mats += [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
+    vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
+    s = _lane_ops(impl)[3](_lane_M(f.M, fb.M), *mats, *vecs)
+    return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
+
+
+def _xla_apply_refined_rule(axis_size, in_batched, *args):
+    out, _ = _first_vmap(_apply_refined, in_batched, args, NewtonStep(True, True, True))
+    return out, NewtonStep(True, True, True)
+
+
 def _xla_factor_solve_rule(axis_size, in_batched, A, B, Phi_u, Phi_x, g_u, g_x, rp):
     f, fb = _xla_factor_rule(axis_size, in_batched[:4], A, B, Phi_u, Phi_x)
     s, sb = _xla_apply_rule(axis_size, (fb, *in_batched[4:]), f, g_u, g_x, rp)
@@ -333,7 +379,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-block-factor"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-block-fused"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -410,14 +456,17 @@ def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
     "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
     "pallas-block-io" with block loads and stores, "pallas-block-factor" with them in the
-    factorisation only, "pallas-fused" with the factorisation and
-    first step in one kernel (:class:`rvdjax.solver.lanes.KernelConfig`); "unrolled" runs the
+    factorisation only, "pallas-fused" with the factorisation and first step in one kernel
+    (and a step with its refinement in another), "pallas-block-fused" the same with block
+    loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`); "unrolled" runs the
     kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a
     CUDA GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
 
-    Why "auto" picks "pallas-block-factor" on a CUDA GPU: there it was the fastest form that
-    compiles in seconds, for batches and for the batch engine alike (its solves read their
-    operands as they are, with no padding pass); on the CPU XLA's loops are the fastest form
+    Why "auto" picks "pallas-block-fused" on a CUDA GPU: "pallas-block-factor" was the
+    fastest form measured on a GPU (2026-11-27); in the programs compiled for an H100 the
+    fused form moves 22 % fewer bytes an accurate iteration (17 % with one model for the
+    batch) and 15-19 % fewer a tick of the batch engine, where the bytes set the pace
+    (docs/benchmark.md; not yet timed on a GPU). On the CPU XLA's loops are the fastest form
     (the kernels are only interpreted there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
@@ -443,6 +492,11 @@ _OPS = {
         _xla_factor_solve_rule,
         _pallas_factor_rule,
     ),
+    "apply_refined": (
+        functools.partial(_apply_refined, ops=_ELEMENTWISE),
+        _xla_apply_refined_rule,
+        _pallas_apply_refined_rule,
+    ),
 }
 
 
@@ -456,7 +510,7 @@ def _batched(op: str, kernel: str):
     def flags(in_batched):
         if op == "factor":
             return _factor_flags(in_batched)
-        if op == "apply":
+        if op in ("apply", "apply_refined"):
             return NewtonStep(True, True, True)
         return _factor_flags(in_batched), NewtonStep(True, True, True)
 
@@ -510,11 +564,11 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
         A: (N, nx, nx), B: (N, nx, nu) stage dynamics.
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
-        kernel: "auto" ("pallas-block-factor" on a CUDA GPU, else XLA's loops), "xla"
-            (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor" or
-            "pallas-fused" (the kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA
-            GPU, interpreted elsewhere) or "unrolled" (their algebra as XLA loops,
-            :mod:`rvdjax.solver.unrolled`).
+        kernel: "auto" (:data:`AUTO_ON_CUDA` on a CUDA GPU, else XLA's loops), "xla"
+            (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor",
+            "pallas-fused" or "pallas-block-fused" (the kernels of
+            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
+            "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
     """
     _check_kernel(kernel)
     return _batched("factor", kernel)(A, B, Phi_u, Phi_x)
@@ -548,6 +602,26 @@ def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto")
 
 
 riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
+
+
+# the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
+# residual formed by XLA and one more solve (rvdjax.solver.kkt.kkt_solve_refined)
+REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused")
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(6,))
+def riccati_apply_refined(
+    f: RiccatiFactor, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "pallas-block-fused"
+) -> NewtonStep:
+    """:func:`riccati_apply` and one step of iterative refinement against the KKT matrix of
+    ``f`` and the Hessian blocks Phi_u, Phi_x (:func:`newton_residual`, then one more solve):
+    with a kernel of :data:`REFINED_IN_KERNEL`, one kernel that forms the residual inside its
+    sweeps. ``kernel`` as :func:`riccati_factor`."""
+    _check_kernel(kernel)
+    return _batched("apply_refined", kernel)(f, Phi_u, Phi_x, g_u, g_x, rp)
+
+
+riccati_apply_refined.defjvp(_dot_derivative(_apply_refined))
 
 
 def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
