@@ -355,6 +355,8 @@ def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp):
 
 
 def _pallas_apply_refined_rule(impl, axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp):
+    if impl == "unrolled":  # no kernel of its own: the two solves and the residual
+        return _xla_apply_refined_rule(axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp)
     fb, bPu, bPx, bu, bx, br = in_batched
     mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
     mats += [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
