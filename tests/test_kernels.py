@@ -291,3 +291,28 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
+
+
+@pytest.mark.slow  # interpreted kernels in a closed loop: ~30 s
+def test_the_engine_flies_with_the_gpu_form_as_with_xla():
+    """The batch engine with the default GPU form of the Newton step ("pallas-block-fused":
+    the factorisation with the predictor's step, the corrector's step with its refinement;
+    interpreted) flies thesis-vbar's first steps (a model per slot, rebuilt from the phase)
+    as with XLA's loops: the same steps, run statuses and solver statuses, delta-v to 1e-9."""
+    from rvdjax.bench import perturbed_states
+    from rvdjax.loop.engine import EngineConfig, fly_batch
+    from rvdjax.scenarios import FlightOptions, get_scenario
+
+    sc = get_scenario("thesis-vbar")
+    options = FlightOptions(n_steps=6)
+    flown = {}
+    for kernel in ("xla", AUTO_ON_CUDA):
+        flight = sc.flight(options, settings=sc.settings(options.mode, kernel=kernel))
+        x0s = perturbed_states(flight.x0, 3, rel=0.05)
+        config = EngineConfig(slots=2, chunk=2, iterations=3)
+        flown[kernel] = fly_batch(flight.loop, flight.params, x0s, config=config)
+    xla, gpu = flown["xla"], flown[AUTO_ON_CUDA]
+    np.testing.assert_array_equal(np.asarray(gpu.steps), np.asarray(xla.steps))
+    np.testing.assert_array_equal(np.asarray(gpu.status), np.asarray(xla.status))
+    np.testing.assert_array_equal(np.asarray(gpu.status_counts), np.asarray(xla.status_counts))
+    np.testing.assert_allclose(np.asarray(gpu.delta_v_m_s), np.asarray(xla.delta_v_m_s), rtol=1e-9)
