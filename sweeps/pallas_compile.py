@@ -1,7 +1,8 @@
 """How long the Newton step's Pallas kernels take to compile, and to run, against the same
 sweeps as XLA loops (:mod:`rvdjax.solver.unrolled`), one kernel per process.
 
-    PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py apply|factor|factor_solve
+    PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py
+        apply|apply_refined|factor|factor_solve
         [--batch 65536] [--block 128] [--warps 4] [--block-io] [--out FILE]
 
 On a CUDA GPU the kernel is compiled by Triton (bounded only by the caller's ``timeout``:
@@ -9,6 +10,10 @@ on an H100, 2026-11-26, the solver's programs with the kernels did not finish co
 165 s). Elsewhere it is lowered for CUDA only (no compile). The inputs are one fastmpc-3d
 shaped stage-wise system (N = 30, nx = 6, nu = 3) per problem, well conditioned: the figures
 are times, not answers. A JSON line per measurement goes to ``--out`` as it is taken.
+``apply_refined`` (a step and its refinement in one kernel) is compared with XLA's
+elementwise form of the same two solves and residual, one problem per ``vmap`` lane (there is
+no unrolled form of it). The default GPU form (``"pallas-block-fused"``) is ``factor_solve``
+and ``apply_refined`` with ``--block-io``.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import numpy as np
 
 import rvdjax  # noqa: F401  (float64)
 from rvdjax.provenance import benchmark_block
-from rvdjax.solver import lanes, unrolled
+from rvdjax.solver import lanes, riccati, unrolled
 
 N, NX, NU = 30, 6, 3
 
@@ -59,6 +64,24 @@ def _fns(part: str, cfg):
     def stored(M, Pu, Px):  # the apply kernels take a factorisation computed beforehand
         return unrolled.factor(M, Pu, Px)
 
+    if part == "apply_refined":
+
+        def xla_refined(M, Pu, Px, gu, gx, r):
+            f = riccati.RiccatiFactor(M, *stored(M, Pu, Px))
+            one = jax.vmap(  # batch-last arrays: one problem a lane
+                lambda f, *a: riccati._apply_refined(f, *a, riccati._ELEMENTWISE),
+                in_axes=(riccati.RiccatiFactor(None, -1, -1, -1, -1), -1, -1, -1, -1, -1),
+                out_axes=-1,
+            )
+            return one(f, Pu, Px, gu, gx, r)
+
+        return (
+            lambda M, Pu, Px, gu, gx, r: lanes.apply_refined(
+                M, *stored(M, Pu, Px), Pu, Px, gu, gx, r, cfg=cfg
+            ),
+            xla_refined,
+        )
+
     return (
         lambda M, Pu, Px, gu, gx, r: lanes.apply(M, *stored(M, Pu, Px), gu, gx, r, cfg=cfg),
         lambda M, Pu, Px, gu, gx, r: unrolled.apply(M, *stored(M, Pu, Px), gu, gx, r),
@@ -76,7 +99,7 @@ def _best(fn, args, repeats=5):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("apply", "factor", "factor_solve"))
+    ap.add_argument("part", choices=("apply", "apply_refined", "factor", "factor_solve"))
     ap.add_argument("--batch", type=int, default=65536)
     ap.add_argument("--block", type=int, default=128)
     ap.add_argument("--warps", type=int, default=4)
@@ -108,9 +131,10 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     xla = jax.jit(xla_fn).lower(*args_).compile()
-    emit(form="unrolled (XLA loops)", compile_s=time.perf_counter() - t0)
+    xla_form = "XLA loops" if args.part == "apply_refined" else "unrolled (XLA loops)"
+    emit(form=xla_form, compile_s=time.perf_counter() - t0)
     if gpu:
-        emit(form="unrolled (XLA loops)", ms=1e3 * _best(xla, args_))
+        emit(form=xla_form, ms=1e3 * _best(xla, args_))
     t0 = time.perf_counter()
     lowered = jax.jit(pallas_fn).trace(*args_).lower(lowering_platforms=("cuda",))
     emit(form="pallas", lower_s=time.perf_counter() - t0, hlo_kb=len(lowered.as_text()) / 1e3)
