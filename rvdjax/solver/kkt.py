@@ -23,6 +23,7 @@ so at the optimum grad_u f = B_t^T nu_t and grad_x f(x_{t+1}) = A_{t+1}^T nu_{t+
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -135,19 +136,17 @@ def kkt_solve_refined(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto")
         step = kkt_solve(kkt, g_u, g_x, rp, method, kernel)
         return kkt_refine(kkt, g_u, g_x, rp, step, method, kernel)
 
-    def in_kernel(kernel):
-        def refined(kkt, g_u, g_x, rp):
-            return riccati_apply_refined(kkt.factor, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, kernel)
-
-        return refined
-
     if method == "riccati" and kernel in REFINED_IN_KERNEL:
-        return in_kernel(kernel)(kkt, g_u, g_x, rp)
+        return _refined_in_kernel(kernel, kkt, g_u, g_x, rp)
     if method == "riccati" and kernel == "auto" and AUTO_ON_CUDA in REFINED_IN_KERNEL:
-        return cuda_or_default(
-            kkt, g_u, g_x, rp, cuda=in_kernel(AUTO_ON_CUDA), default=two_solves
-        )  # the CPU's program is the two solves, as before
+        in_kernel = functools.partial(_refined_in_kernel, AUTO_ON_CUDA)
+        # the CPU's program is the two solves, as before
+        return cuda_or_default(kkt, g_u, g_x, rp, cuda=in_kernel, default=two_solves)
     return two_solves(kkt, g_u, g_x, rp)
+
+
+def _refined_in_kernel(kernel, kkt: KKT, g_u, g_x, rp) -> NewtonStep:
+    return riccati_apply_refined(kkt.factor, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, kernel)
 
 
 def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto") -> NewtonStep:

@@ -479,14 +479,16 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
     zero = jnp.zeros((lanes,), Phx_ref.dtype)
 
     def backward(k_ref, p_ref, rhs, p0):
-        """The backward sweep of rhs(t) -> (g_u[t], r[t], g_x[t-1]): k_t, p_{t+1} stored."""
+        """The backward sweep of rhs(t, M_t) -> (g_u[t], r[t], g_x[t-1]): k_t, p_{t+1}
+        stored."""
 
         def stage(i, p):
             t = N - 1 - i
-            gu, r, gx_prev = rhs(t)
+            M = _load(M_ref, t, nx, nu + nx)
+            gu, r, gx_prev = rhs(t, M)
             p_new, k = _backward_rhs(
                 list(p),
-                _load(M_ref, t, nx, nu + nx),
+                M,
                 _load(L_ref, t, nu, nu),
                 _load(BPA_ref, t, nu, nx),
                 _load(P_ref, t, nx, nx),
@@ -500,7 +502,7 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
 
         lax.fori_loop(0, N, stage, tuple(p0))
 
-    def first_rhs(t):
+    def first_rhs(t, M):
         on = t > 0
         gx_prev = _load(gx_ref, jnp.maximum(t - 1, 0), nx)
         return _load(gu_ref, t, nu), _load(rp_ref, t, nx), [jnp.where(on, v, 0.0) for v in gx_prev]
@@ -511,21 +513,20 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
     _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, du_ref, rp_ref, nu_ref, step)
 
     # The residual K z + (g, rp) of the first step z (kkt.kkt_residual), stage by stage.
-    def r_x(t):
-        """Phi_x dx_t + g_x + nu_t - A_{t+1}^T nu_{t+1} (no last term at t = N - 1)."""
+    def r_x(t, A_next=None):
+        """Phi_x dx_t + g_x + nu_t - A_{t+1}^T nu_{t+1} (``A_next`` = A_{t+1}; none at the last
+        stage)."""
         Phx = _load(Phx_ref, t, nx, nx)
         g = [
             a + b for a, b in zip(_mv(Phx, _load(dx_ref, t, nx)), _load(gx_ref, t, nx), strict=True)
         ]
         out = [a + b for a, b in zip(g, _load(nu_ref, t, nx), strict=True)]
-        nxt = jnp.minimum(t + 1, N - 1)
-        A_next, _ = _split(_load(M_ref, nxt, nx, nu + nx), nu)
-        on = t < N - 1
-        At_nu = _mtv(A_next, _load(nu_ref, nxt, nx))
-        return [o - jnp.where(on, v, 0.0) for o, v in zip(out, At_nu, strict=True)]
+        if A_next is None:
+            return out
+        At_nu = _mtv(A_next, _load(nu_ref, jnp.minimum(t + 1, N - 1), nx))
+        return [o - v for o, v in zip(out, At_nu, strict=True)]
 
-    def residual_rhs(t):
-        M = _load(M_ref, t, nx, nu + nx)
+    def residual_rhs(t, M):
         A, B = _split(M, nu)
         du, dx, nu_t = _load(du_ref, t, nu), _load(dx_ref, t, nx), _load(nu_ref, t, nx)
         g_u = [
@@ -543,7 +544,7 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
             )
         ]
         _store(rp2_ref, t, r_p)
-        return r_u, r_p, [jnp.where(on, v, 0.0) for v in r_x(prev)]
+        return r_u, r_p, [jnp.where(on, v, 0.0) for v in r_x(prev, A)]  # A = A_{prev + 1}
 
     backward(k2_ref, p2_ref, residual_rhs, r_x(N - 1))
 
