@@ -27,6 +27,7 @@ from rvdjax.loop.engine import (
 from rvdjax.loop.engine.slots import _strip_model, model_of
 from rvdjax.loop.kernel import init, prepare
 from rvdjax.scenarios import SCENARIOS
+from rvdjax.solver.barrier import rows_of
 
 SC = SCENARIOS["fastmpc-3d-free"]
 PARAMS, X0 = SC.build()
@@ -237,8 +238,10 @@ def test_engine_settings_are_chosen_for_the_device():
 @pytest.mark.parametrize("name", ["fastmpc-3d", "poseidyn-lqmpc", "spot-2d-a", "thesis-vbar"])
 def test_the_fields_a_family_rebuilds_are_its_ocps(name):
     """What the engine rebuilds instead of storing per slot (``model_of``: the model, and for
-    these families the linear costs and the input rows) is, bit for bit, the OCP the family
-    builds at a run's first step; fields it rebuilds are stored as scalars."""
+    these families the linear costs and the input rows, for the three-phase family also the
+    state rows' mask and penalty, neutralised as the solver's start does) is, bit for bit,
+    the OCP the family builds at a run's first step; fields it rebuilds are stored as
+    scalars."""
     sc = SCENARIOS[name]
     params, x0 = sc.build()
     loop = sc.loop(n_steps=2)
@@ -249,9 +252,11 @@ def test_the_fields_a_family_rebuilds_are_its_ocps(name):
         return prep.ocp, model_of(loop, p, prep.guidance)
 
     ocp, fields = first(params, x0)
-    assert set(fields) == {"A", "B", "c", "Q", "R", "Fu", "fu", "q", "r"}
+    state_rows = {"x_mask", "rho"} if name == "thesis-vbar" else set()
+    assert set(fields) == {"A", "B", "c", "Q", "R", "Fu", "fu", "q", "r"} | state_rows
     for field, a in fields.items():
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(getattr(ocp, field)), field)
+        want = rows_of(ocp).rho if field == "rho" else getattr(ocp, field)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(want), field)
     stripped = _strip_model(ocp, fields)
     assert all(np.ndim(getattr(stripped, f)) == 0 for f in fields)
     assert np.ndim(stripped.Fx) == 3 and np.ndim(stripped.u_mask) == 2  # stored

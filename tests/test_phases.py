@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +17,7 @@ from rvdjax.loop.engine import EngineConfig, arrays_source, run_batch
 from rvdjax.scenarios import SCENARIOS
 from rvdjax.scenarios import paper003 as thesis
 from rvdjax.solver import Status, solve
+from rvdjax.solver.barrier import rows_of
 
 CASES = ("vbar", "rbar", "rotating")
 # the Table 3.6 variant without set point differs from V-bar only in traced data: same program
@@ -178,8 +180,10 @@ def test_compare_with_table_3_6(runs, lp_run):
 @pytest.mark.parametrize("name", ["thesis-vbar", "thesis-vbar-lp"])
 def test_the_phase_model_is_the_one_the_ocp_has(name):
     """The fields the batch engine rebuilds from a slot's phase instead of storing them (the
-    model A, B, c, Q, R, the linear costs and the input rows) are, bit for bit, those of that
-    phase's OCP; none with the thrusters' finite burns (their B and c follow the plan)."""
+    model A, B, c, Q, R, the linear costs, the input rows, and the state rows' mask and
+    penalty, neutralised as the solver's start does) are, bit for bit, those of that phase's
+    OCP at any state and time; none with the thrusters' finite burns (their B and c follow
+    the plan)."""
     sc = SCENARIOS[name]
     p, x0 = sc.build()
     fc = sc.loop().config.family_config
@@ -187,14 +191,18 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
     plan = ph.initial_plan(p, fc, g0, x0)
 
     @jax.jit
-    def both(g):
-        return ph.ocp(p, fc, g, x0, jnp.asarray(100.0), plan)[0], ph.model(p, fc, g)
+    def both(g, x, t):
+        ocp = ph.ocp(p, fc, g, x, t, plan)[0]
+        return ocp, rows_of(ocp).rho, ph.model(p, fc, g)
 
-    for phase in range(3):
-        ocp, fields = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)))
-        assert set(fields) == {"A", "B", "c", "Q", "R", "q", "r", "Fu", "fu"}
+    states = [(x0, 100.0), (0.3 * x0[::-1], 2500.0)]
+    for phase, (x, t) in itertools.product(range(3), states):
+        ocp, rho, fields = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)), x, t)
+        assert set(fields) == {"A", "B", "c", "Q", "R", "q", "r", "Fu", "fu", "x_mask", "rho"}
+        assert 0 < np.sum(np.asarray(ocp.x_mask)) < np.size(ocp.x_mask)
         for field, a in fields.items():
-            np.testing.assert_array_equal(np.asarray(a), np.asarray(getattr(ocp, field)))
+            want = rho if field == "rho" else getattr(ocp, field)
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(want), field)
     with_burns, _ = sc.build(thrusters=True)
     assert ph.model(with_burns, fc, g0) is None
     assert ph.model(with_burns, dataclasses.replace(fc, finite_burn=False), g0) is not None

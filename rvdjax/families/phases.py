@@ -334,7 +334,28 @@ def model(p: Params, fc: Config, g: Guidance):
         return None
     fields = _phase_fields(p, fc, g.phase, p.B[g.phase])
     del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
-    return dict(fields, c=jnp.zeros((_N(fc), 6), p.A.dtype))
+    x_mask, rho = row_weights(p, fc)
+    return dict(
+        fields, c=jnp.zeros((_N(fc), 6), p.A.dtype), x_mask=x_mask[g.phase], rho=rho[g.phase]
+    )
+
+
+def row_weights(p: Params, fc: Config):
+    """(3, N, m) the state rows' mask and penalty in each phase, the penalty neutralised (1)
+    on masked rows as the solver's start does (``barrier.rows_of``). The rows' normals and
+    offsets follow the state and the time; which rows are on, and their penalties, follow the
+    phase alone, so :func:`ocp` of any state gives them. The batch engine gathers them by the
+    phase instead of reading two (N, m) arrays of every slot in each pass over the rows (on a
+    GPU, 6 % of a thesis-vbar tick's bytes, docs/benchmark.md)."""
+    dtype = p.A.dtype
+    x = jnp.ones(6, dtype)  # any state
+    g0 = init(p, fc, x)
+    masks, rhos = [], []
+    for phase in range(3):
+        rows, _ = ocp(p, fc, g0._replace(phase=jnp.asarray(phase, jnp.int32)), x, 0.0, None)
+        masks.append(rows.x_mask)
+        rhos.append(jnp.where(rows.x_mask > 0, rows.rho, 1.0))
+    return jnp.stack(masks), jnp.stack(rhos)
 
 
 def _coast_back(Ac, ts):

@@ -125,9 +125,11 @@ def arrays_source(x0s, keys=None, params=None, solver=None) -> Source:
 
 
 #: The OCP fields besides the model's (A, B, c, Q, R) that a family's ``model`` hook may
-#: rebuild: the linear costs and the hard input rows (Fu and fu together; their mask stays in
-#: the slot, which neutralises the masked rows as the solver's start does).
-ROWS_REBUILT = ("q", "r", "Fu", "fu")
+#: rebuild: the linear costs, the hard input rows (Fu and fu together; their mask stays in
+#: the slot, which neutralises the masked rows as the solver's start does) and the state rows'
+#: mask and penalty (together, the penalty neutralised where the mask is off; the rows
+#: themselves, Fx and fx, stay in the slot as the start neutralised them).
+ROWS_REBUILT = ("q", "r", "Fu", "fu", "x_mask", "rho")
 
 
 def model_of(loop: Loop, params, guidance) -> dict | None:
@@ -149,10 +151,12 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
         names - set(MODEL_FIELDS) - set(ROWS_REBUILT)
         or not set(MODEL_FIELDS) <= names
         or len({"Fu", "fu"} & names) == 1
+        or len({"x_mask", "rho"} & names) == 1
     ):
         raise TypeError(
             f"{loop.family.name}: model must return (A, B, c, Q, R) or a dict of those and "
-            f"any of q, r and the input rows (Fu and fu together), got {sorted(names)}"
+            f"any of q, r, the input rows (Fu and fu together) and the state rows' mask and "
+            f"penalty (x_mask and rho together), got {sorted(names)}"
         )
     return fields
 
