@@ -230,7 +230,91 @@ def _sliced_reads(comps: dict, fused: str, shapes: dict) -> dict:
     return out
 
 
-def traffic(hlo: str, start: str | None = None, key=None) -> dict:
+def kernel_sweeps(jaxpr) -> dict[str, tuple[int, int]]:
+    """{name: (bytes read, bytes written) a launch} of every Pallas kernel in a traced program
+    (``jax.make_jaxpr`` or ``.trace(...).jaxpr``, traced for a CUDA GPU), from the kernel's own
+    loads and stores: a loop over the stages reads each array it loads once per trip, whatever
+    entries of it a trip loads (a trip's neighbouring stages and a block's overlapping chunks
+    come from the cache), so a kernel whose sweeps read an array again reads it again from
+    device memory. The operands-once count of :func:`traffic` is right for a kernel that reads
+    each operand in one sweep and low for the fused kernels, whose later sweeps read the
+    factorisation and the rows again: on a GPU a tile's arrays (megabytes for 128 problems)
+    do not stay in the 50 MB L2 cache between sweeps while a hundred tiles run at once."""
+    import math
+
+    import jax
+    import jax.extend
+
+    def ref_bytes(aval, keys) -> int:
+        return len(keys) * aval.shape[-1] * aval.dtype.itemsize
+
+    def static(v):
+        """A static index's int, None for a traced one."""
+        v = getattr(v, "val", v)
+        return int(v) if isinstance(v, int) or hasattr(v, "__index__") else None
+
+    def entry_keys(indexer) -> set:
+        """The entries (all but the stage, first, and the problems, last) an indexer takes."""
+        keys = {()}
+        for i in indexer.indices[1:-1]:
+            if hasattr(i, "size"):  # a slice: its entries, or as many anonymous ones
+                start = static(i.start)
+                ax = (
+                    [("?", k) for k in range(i.size)]
+                    if start is None
+                    else range(start, start + i.size)
+                )
+            else:
+                ax = [static(i) if static(i) is not None else "?"]
+            keys = {k + (v,) for k in keys for v in ax}
+        return keys
+
+    def body(j, refs: dict, trips: int, acc: list):
+        """Add the loads and stores of ``j`` (refs: var -> kernel ref index) run ``trips``
+        times to acc = [read, written]."""
+        loads, stores = collections.defaultdict(set), collections.defaultdict(set)
+        avals = {}
+        for eqn in j.eqns:
+            name = eqn.primitive.name
+            if name in ("get", "swap"):
+                ref = eqn.invars[0]
+                leaves = eqn.invars[1:] if name == "get" else eqn.invars[2:]
+                indexer = jax.tree_util.tree_unflatten(eqn.params["tree"], leaves)[0]
+                who = refs.get(ref, ref)  # the kernel's ref a loop's variable stands for
+                avals[who] = ref.aval
+                (loads if name == "get" else stores)[who] |= entry_keys(indexer)
+            elif name == "scan":
+                inner = eqn.params["jaxpr"].jaxpr
+                sub = {
+                    v: refs.get(o, o)
+                    for v, o in zip(inner.invars, eqn.invars, strict=False)
+                    if not isinstance(o, jax.extend.core.Literal)
+                }
+                body(inner, sub, trips * eqn.params["length"], acc)
+            elif name in ("while", "cond", "pjit", "closed_call"):
+                for sub_j in jax.extend.core.jaxprs_in_params(eqn.params):
+                    body(sub_j, refs, trips, acc)
+        acc[0] += trips * sum(ref_bytes(avals[r], k) for r, k in loads.items())
+        acc[1] += trips * sum(ref_bytes(avals[r], k) for r, k in stores.items())
+
+    found = {}
+
+    def visit(j):
+        for eqn in j.eqns:
+            if eqn.primitive.name == "pallas_call":
+                acc = [0, 0]
+                kernel = eqn.params["jaxpr"]
+                body(kernel, {v: i for i, v in enumerate(kernel.invars)}, 1, acc)
+                grid = math.prod(eqn.params["grid_mapping"].grid)
+                found[str(eqn.params["name"])] = (acc[0] * grid, acc[1] * grid)
+            for sub_j in jax.extend.core.jaxprs_in_params(eqn.params):
+                visit(sub_j)
+
+    visit(jaxpr)
+    return found
+
+
+def traffic(hlo: str, start: str | None = None, key=None, kernels: dict | None = None) -> dict:
     """Launches and bytes of an optimised GPU program (``compiled.as_text()``): every fusion,
     custom call (a Pallas kernel among them) and other launch reads its operands and writes its
     outputs once; a ``while`` body counts once per trip (its ``known_trip_count``, else once);
@@ -243,7 +327,9 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
     dynamic-update-slice, alone or at a fusion's root) reads its other operands and writes the
     update only; a fusion that reads an operand only through slices reads the slices.
     ``start``: the computation to count from (default the entry, once); ``key(line)``: what
-    ``by_source`` groups by (default the solver's source line)."""
+    ``by_source`` groups by (default the solver's source line); ``kernels``: {name: (read,
+    written)} a launch of the Pallas kernels of that name (:func:`kernel_sweeps`), counted
+    instead of their operands once."""
     comps, entry = _computations(hlo)
     where = _source_lines(hlo)
     shapes: dict[str, int] = {}
@@ -306,6 +392,9 @@ def traffic(hlo: str, start: str | None = None, key=None) -> dict:
                 for i, b in _sliced_reads(comps, called.group(1), shapes).items():
                     if i < len(operands) and (place is None or i not in place[0]):
                         read -= shapes.get(operands[i], 0) - b
+            kernel = re.search(r"/(\w+)/pallas_call", ln) if op == "custom-call" else None
+            if kernels and kernel and kernel.group(1) in kernels:
+                read, written = kernels[kernel.group(1)]
             out["launches"] += times
             out["read"] += times * read
             out["written"] += times * written
@@ -371,8 +460,9 @@ def _sharding(target: str):
     return NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
 
 
-def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool = False) -> str:
-    """The optimised GPU program of one solver iteration on ``batch`` fastmpc-3d QPs; with
+def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool = False):
+    """The optimised GPU program of one solver iteration on ``batch`` fastmpc-3d QPs and its
+    Pallas kernels' sweeps (:func:`kernel_sweeps`): (HLO text, sweeps); with
     ``shared_model`` the model fields (A, B, c, Q, R) carry no batch axis (one model for every
     problem, as the batch engine solves a Monte Carlo's MPC steps)."""
     import jax
@@ -399,7 +489,8 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
     state = jax.tree.map(spec, state)
     step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s), in_axes=(axes, 0)))
     with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
-        return step.lower(ocps, state).compile().as_text()
+        traced = step.trace(ocps, state)
+        return traced.lower().compile().as_text(), kernel_sweeps(traced.jaxpr.jaxpr)
 
 
 def _compile_engine(scenario: str, slots: int, target: str, kernel: str = "auto"):
@@ -407,7 +498,8 @@ def _compile_engine(scenario: str, slots: int, target: str, kernel: str = "auto"
     accelerator settings (:func:`rvdjax.loop.engine.config.auto_config` on a GPU: every slot in
     one chunk, 4 solver iterations a tick, 128 ticks a segment, the compacted refresh in
     groups of a quarter of the slots, runs to any free slot), compiled for ``target``, with
-    the Newton step's form ``kernel``: (HLO text, the EngineConfig)."""
+    the Newton step's form ``kernel``: (HLO text, the EngineConfig, the Pallas kernels'
+    sweeps: :func:`kernel_sweeps`)."""
     import jax
 
     import rvdjax  # noqa: F401  (float64)
@@ -438,10 +530,11 @@ def _compile_engine(scenario: str, slots: int, target: str, kernel: str = "auto"
     args = _abstract_args(loop, cfg, source, params, sp)
     args = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), args)
     with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
-        return E.segment_program(loop, cfg, source.fn).lower(*args).compile().as_text(), cfg
+        traced = E.segment_program(loop, cfg, source.fn).trace(*args)
+        return traced.lower().compile().as_text(), cfg, kernel_sweeps(traced.jaxpr.jaxpr)
 
 
-def tick(hlo: str) -> dict:
+def tick(hlo: str, kernels: dict | None = None) -> dict:
     """:func:`traffic` of one tick of an engine segment program (the body of its loop over
     ticks), grouped by the engine's scopes: the solver iterations, the refresh (advance,
     refill, the next MPC step's start), the ring and the rest (the compacted refresh's
@@ -450,13 +543,17 @@ def tick(hlo: str) -> dict:
     import tick_kernels
 
     comps, entry = tick_kernels.parse(hlo)
-    return traffic(hlo, start=tick_kernels.tick_body(comps, entry), key=tick_kernels.scope)
+    start = tick_kernels.tick_body(comps, entry)
+    return traffic(hlo, start=start, key=tick_kernels.scope, kernels=kernels)
 
 
-def _fields(t: dict, per: float, bandwidth: float) -> dict:
+def _fields(t: dict, per: float, bandwidth: float, once: dict | None = None) -> dict:
     """A row's figures from :func:`traffic`'s count: per ``per`` (1e3 x problems or slots:
-    KB each) and the time the bytes take at ``bandwidth``."""
+    KB each) and the time the bytes take at ``bandwidth``; ``once``: the same program's count
+    with every kernel's operands read once (the count of this script until 2026-11-28)."""
+    extra = {} if once is None else dict(operands_once_kb=(once["read"] + once["written"]) / per)
     return dict(
+        **extra,
         launches=t["launches"],
         read_kb=t["read"] / per,
         written_kb=t["written"] / per,
@@ -469,12 +566,12 @@ def _fields(t: dict, per: float, bandwidth: float) -> dict:
 def engine_main(args, provenance, path) -> int:
     t0 = time.perf_counter()
     kernel = args.kernels.split(",")[0]
-    hlo, cfg = _compile_engine(args.scenario, args.slots, args.target, kernel)
+    hlo, cfg, sweeps = _compile_engine(args.scenario, args.slots, args.target, kernel)
     compile_s = time.perf_counter() - t0
     if args.hlo:
         with open(os.path.join(args.out, f"hlo_engine_{args.scenario}.txt"), "w") as f:
             f.write(hlo)
-    t = tick(hlo)
+    t, once = tick(hlo, sweeps), tick(hlo)
     per = 1e3 * args.slots
     row = dict(
         part="engine",
@@ -483,7 +580,7 @@ def engine_main(args, provenance, path) -> int:
         target=args.target,
         kernel=kernel,
         iterations_per_tick=cfg.iterations,
-        **_fields(t, per, TARGETS[args.target][1]),
+        **_fields(t, per, TARGETS[args.target][1], once),
         compile_s=compile_s,
         by_scope={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
         provenance=provenance,
@@ -498,7 +595,8 @@ def engine_main(args, provenance, path) -> int:
     )
     print(
         f"{row['launches']} launches ({row['pallas_launches']} Pallas kernels), "
-        f"{total:.0f} KB a slot ({row['read_kb']:.0f} read, {row['written_kb']:.0f} written), "
+        f"{total:.0f} KB a slot ({row['read_kb']:.0f} read, {row['written_kb']:.0f} written; "
+        f"{row['operands_once_kb']:.0f} with each kernel's operands read once), "
         f"{row['bound_ms']:.2f} ms at the card's bandwidth; compiled in {compile_s:.1f} s"
     )
     print("| scope | launches | KB a slot | share |")
@@ -580,8 +678,8 @@ def main(argv=None) -> int:
     for kernel in kernels:
         t0 = time.perf_counter()
         with lanes.configured(padded_blocks=args.padded_blocks):
-            hlo = _compile(kernel, args.batch, args.mode, args.target, args.shared_model)
-        t = traffic(hlo)
+            hlo, sweeps = _compile(kernel, args.batch, args.mode, args.target, args.shared_model)
+        t, once = traffic(hlo, kernels=sweeps), traffic(hlo)
         if args.hlo:
             variant = ("_padded" if args.padded_blocks else "") + (
                 "_shared" if args.shared_model else ""
@@ -598,7 +696,7 @@ def main(argv=None) -> int:
             mode=args.mode,
             target=args.target,
             batch=args.batch,
-            **_fields(t, per, bandwidth),
+            **_fields(t, per, bandwidth, once),
             compile_s=compile_s,
             loops=t["loops"],
             by_source={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
@@ -612,15 +710,16 @@ def main(argv=None) -> int:
         f"{TARGETS[args.target][0]} (no GPU used); KB a problem:"
     )
     print(
-        "| form | launches | read | written | total | Pallas kernels (launches, KB) | bound "
-        "| compile |"
+        "| form | launches | read | written | total | operands once | Pallas kernels "
+        "(launches, KB) | bound | compile |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         total = r["read_kb"] + r["written_kb"]
         print(
             f"| {r['kernel']} | {r['launches']} | {r['read_kb']:.1f} | {r['written_kb']:.1f} | "
-            f"{total:.1f} | {r['pallas_launches']}, {r['pallas_kb']:.1f} | "
+            f"{total:.1f} | {r['operands_once_kb']:.1f} | {r['pallas_launches']}, "
+            f"{r['pallas_kb']:.1f} | "
             f"{r['bound_ms']:.2f} ms | {r['compile_s']:.1f} s |"
         )
     for r in rows:

@@ -12,8 +12,9 @@ shaped stage-wise system (N = 30, nx = 6, nu = 3) per problem, well conditioned:
 are times, not answers. A JSON line per measurement goes to ``--out`` as it is taken.
 ``apply_refined`` (a step and its refinement in one kernel) is compared with XLA's
 elementwise form of the same two solves and residual, one problem per ``vmap`` lane (there is
-no unrolled form of it). The default GPU form (``"pallas-block-fused"``) is ``factor_solve``
-and ``apply_refined`` with ``--block-io``.
+no unrolled form of it). The default GPU form (``"pallas-block-rows"``) is ``factor_solve``
+and ``apply_refined`` with ``--block-io``, and the row work between them
+(:mod:`rvdjax.solver.rows_kernel`, not timed here).
 """
 
 from __future__ import annotations

@@ -143,6 +143,52 @@ def test_gpu_traffic_counts_launches_bytes_and_sources():
     assert gt.nbytes("(s64[], f64[4,8]{1,0}, pred[3])") == 8 + 256 + 3
 
 
+def test_kernel_sweeps_count_a_kernels_loads_once_a_sweep():
+    """sweeps/gpu_traffic.py's sweep count on a hand-written kernel of two sweeps over N = 5
+    stages: the first reads a stage of x (3 entries, as two overlapping blocks of 2) and of y
+    (1 entry) and writes one of z; the second reads two of x's entries again and its sum is
+    written to w. Per problem: x (3 + 2) x 5 x 8 bytes, y 5 x 8 read, z 5 x 8 and w 8
+    written; the operands-once count would read x once."""
+    import jax
+    import jax.numpy as jnp
+    from jax.experimental import pallas as pl
+
+    gt = _import("gpu_traffic")
+    N, lanes, b = 5, 8, 16
+
+    def kernel(x_ref, y_ref, z_ref, w_ref):
+        def first(t, c):
+            x = x_ref[t, 0:2] + x_ref[t, 1:3]
+            z_ref[t, 0:1] = x[0:1] + y_ref[t, 0:1]
+            return c
+
+        def second(t, c):
+            return c + x_ref[t, 0:2][0:1]
+
+        jax.lax.fori_loop(0, N, first, 0)
+        w_ref[0, 0:1] = jax.lax.fori_loop(0, N, second, jnp.zeros((1, lanes)))
+
+    def spec(n, m):
+        return pl.BlockSpec((n, m, lanes), lambda i: (0, 0, i))
+
+    def run(x, y):
+        return pl.pallas_call(
+            kernel,
+            out_shape=[jax.ShapeDtypeStruct(s, jnp.float64) for s in ((N, 1, b), (1, 1, b))],
+            grid=(b // lanes,),
+            in_specs=[spec(N, 3), spec(N, 1)],
+            out_specs=[spec(N, 1), spec(1, 1)],
+            interpret=True,
+            name="two_sweeps",
+        )(x, y)
+
+    x, y = jnp.ones((N, 3, b)), jnp.ones((N, 1, b))
+    z, w = run(x, y)
+    np.testing.assert_array_equal(np.asarray(w), np.full((1, 1, b), float(N)))
+    sweeps = gt.kernel_sweeps(jax.make_jaxpr(run)(x, y).jaxpr)
+    assert sweeps == {"two_sweeps": (((3 + 2) * N * 8 + N * 8) * b, (N * 8 + 8) * b)}
+
+
 def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
     gt = _import("gpu_traffic")
     assert gt.main(["--kernels", "xla,bogus", "--out", str(tmp_path)]) == 2

@@ -76,9 +76,15 @@ def _random(name, n):
     [
         *(
             pytest.param(k, marks=pytest.mark.slow)
-            for k in ("pallas", "pallas-block-io", "pallas-fused", "pallas-block-factor")
+            for k in (
+                "pallas",
+                "pallas-block-io",
+                "pallas-fused",
+                "pallas-block-factor",
+                "pallas-block-fused",
+            )
         ),
-        "pallas-block-fused",
+        "pallas-block-rows",
         "unrolled",
     ],
 )
@@ -89,7 +95,8 @@ def _random(name, n):
 def test_kernels_give_the_xla_iterates(case, kernel):
     """The Pallas kernels (interpreted; the factorisation and the first step in one kernel or in
     two, the corrector's step and its refinement in one kernel or in two, a stage's arrays
-    loaded and stored entry by entry or as blocks) and the unrolled XLA
+    loaded and stored entry by entry or as blocks, the row work between the solves in a
+    kernel of its own or in XLA's fusions) and the unrolled XLA
     loops against XLA's loops. The same statuses and iteration counts, and the same answer: to
     1e-10 relative (in norm) in the plan and the multipliers. Both forms round differently
     (fused products, summation inside the kernel), and the Newton matrix's conditioning
@@ -109,6 +116,80 @@ def test_kernels_give_the_xla_iterates(case, kernel):
     if make is SolverSettings:  # accurate mode: Clarabel's optimum of the same QPs
         ref = _solver(SolverSettings(backend="clarabel"))(ocps)
         np.testing.assert_allclose(np.asarray(pal.objective), np.asarray(ref.objective), rtol=1e-7)
+
+
+def _random_rows_inputs(key, rows=None, N=5, mx=3, mu=4, nx=6, nu=3):
+    """Inputs of primal_dual._corrector_rhs for one problem: rows with masked entries (or
+    ``rows``), a strictly interior iterate (s > 0, s > g, su > 0, positive multipliers), a
+    random step."""
+    from rvdjax.solver.barrier import Rows
+    from rvdjax.solver.primal_dual import PDState
+    from rvdjax.solver.riccati import NewtonStep
+
+    k = iter(jax.random.split(key, 32))
+
+    def normal(*shape):
+        return jax.random.normal(next(k), shape, jnp.float64)
+
+    def positive(*shape):
+        return jnp.exp(normal(*shape))
+
+    wx = (jax.random.uniform(next(k), (N, mx)) > 0.2).astype(jnp.float64)
+    wu = (jax.random.uniform(next(k), (N, mu)) > 0.2).astype(jnp.float64)
+    drawn = Rows(normal(N, mu, nu), positive(N, mu), wu, normal(N, mx, nx), positive(N, mx), wx,
+                 10.0 * positive(N, mx))  # fmt: skip
+    rows = drawn if rows is None else rows
+    s = positive(N, mx)
+    g = s - positive(N, mx)  # s - g > 0
+    su = positive(N, mu)
+    zero = jnp.zeros((), jnp.float64)
+    st = PDState(normal(N, nu), normal(N, nx), normal(N, nx), s, positive(N, mu),
+                 positive(N, mx), positive(N, mx), jnp.asarray(3), jnp.asarray(False),
+                 jnp.asarray(1), 5.0 + zero, 20.0 * jax.random.uniform(next(k)), su, g)  # fmt: skip
+    sx = s - g
+    step = NewtonStep(normal(N, nu), normal(N, nx), normal(N, nx))
+    h = 0.0 / sx + 0.0 / s - rows.rho
+    m_eff = jnp.sum(wu) + 2.0 * jnp.sum(wx)
+    return (rows, st, normal(N, nu), normal(N, nx), su, sx, step, h, m_eff)
+
+
+def test_the_rows_kernel_forms_the_xla_corrector_rhs():
+    """The accurate mode's row work between its two solves as one kernel
+    (rvdjax.solver.rows_kernel, interpreted), against XLA's form (primal_dual._corrector_rhs)
+    on random interior iterates with masked rows: one problem and a vmapped batch whose rows
+    are shared (unbatched under vmap). The predictor's row products and step length agree to
+    rounding, the corrector's barrier weight and right-hand side to 1e-12 relative: the kernel
+    sums the complementarity after the step and the right-hand side as polynomials in the step
+    length and the weight, then evaluates them (module docstring)."""
+    from rvdjax.solver import primal_dual as pd
+
+    def both(args):
+        want = pd._corrector_rhs(*args)
+        got = pd._rows_in_kernel(*args, interpret=True)
+        return want, got
+
+    def check(want, got):
+        for name, w, g, tol in zip(
+            ("g_u", "g_x", "Fdu", "Fdx", "alpha_a", "kappa"),
+            want,
+            got,
+            (1e-12, 1e-12, 1e-14, 1e-14, 1e-15, 1e-12),
+            strict=True,
+        ):
+            assert _rel(w, g) <= tol, name
+
+    for seed in range(3):
+        args = _random_rows_inputs(jax.random.key(seed))
+        want, got = jax.jit(both)(args)
+        assert 0.0 < float(want[4]) <= 1.0 and float(want[5]) > 0.0  # a cut step, a weight
+        check(want, got)
+    # a batch of iterates sharing the rows (the Fu, Fx, masks of one problem)
+    rows = _random_rows_inputs(jax.random.key(10))[0]
+    batch = [_random_rows_inputs(jax.random.key(10 + i), rows) for i in range(3)]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *[b[1:] for b in batch])
+    axes = (None,) + (0,) * len(stacked)
+    want, got = jax.jit(jax.vmap(lambda *a: both(a), in_axes=axes))(rows, *stacked)
+    check(want, got)
 
 
 @pytest.mark.slow  # the kernels are opt-in; 15-20 s
@@ -186,15 +267,17 @@ def _triton_calls(text):
     "settings, kernels, loops, variant",
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
-        # "pallas-block-fused", the default on a GPU: the factorisation with the predictor's
-        # step, and the corrector's step with its refinement); loops: the solve alone (the
+        # "pallas-block-fused": the factorisation with the predictor's step, and the
+        # corrector's step with its refinement; in "pallas-block-rows", the default on a
+        # GPU, the row work between them a third kernel); loops: the solve alone (the
         # start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in forms in
         # the slow run: "auto" lowers the default GPU form, 10-15 s each)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
-        (SolverSettings(), 2, 1, "auto"),
+        pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
+        (SolverSettings(), 3, 1, "auto"),
         # paper: factorisation + step; loops: the solve, the line search (the count of
         # launches and loops is the mode's, whichever kernels run them)
         (SolverSettings.paper(), 1, 2, "auto"),
@@ -277,7 +360,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is "pallas-block-fused" on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-block-rows" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -287,7 +370,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-fused"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-rows"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
@@ -295,10 +378,11 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
 
 @pytest.mark.slow  # interpreted kernels in a closed loop: ~30 s
 def test_the_engine_flies_with_the_gpu_form_as_with_xla():
-    """The batch engine with the default GPU form of the Newton step ("pallas-block-fused":
-    the factorisation with the predictor's step, the corrector's step with its refinement;
-    interpreted) flies thesis-vbar's first steps (a model per slot, rebuilt from the phase)
-    as with XLA's loops: the same steps, run statuses and solver statuses, delta-v to 1e-9."""
+    """The batch engine with the default GPU form of the Newton step ("pallas-block-rows":
+    the factorisation with the predictor's step, the row work between the solves, the
+    corrector's step with its refinement; interpreted) flies thesis-vbar's first steps (a
+    model per slot, rebuilt from the phase) as with XLA's loops: the same steps, run statuses
+    and solver statuses, delta-v to 1e-9."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import EngineConfig, fly_batch
     from rvdjax.scenarios import FlightOptions, get_scenario

@@ -13,10 +13,12 @@ multipliers mu (of the row) and pi (of s >= 0); mu + pi = rho at the optimum.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from rvdjax.solver import rows_kernel
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import (
     all_finite,
@@ -27,6 +29,7 @@ from rvdjax.solver.barrier import (
     x_violation,
 )
 from rvdjax.solver.kkt import kkt_factor_solve, kkt_solve_refined
+from rvdjax.solver.riccati import AUTO_ON_CUDA, ROWS_IN_KERNEL, cuda_or_default
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -86,26 +89,129 @@ def _pd_rhs(rows, st: PDState, base_u, base_x, su, sx, tau_u, tau_x, tau_s):
     """
     a = st.mu / sx
     c = st.pi / st.s
-    h = tau_x / sx + tau_s / st.s - rows.rho
+    h = _soft_h(rows, st, sx, tau_x, tau_s)
     g_u = base_u + sw.mtv(rows.Fu, rows.wu * tau_u / su)
     g_x = base_x + sw.mtv(rows.Fx, rows.wx * (tau_x / sx - a * h / (a + c)))
     return g_u, g_x, h
 
 
+def _soft_h(rows, st: PDState, sx, tau_x, tau_s):
+    """h of the soft rows' elimination (:func:`_pd_rhs`) for targets tau_x, tau_s."""
+    return tau_x / sx + tau_s / st.s - rows.rho
+
+
 def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
     """The full steps of every variable from the step of the stage system, and Fx dx."""
+    Fdu = sw.mv(rows.Fu, step.du)
+    Fdx = sw.mv(rows.Fx, step.dx)
+    return (step, *_row_steps(rows, st, Fdu, Fdx, su, sx, tau_u, tau_x, tau_s, h))
+
+
+def _row_steps(rows, st: PDState, Fdu, Fdx, su, sx, tau_u, tau_x, tau_s, h):
+    """The rows' steps from the row products Fu du, Fx dx: (ds, dlam, dmu, dpi, dsu, dsx,
+    Fdx)."""
     Du = rows.wu * st.lam / su
     a = st.mu / sx
     c = st.pi / st.s
-    Fdu = sw.mv(rows.Fu, step.du)
-    Fdx = sw.mv(rows.Fx, step.dx)
     ds = (a * Fdx + h) / (a + c)
     dlam = tau_u / su - st.lam + Du * Fdu
     dmu = tau_x / sx - st.mu + a * (Fdx - ds)
     dpi = tau_s / st.s - st.pi - c * ds
     dsu = -Fdu
     dsx = -Fdx + ds
-    return step, ds, dlam, dmu, dpi, dsu, dsx, Fdx
+    return ds, dlam, dmu, dpi, dsu, dsx, Fdx
+
+
+def _targets(aff, alpha_a, kappa):
+    """The corrector's complementarity targets (tau_u, tau_x, tau_s) from the predictor's row
+    steps ``aff`` (:func:`_row_steps`): centring plus Mehrotra's second-order term, damped by
+    the affine step length.
+
+    The full term dsu_a dlam_a is the product of the affine steps at alpha = 1; when the
+    affine step is cut to alpha_a, the products the corrector should cancel are
+    alpha_a^2 dsu_a dlam_a and the full term overshoots: from the warm starts of the
+    three-phase family, correctors with the full term were cut to step lengths of 1e-3 for
+    dozens of iterations (up to 82 per solve). Damping by alpha_a (one factor, as the
+    centring target also moves with the step) halved the iterations per solve there."""
+    ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a, _ = aff
+    damp = alpha_a
+    return (
+        kappa - damp * dsu_a * dlam_a,
+        kappa - damp * dsx_a * dmu_a,
+        kappa - damp * ds_a * dpi_a,
+    )
+
+
+def _corrector_rhs(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff):
+    """From the predictor's step: the corrector's right-hand side (g_u, g_x), the predictor's
+    row products Fu du, Fx dx, its step length alpha_a and the corrector's barrier weight
+    kappa (XLA's form; :mod:`rvdjax.solver.rows_kernel` is the same as one GPU kernel)."""
+    zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
+    aff = _pd_unpack(rows, st, step, su, sx, zero_u, zero_x, zero_x, h)
+    _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a, Fdx_a = aff
+    wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
+    alpha_a = _max_step(
+        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
+    )
+    gap = st.gap
+    gap_a = jnp.sum(rows.wu * (su + alpha_a * dsu_a) * (st.lam + alpha_a * dlam_a)) + jnp.sum(
+        rows.wx
+        * (
+            (sx + alpha_a * dsx_a) * (st.mu + alpha_a * dmu_a)
+            + (st.s + alpha_a * ds_a) * (st.pi + alpha_a * dpi_a)
+        )
+    )
+    sigma = jnp.clip(gap_a / jnp.maximum(gap, 1e-300), 0.0, 1.0) ** 3
+    # While the dual residual is large, keep centring: from a warm start whose multipliers are
+    # far from dual feasible (the LP cost of thesis-vbar-lp), Mehrotra's sigma drove the gap
+    # down 5000x in five iterations while the residual stayed, and the iterate then crept
+    # along the boundary for 100-300 iterations.
+    res = jnp.where(jnp.isfinite(st.res), st.res, 0.0)
+    sigma = jnp.where(res > SIGMA_FLOOR_RES, jnp.maximum(sigma, SIGMA_FLOOR), sigma)
+    kappa = sigma * gap / jnp.maximum(m_eff, 1.0)
+    taus = _targets(aff[1:], alpha_a, kappa)
+    g_u, g_x, _ = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
+    return g_u, g_x, -dsu_a, Fdx_a, alpha_a, kappa
+
+
+def _rows_in_kernel(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret):
+    """:func:`_corrector_rhs` by :mod:`rvdjax.solver.rows_kernel`."""
+    fn = rows_kernel.batched(rows_kernel.SigmaRule(SIGMA_FLOOR, SIGMA_FLOOR_RES), interpret)
+    return fn(
+        rows.Fx,
+        rows.Fu,
+        st.s,
+        st.g,
+        st.mu,
+        st.pi,
+        rows.wx,
+        rows.rho,
+        su,
+        st.lam,
+        rows.wu,
+        step.dx,
+        step.du,
+        base_x,
+        base_u,
+        st.gap,
+        st.res,
+        jnp.asarray(m_eff, st.gap.dtype),
+    )
+
+
+def _between_solves(args, kernel: str):
+    """:func:`_corrector_rhs` by XLA, or by the rows kernel where the Newton step runs on
+    the GPU kernels of :data:`ROWS_IN_KERNEL` (compiled on a CUDA GPU, interpreted elsewhere,
+    as riccati._by_platform chooses)."""
+    compiled = functools.partial(_rows_in_kernel, interpret=False)
+    if kernel == "auto":
+        if AUTO_ON_CUDA not in ROWS_IN_KERNEL:
+            return _corrector_rhs(*args)
+        return cuda_or_default(*args, cuda=compiled, default=_corrector_rhs)
+    if kernel in ROWS_IN_KERNEL:
+        interpreted = functools.partial(_rows_in_kernel, interpret=True)
+        return cuda_or_default(*args, cuda=compiled, default=interpreted)
+    return _corrector_rhs(*args)
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
@@ -162,42 +268,12 @@ def pd_iteration(
     taus = (zero_u, zero_x, zero_x)
     g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel)
-    aff = _pd_unpack(rows, st, step, su, sx, *taus, h)
-    _, ds_a, dlam_a, dmu_a, dpi_a, dsu_a, dsx_a, _ = aff
-    alpha_a = _max_step(
-        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu_a, dsx_a, ds_a, dlam_a, dmu_a, dpi_a)), wmask
-    )
-    gap = st.gap
-    gap_a = jnp.sum(rows.wu * (su + alpha_a * dsu_a) * (st.lam + alpha_a * dlam_a)) + jnp.sum(
-        rows.wx
-        * (
-            (sx + alpha_a * dsx_a) * (st.mu + alpha_a * dmu_a)
-            + (st.s + alpha_a * ds_a) * (st.pi + alpha_a * dpi_a)
-        )
-    )
-    sigma = jnp.clip(gap_a / jnp.maximum(gap, 1e-300), 0.0, 1.0) ** 3
-    # While the dual residual is large, keep centring: from a warm start whose multipliers are
-    # far from dual feasible (the LP cost of thesis-vbar-lp), Mehrotra's sigma drove the gap
-    # down 5000x in five iterations while the residual stayed, and the iterate then crept
-    # along the boundary for 100-300 iterations.
-    res = jnp.where(jnp.isfinite(st.res), st.res, 0.0)
-    sigma = jnp.where(res > SIGMA_FLOOR_RES, jnp.maximum(sigma, SIGMA_FLOOR), sigma)
-    kappa = sigma * gap / jnp.maximum(m_eff, 1.0)
-
-    # Corrector: centring plus Mehrotra's second-order term, damped by the affine step length.
-    # The full term dsu_a dlam_a is the product of the affine steps at alpha = 1; when the
-    # affine step is cut to alpha_a, the products the corrector should cancel are
-    # alpha_a^2 dsu_a dlam_a and the full term overshoots: from the warm starts of the
-    # three-phase family, correctors with the full term were cut to step lengths of 1e-3
-    # for dozens of iterations (up to 82 per solve). Damping by alpha_a (one factor, as the
-    # centring target also moves with the step) halved the iterations per solve there.
-    damp = alpha_a
-    taus = (
-        kappa - damp * dsu_a * dlam_a,
-        kappa - damp * dsx_a * dmu_a,
-        kappa - damp * ds_a * dpi_a,
-    )
-    g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
+    args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
+    g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _between_solves(args, kernel)
+    # the corrector's targets again (as _corrector_rhs formed them) for its row steps
+    aff = _row_steps(rows, st, Fdu_a, Fdx_a, su, sx, *taus, h)
+    taus = _targets(aff, alpha_a, kappa)
+    h = _soft_h(rows, st, sx, taus[1], taus[2])
     # The corrector's step is the one taken, refined once. Near the solution the Newton matrix
     # is as ill-conditioned as the barrier weights (up to 1e12) and the Riccati solve's
     # residual depends on how XLA contracts its products (riccati.py): with loops compiled

@@ -301,9 +301,10 @@ def _lane_ops(impl):
     cfg = dataclasses.replace(
         lanes.default_config(),
         interpret=interpret,
-        block_io=kernel in ("pallas-block-io", "pallas-block-factor", "pallas-block-fused"),
+        block_io=kernel
+        in ("pallas-block-io", "pallas-block-factor", "pallas-block-fused", "pallas-block-rows"),
         solve_block_io=kernel != "pallas-block-factor",
-        fused=kernel in ("pallas-fused", "pallas-block-fused"),
+        fused=kernel in ("pallas-fused", "pallas-block-fused", "pallas-block-rows"),
     )
     factor, apply, apply_refined = (
         functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply, lanes.apply_refined)
@@ -381,7 +382,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-block-fused"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-block-rows"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -460,16 +461,20 @@ def _by_platform(kernel: str, xla, pallas, *args):
     "pallas-block-io" with block loads and stores, "pallas-block-factor" with them in the
     factorisation only, "pallas-fused" with the factorisation and first step in one kernel
     (and a step with its refinement in another), "pallas-block-fused" the same with block
-    loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`); "unrolled" runs the
-    kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a
-    CUDA GPU and XLA's loops elsewhere, chosen when the program is lowered for its device.
+    loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`), "pallas-block-rows" that and
+    the accurate mode's row work between the two solves as a third kernel
+    (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`); "unrolled"
+    runs the kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs
+    :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops elsewhere, chosen when the program is
+    lowered for its device.
 
-    Why "auto" picks "pallas-block-fused" on a CUDA GPU: "pallas-block-factor" was the
-    fastest form measured on a GPU (2026-11-27); in the programs compiled for an H100 the
-    fused form moves 22 % fewer bytes an accurate iteration (17 % with one model for the
-    batch) and 15-19 % fewer a tick of the batch engine, where the bytes set the pace
-    (docs/benchmark.md; not yet timed on a GPU). On the CPU XLA's loops are the fastest form
-    (the kernels are only interpreted there). The measurements are in docs/solver.md."""
+    Why "auto" picks "pallas-block-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
+    form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
+    kernel's sweeps, the fused kernels move 12 % fewer bytes an accurate iteration than it
+    (65 536 fastmpc-3d QPs) and the rows kernel 6-10 % fewer a tick of the batch engine than
+    the fused kernels alone, where the bytes set the pace (docs/benchmark.md; not yet timed on
+    a GPU). On the CPU XLA's loops are the fastest form (the kernels are only interpreted
+    there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
     if kernel == "auto":
@@ -608,7 +613,10 @@ riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
 
 # the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
 # residual formed by XLA and one more solve (rvdjax.solver.kkt.kkt_solve_refined)
-REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused")
+REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused", "pallas-block-rows")
+# the forms whose accurate-mode iteration also runs its row work between the two solves as a
+# kernel (rvdjax.solver.rows_kernel)
+ROWS_IN_KERNEL = ("pallas-block-rows",)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(6,))

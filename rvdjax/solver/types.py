@@ -30,6 +30,7 @@ KERNELS = (
     "pallas-block-factor",
     "pallas-fused",
     "pallas-block-fused",
+    "pallas-block-rows",
     "unrolled",
 )
 
@@ -87,7 +88,7 @@ class SolverSettings:
             with the OCP's own Q, R; one extra Riccati solve). docs/reproduction.md gives the
             measurements behind the default.
         kernel: how the Riccati sweeps of the Newton step run. "auto" (default):
-            "pallas-block-fused" on a CUDA GPU, XLA's loops elsewhere, chosen by the device the
+            "pallas-block-rows" on a CUDA GPU, XLA's loops elsewhere, chosen by the device the
             program is compiled for; "xla": XLA's loops everywhere; "pallas": GPU kernels
             (:mod:`rvdjax.solver.lanes`), compiled for a CUDA GPU and interpreted elsewhere
             (the tests check them there), loading and storing entry by entry;
@@ -95,7 +96,10 @@ class SolverSettings:
             over a minute on a GPU); "pallas-block-factor": block loads and stores in the
             factorisation only, the solves entry by entry; "pallas-fused": the factorisation and
             first step in one kernel, and the corrector's step with its refinement in another;
-            "pallas-block-fused": the same with block loads and stores; "unrolled": the
+            "pallas-block-fused": the same with block loads and stores; "pallas-block-rows":
+            that, and the accurate mode's row work between its two solves (the predictor's
+            step length, Mehrotra's sigma, the corrector's right-hand side) as a third kernel
+            (:mod:`rvdjax.solver.rows_kernel`); "unrolled": the
             kernels' entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`). They
             give the same iterates to rounding. The measurements behind "auto" are in
             docs/solver.md.
