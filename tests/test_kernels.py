@@ -192,6 +192,53 @@ def test_the_rows_kernel_forms_the_xla_corrector_rhs():
     check(want, got)
 
 
+def test_the_step_kernel_takes_the_xla_step():
+    """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
+    primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
+    iterates, the predictor's row products and a random corrector step: the new iterate, the
+    complementarity there and the dual residual's row terms to 1e-12 relative (the kernel sums
+    the last two as polynomials in the step length); a step with a NaN is refused by both
+    (the iterate kept), and so is a stopped solve's."""
+    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import stagewise as sw
+
+    def case(key, nan=False, stop=False):
+        rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
+        k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
+        pred = jax.random.normal(k1, step.dx.shape, jnp.float64)
+        Fdu_a = sw.mv(rows.Fu, jax.random.normal(k2, step.du.shape, jnp.float64))
+        Fdx_a = sw.mv(rows.Fx, pred)
+        alpha_a, kappa = jnp.asarray(0.7), jnp.asarray(0.05)
+        zu, zx = jnp.zeros_like(su), jnp.zeros_like(sx)
+        aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
+        taus = pd._targets(aff, alpha_a, kappa)
+        h = pd._soft_h(rows, st, sx, taus[1], taus[2])
+        if nan:
+            step = step._replace(dx=step.dx.at[2, 1].set(jnp.nan))
+        args = (rows, st, su, sx, step, taus, h, jnp.asarray(stop))
+        want = pd._step_xla(*args)
+        got = pd._step_in_kernel(*args, aff=(Fdu_a, Fdx_a, alpha_a, kappa), interpret=True)
+        return st, want, got
+
+    for seed, nan, stop in (
+        (0, False, False),
+        (1, False, False),
+        (2, True, False),
+        (3, False, True),
+    ):
+        st, want, got = jax.jit(functools.partial(case, nan=nan, stop=stop))(jax.random.key(seed))
+        (new_w, gap_w, fu_w, fx_w, fin_w), (new_g, gap_g, fu_g, fx_g, fin_g) = want, got
+        assert bool(fin_w) == bool(fin_g) == (not nan)
+        for w, g in zip(new_w, new_g, strict=True):
+            assert _rel(w, g) <= 1e-12
+        for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g)):
+            assert _rel(w, g) <= 1e-12
+        if nan or stop:  # a step of length zero: the iterate kept
+            np.testing.assert_array_equal(np.asarray(new_g[3]), np.asarray(st.s))
+        else:
+            assert _rel(new_g[3], st.s) > 1e-3  # a step taken
+
+
 @pytest.mark.slow  # the kernels are opt-in; 15-20 s
 def test_one_iteration_from_the_same_iterate_agrees_to_rounding():
     """From the same iterate, one accurate-mode iteration with either form lands on the same
@@ -269,7 +316,7 @@ def _triton_calls(text):
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
         # "pallas-block-fused": the factorisation with the predictor's step, and the
         # corrector's step with its refinement; in "pallas-block-rows", the default on a
-        # GPU, the row work between them a third kernel); loops: the solve alone (the
+        # GPU, the row work between them and after them two more); loops: the solve alone (the
         # start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in forms in
         # the slow run: "auto" lowers the default GPU form, 10-15 s each)
         *(
@@ -277,7 +324,7 @@ def _triton_calls(text):
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
         pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
-        (SolverSettings(), 3, 1, "auto"),
+        (SolverSettings(), 4, 1, "auto"),
         # paper: factorisation + step; loops: the solve, the line search (the count of
         # launches and loops is the mode's, whichever kernels run them)
         (SolverSettings.paper(), 1, 2, "auto"),

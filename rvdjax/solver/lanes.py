@@ -27,8 +27,8 @@ rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
 ``"pallas-fused"``, ``"pallas-block-fused"``, ``"pallas-block-rows"``: :class:`KernelConfig`),
 and ``kernel="auto"`` runs ``"pallas-block-rows"`` when a program is compiled for a CUDA GPU:
 an accurate-mode iteration is then the factorisation with the predictor's step, the row work
-between the solves (:mod:`rvdjax.solver.rows_kernel`) and the corrector's step with its
-refinement. The other forms call :func:`factor` then
+between the solves (:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its
+refinement, and its row work. The other forms call :func:`factor` then
 :func:`apply` (and :func:`apply` again for the refinement): on one H200 (jax 0.11.2, CUDA 13,
 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and :func:`apply` in about
 3 s, where the entry-wise :func:`factor_solve` had not finished in 165 s on an H100; with

@@ -174,44 +174,93 @@ def _corrector_rhs(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff):
     return g_u, g_x, -dsu_a, Fdx_a, alpha_a, kappa
 
 
+def _kernel_rows(rows, st: PDState, su):
+    """The row arrays the row kernels read (rvdjax.solver.rows_kernel.StageRows)."""
+    return (rows.Fx, rows.Fu, st.s, st.g, st.mu, st.pi, rows.wx, rows.rho, su, st.lam, rows.wu)
+
+
 def _rows_in_kernel(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret):
     """:func:`_corrector_rhs` by :mod:`rvdjax.solver.rows_kernel`."""
-    fn = rows_kernel.batched(rows_kernel.SigmaRule(SIGMA_FLOOR, SIGMA_FLOOR_RES), interpret)
-    return fn(
-        rows.Fx,
-        rows.Fu,
-        st.s,
-        st.g,
-        st.mu,
-        st.pi,
-        rows.wx,
-        rows.rho,
-        su,
-        st.lam,
-        rows.wu,
-        step.dx,
-        step.du,
-        base_x,
-        base_u,
-        st.gap,
-        st.res,
-        jnp.asarray(m_eff, st.gap.dtype),
-    )
+    rule = rows_kernel.SigmaRule(SIGMA_FLOOR, SIGMA_FLOOR_RES)
+    fn = rows_kernel.batched("rows", 3, rule, interpret)
+    m_eff = jnp.asarray(m_eff, st.gap.dtype)
+    return fn(*_kernel_rows(rows, st, su), step.dx, step.du, base_x, base_u, st.gap, st.res, m_eff)
 
 
-def _between_solves(args, kernel: str):
-    """:func:`_corrector_rhs` by XLA, or by the rows kernel where the Newton step runs on
+def _by_kernel(args, kernel: str, xla, in_kernel):
+    """``xla(*args)``, or ``in_kernel(*args, interpret=...)`` where the Newton step runs on
     the GPU kernels of :data:`ROWS_IN_KERNEL` (compiled on a CUDA GPU, interpreted elsewhere,
-    as riccati._by_platform chooses)."""
-    compiled = functools.partial(_rows_in_kernel, interpret=False)
+    as riccati._by_platform chooses; ``kernel="auto"``: compiled on a CUDA GPU, XLA's form
+    elsewhere)."""
+    compiled = functools.partial(in_kernel, interpret=False)
     if kernel == "auto":
         if AUTO_ON_CUDA not in ROWS_IN_KERNEL:
-            return _corrector_rhs(*args)
-        return cuda_or_default(*args, cuda=compiled, default=_corrector_rhs)
+            return xla(*args)
+        return cuda_or_default(*args, cuda=compiled, default=xla)
     if kernel in ROWS_IN_KERNEL:
-        interpreted = functools.partial(_rows_in_kernel, interpret=True)
+        interpreted = functools.partial(in_kernel, interpret=True)
         return cuda_or_default(*args, cuda=compiled, default=interpreted)
-    return _corrector_rhs(*args)
+    return xla(*args)
+
+
+def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
+    """The corrector's step taken: (the new u, x, nu, s, lam, mu, pi, su, g; the
+    complementarity there; the dual residual's row terms Fu^T wu lam, Fx^T wx mu there; whether
+    the step was finite)."""
+    step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
+    wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
+    # The rows' steps are finite where this ratio test is not NaN (Fdx is, where ds and dsx
+    # are); the Newton step's own blocks are tested apart.
+    alpha = _max_step(
+        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, True
+    )
+    finite = all_finite(step) & ~jnp.isnan(alpha)
+    alpha = jnp.minimum(1.0, 0.99 * alpha)
+    alpha = jnp.where(finite & ~stop, alpha, 0.0)
+
+    def upd(v, dv, w=1.0):
+        return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
+
+    u, x, s_new = upd(st.u, step.du), upd(st.x, step.dx), upd(st.s, ds, rows.wx)
+    lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
+    pi = upd(st.pi, dpi, rows.wx)
+    nu = upd(st.nu, step.nu - st.nu)
+    su_n = upd(su, dsu)
+    g_n = upd(st.g, Fdx)  # soft-row values at the new point
+    sx_n = s_new - g_n
+    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
+    Fu_lam, Fx_mu = sw.mtv(rows.Fu, rows.wu * lam), sw.mtv(rows.Fx, rows.wx * mu)
+    return (u, x, nu, s_new, lam, mu, pi, su_n, g_n), gap_n, Fu_lam, Fx_mu, finite
+
+
+def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret):
+    """:func:`_step_xla` with the pass over the rows in :func:`rows_kernel.pd_step_rows`
+    (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa, from which it forms the targets
+    ``taus`` and ``h`` again)."""
+    Fdu_a, Fdx_a, alpha_a, kappa = aff
+    fn = rows_kernel.batched("step", 2, None, interpret)
+    Fdu, Fdx, U, X, alpha, c = fn(
+        *_kernel_rows(rows, st, su), step.dx, step.du, Fdx_a, Fdu_a, alpha_a, kappa
+    )
+    finite = all_finite(step) & ~jnp.isnan(alpha)
+    alpha = jnp.minimum(1.0, 0.99 * alpha)
+    alpha = jnp.where(finite & ~stop, alpha, 0.0)
+    ds, dlam, dmu, dpi, dsu, dsx, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
+
+    def upd(v, dv, w=1.0):
+        return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
+
+    u, x, s_new = upd(st.u, step.du), upd(st.x, step.dx), upd(st.s, ds, rows.wx)
+    lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
+    pi = upd(st.pi, dpi, rows.wx)
+    nu = upd(st.nu, step.nu - st.nu)
+    su_n = upd(su, dsu)
+    g_n = upd(st.g, Fdx)
+    # a step of length zero (stopped, or not finite) leaves the sums at the old point
+    gap_n = jnp.where(finite, c[0] + alpha * (c[1] + alpha * c[2]), c[0])
+    Fu_lam = jnp.where(finite, U[:, 0] + alpha * U[:, 1], U[:, 0])
+    Fx_mu = jnp.where(finite, X[:, 0] + alpha * X[:, 1], X[:, 0])
+    return (u, x, nu, s_new, lam, mu, pi, su_n, g_n), gap_n, Fu_lam, Fx_mu, finite
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
@@ -261,7 +310,6 @@ def pd_iteration(
     c = st.pi / st.s
     Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, Du)
     Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
-    wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
 
     # Predictor: the affine-scaling direction (tau = 0), solved with the factorisation.
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
@@ -269,7 +317,9 @@ def pd_iteration(
     g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel)
     args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
-    g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _between_solves(args, kernel)
+    g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _by_kernel(
+        args, kernel, _corrector_rhs, _rows_in_kernel
+    )
     # the corrector's targets again (as _corrector_rhs formed them) for its row steps
     aff = _row_steps(rows, st, Fdu_a, Fdx_a, su, sx, *taus, h)
     taus = _targets(aff, alpha_a, kappa)
@@ -279,27 +329,14 @@ def pd_iteration(
     # residual depends on how XLA contracts its products (riccati.py): with loops compiled
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
-    step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
-    # The rows' steps are finite where this ratio test is not NaN (Fdx is, where ds and dsx
-    # are); the Newton step's own blocks are tested apart.
-    alpha = _max_step(
-        ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, True
+    args = (rows, st, su, sx, step, taus, h, stop)
+    new, gap_n, Fu_lam, Fx_mu, finite = _by_kernel(
+        args,
+        kernel,
+        _step_xla,
+        functools.partial(_step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa)),
     )
-    finite = all_finite(step) & ~jnp.isnan(alpha)
-    alpha = jnp.minimum(1.0, 0.99 * alpha)
-    alpha = jnp.where(finite & ~stop, alpha, 0.0)
-
-    def upd(v, dv, w=1.0):
-        return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
-
-    u, x, s_new = upd(st.u, step.du), upd(st.x, step.dx), upd(st.s, ds, rows.wx)
-    lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
-    pi = upd(st.pi, dpi, rows.wx)
-    nu = upd(st.nu, step.nu - st.nu)
-    su_n = upd(su, dsu)
-    g_n = upd(st.g, Fdx)  # soft-row values at the new point
-    sx_n = s_new - g_n
-    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
+    u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
 
     # Stopping: gap and dual residual relative to the objective / gradient scale.
     e = x - ocp.x_ref
@@ -307,12 +344,7 @@ def pd_iteration(
     Qe = sw.mv(ocp.Q, e)
     grad_u = 2.0 * Ru + ocp.r
     grad_x = 2.0 * Qe + ocp.q
-    r_u, r_x = dual_residual(
-        ocp,
-        grad_u + sw.mtv(rows.Fu, rows.wu * lam),
-        grad_x + sw.mtv(rows.Fx, rows.wx * mu),
-        nu,
-    )
+    r_u, r_x = dual_residual(ocp, grad_u + Fu_lam, grad_x + Fx_mu, nu)
     r_s = rows.wx * (rows.rho - mu - pi)
     d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
     rel_d = jnp.maximum(

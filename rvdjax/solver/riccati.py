@@ -462,8 +462,8 @@ def _by_platform(kernel: str, xla, pallas, *args):
     factorisation only, "pallas-fused" with the factorisation and first step in one kernel
     (and a step with its refinement in another), "pallas-block-fused" the same with block
     loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`), "pallas-block-rows" that and
-    the accurate mode's row work between the two solves as a third kernel
-    (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`); "unrolled"
+    the accurate mode's row work as two more kernels, one between the solves and one after
+    them (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`); "unrolled"
     runs the kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs
     :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops elsewhere, chosen when the program is
     lowered for its device.
@@ -471,9 +471,9 @@ def _by_platform(kernel: str, xla, pallas, *args):
     Why "auto" picks "pallas-block-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
     form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
     kernel's sweeps, the fused kernels move 12 % fewer bytes an accurate iteration than it
-    (65 536 fastmpc-3d QPs) and the rows kernel 6-10 % fewer a tick of the batch engine than
-    the fused kernels alone, where the bytes set the pace (docs/benchmark.md; not yet timed on
-    a GPU). On the CPU XLA's loops are the fastest form (the kernels are only interpreted
+    (65 536 fastmpc-3d QPs) and the rows kernels 11-12 % fewer a tick of the batch engine
+    than the fused kernels alone, where the bytes set the pace (docs/benchmark.md; not yet
+    timed on a GPU). On the CPU XLA's loops are the fastest form (the kernels are only interpreted
     there). The measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
@@ -614,8 +614,8 @@ riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
 # the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
 # residual formed by XLA and one more solve (rvdjax.solver.kkt.kkt_solve_refined)
 REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused", "pallas-block-rows")
-# the forms whose accurate-mode iteration also runs its row work between the two solves as a
-# kernel (rvdjax.solver.rows_kernel)
+# the forms whose accurate-mode iteration also runs its row work as kernels, between the two
+# solves and after them (rvdjax.solver.rows_kernel)
 ROWS_IN_KERNEL = ("pallas-block-rows",)
 
 

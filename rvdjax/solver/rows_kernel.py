@@ -1,4 +1,4 @@
-"""The accurate mode's row work between its two Newton solves as one GPU kernel.
+"""The accurate mode's row work as two GPU kernels: between its two Newton solves, and after.
 
 Between the predictor's solve and the corrector's, a Mehrotra iteration
 (:func:`rvdjax.solver.primal_dual.pd_iteration`) works on the constraint rows only: the
@@ -9,7 +9,12 @@ XLA made that about eight passes through device memory, reading the rows, their 
 and the constraint matrix Fx again in most of them (thesis-vbar: 12 soft rows a stage, Fx
 17 KB a problem; docs/benchmark.md). Here it is one Pallas kernel (Triton on a GPU,
 interpreted on the CPU for the tests), one problem per lane as in :mod:`rvdjax.solver.lanes`,
-in one sweep over the stages that reads each stage's rows once.
+in one sweep over the stages that reads each stage's rows once (:func:`pd_rows`).
+
+After the corrector's solve the same holds for its row steps, its step length (the ratio
+test, NaN where a step is not finite), the complementarity at the new point and the dual
+residual's row terms Fu^T wu lam, Fx^T wx mu there (:func:`pd_step_rows`); XLA then updates
+the iterate, one elementwise pass.
 
 One sweep, because a kernel that sweeps again reads its arrays again from device memory (a
 tile's rows are megabytes; they do not stay in the cache between sweeps while a hundred tiles
@@ -35,7 +40,7 @@ import jax.numpy as jnp
 from rvdjax.solver import lanes
 from rvdjax.solver.lanes import _Block, _compiler_params, _load, _mtv, _mv, _pad, _store
 
-__all__ = ["RowSteps", "pd_rows", "SigmaRule"]
+__all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "batched"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,61 +53,106 @@ class SigmaRule:
     floor_res: float
 
 
-class RowSteps:
-    """The stage-t predictor row steps of one tile (lists of lane vectors)."""
+class StageRows:
+    """Stage t's rows of one tile (lists of lane vectors): refs Fx, Fu, s, g, mu, pi, wx, rho,
+    su, lam, wu (the first 11 of a kernel's inputs), and sx = s - g, a = mu / sx, c = pi / s,
+    Du = wu lam / su."""
 
     def __init__(self, dims, refs, t):
         mx, mu, nx, nu = dims
-        (Fx_r, Fu_r, s_r, g_r, mu_r, pi_r, wx_r, rho_r, su_r, lam_r, wu_r, dx_r, du_r) = refs
-        Fx, Fu = _load(Fx_r, t, mx, nx), _load(Fu_r, t, mu, nu)
-        dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
-        s, g, m, p = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
+        (Fx_r, Fu_r, s_r, g_r, mu_r, pi_r, wx_r, rho_r, su_r, lam_r, wu_r) = refs[:11]
+        self.Fx, self.Fu = _load(Fx_r, t, mx, nx), _load(Fu_r, t, mu, nu)
+        self.s, g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
         self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
         self.su, self.lam, self.wu = (_load(r, t, mu) for r in (su_r, lam_r, wu_r))
-        self.Fx, self.Fu, self.s, self.mu, self.pi = Fx, Fu, s, m, p
-        self.sx = [si - gi for si, gi in zip(s, g, strict=True)]
-        self.a = [mi / x for mi, x in zip(m, self.sx, strict=True)]
-        self.c = [pi / si for pi, si in zip(p, s, strict=True)]
-        # the predictor's targets are zero: h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
-        h = [0.0 / x + 0.0 / si - r for x, si, r in zip(self.sx, s, self.rho, strict=True)]
-        self.Fdu, self.Fdx = _mv(Fu, du), _mv(Fx, dx)
-        Du = [w * lm / v for w, lm, v in zip(self.wu, self.lam, self.su, strict=True)]
-        self.ds = [
-            (a * f + hi) / (a + c) for a, f, hi, c in zip(self.a, self.Fdx, h, self.c, strict=True)
+        self.sx = [si - gi for si, gi in zip(self.s, g, strict=True)]
+        self.a = [mi / x for mi, x in zip(self.mu, self.sx, strict=True)]
+        self.c = [pi / si for pi, si in zip(self.pi, self.s, strict=True)]
+        self.Du = [w * lm / v for w, lm, v in zip(self.wu, self.lam, self.su, strict=True)]
+
+    def h(self, tau_x, tau_s):
+        """h = tau_x / sx + tau_s / s - rho (primal_dual._soft_h)."""
+        return [
+            tx / x + ts / s - r
+            for tx, x, ts, s, r in zip(tau_x, self.sx, tau_s, self.s, self.rho, strict=True)
         ]
+
+
+class Steps:
+    """The rows' steps from the row products Fu du, Fx dx and the targets
+    (primal_dual._row_steps)."""
+
+    def __init__(self, r: StageRows, Fdu, Fdx, tau_u, tau_x, tau_s, h):
+        self.Fdu, self.Fdx = Fdu, Fdx
+        self.ds = [(a * f + hi) / (a + c) for a, f, hi, c in zip(r.a, Fdx, h, r.c, strict=True)]
         self.dlam = [
-            0.0 / v - lm + d * f
-            for v, lm, d, f in zip(self.su, self.lam, Du, self.Fdu, strict=True)
+            tu / v - lm + d * f
+            for tu, v, lm, d, f in zip(tau_u, r.su, r.lam, r.Du, Fdu, strict=True)
         ]
         self.dmu = [
-            0.0 / x - mi + a * (f - d)
-            for x, mi, a, f, d in zip(self.sx, m, self.a, self.Fdx, self.ds, strict=True)
+            tx / x - mi + a * (f - d)
+            for tx, x, mi, a, f, d in zip(tau_x, r.sx, r.mu, r.a, Fdx, self.ds, strict=True)
         ]
         self.dpi = [
-            0.0 / si - pi - c * d for si, pi, c, d in zip(s, p, self.c, self.ds, strict=True)
+            ts / si - pi - c * d
+            for ts, si, pi, c, d in zip(tau_s, r.s, r.pi, r.c, self.ds, strict=True)
         ]
-        self.dsu = [-f for f in self.Fdu]
-        self.dsx = [-f + d for f, d in zip(self.Fdx, self.ds, strict=True)]
+        self.dsu = [-f for f in Fdu]
+        self.dsx = [-f + d for f, d in zip(Fdx, self.ds, strict=True)]
 
-    def pairs(self):
+    def pairs(self, r: StageRows):
         """(value, step, weight) of every row pair the step length keeps >= 0."""
         groups = (
-            (self.su, self.dsu, self.wu),
-            (self.sx, self.dsx, self.wx),
-            (self.s, self.ds, self.wx),
-            (self.lam, self.dlam, self.wu),
-            (self.mu, self.dmu, self.wx),
-            (self.pi, self.dpi, self.wx),
+            (r.su, self.dsu, r.wu),
+            (r.sx, self.dsx, r.wx),
+            (r.s, self.ds, r.wx),
+            (r.lam, self.dlam, r.wu),
+            (r.mu, self.dmu, r.wx),
+            (r.pi, self.dpi, r.wx),
         )
         return [pair for group in groups for pair in zip(*group, strict=True)]
 
+    def products(self, r: StageRows):
+        """(weight, value, step, multiplier, its step) of the complementarity products."""
+        return (
+            (r.wu, r.su, self.dsu, r.lam, self.dlam),
+            (r.wx, r.sx, self.dsx, r.mu, self.dmu),
+            (r.wx, r.s, self.ds, r.pi, self.dpi),
+        )
 
-def _min_ratio(pairs, alpha):
-    """``alpha`` lowered to every ratio -v / dv of an active row whose step shrinks it
-    (primal_dual._max_step)."""
+
+def _affine(dims, r: StageRows, Fdu, Fdx):
+    """The predictor's (affine) steps: zero targets, h = 0 / sx + 0 / s - rho."""
+    zu, zx = [0.0] * dims[1], [0.0] * dims[0]
+    return Steps(r, Fdu, Fdx, zu, zx, zx, r.h(zx, zx))
+
+
+def _corrector(dims, r: StageRows, aff: Steps, Fdu, Fdx, alpha_a, kappa):
+    """The corrector's steps: targets kappa - alpha_a dv dy (primal_dual._targets)."""
+    tau_u = [kappa - alpha_a * a * b for a, b in zip(aff.dsu, aff.dlam, strict=True)]
+    tau_x = [kappa - alpha_a * a * b for a, b in zip(aff.dsx, aff.dmu, strict=True)]
+    tau_s = [kappa - alpha_a * a * b for a, b in zip(aff.ds, aff.dpi, strict=True)]
+    return Steps(r, Fdu, Fdx, tau_u, tau_x, tau_s, r.h(tau_x, tau_s))
+
+
+def _sum_products(products, c0, c1, c2):
+    """c0, c1, c2 of sum w (v + alpha dv)(y + alpha dy) = c0 + alpha c1 + alpha^2 c2."""
+    for group in products:
+        for w, v, dv, y, dy in zip(*group, strict=True):
+            c0 = c0 + w * v * y
+            c1 = c1 + w * (v * dy + y * dv)
+            c2 = c2 + w * dv * dy
+    return c0, c1, c2
+
+
+def _min_ratio(pairs, alpha, nan_if_not_finite=False):
+    """``alpha`` lowered to every ratio -v / dv of an active row whose step shrinks it, NaN
+    where a step is not finite with ``nan_if_not_finite`` (primal_dual._max_step)."""
     for v, dv, w in pairs:
         shrink = (w > 0) & (dv < 0)
         ratio = jnp.where(shrink, -v / jnp.where(shrink, dv, -1.0), jnp.inf)
+        if nan_if_not_finite:
+            ratio = ratio + 0.0 * dv
         alpha = jnp.minimum(alpha, ratio)
     return alpha
 
@@ -125,34 +175,39 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
 
     def stage(t, carry):
         alpha, c0, c1, c2 = carry
-        r = RowSteps(dims, row_refs, t)
-        alpha = _min_ratio(r.pairs(), alpha)
-        products = (
-            (r.wu, r.su, r.dsu, r.lam, r.dlam),
-            (r.wx, r.sx, r.dsx, r.mu, r.dmu),
-            (r.wx, r.s, r.ds, r.pi, r.dpi),
-        )
-        for group in products:
-            for w, v, dv, y, dy in zip(*group, strict=True):
-                c0 = c0 + w * v * y
-                c1 = c1 + w * (v * dy + y * dv)
-                c2 = c2 + w * dv * dy
+        rows = StageRows(dims, row_refs, t)
+        dx, du = _load(row_refs[11], t, nx), _load(row_refs[12], t, nu)
+        r = _affine(dims, rows, _mv(rows.Fu, du), _mv(rows.Fx, dx))
+        alpha = _min_ratio(r.pairs(rows), alpha)
+        c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
         # input rows: w tau_u / su = kappa w / su - alpha w P_u / su, P_u = dsu dlam
-        u1 = [w / v for w, v in zip(r.wu, r.su, strict=True)]
-        u2 = [-(w * (a * b)) / v for w, a, b, v in zip(r.wu, r.dsu, r.dlam, r.su, strict=True)]
+        u1 = [w / v for w, v in zip(rows.wu, rows.su, strict=True)]
+        u2 = [
+            -(w * (a * b)) / v for w, a, b, v in zip(rows.wu, r.dsu, r.dlam, rows.su, strict=True)
+        ]
         # soft rows: w (tau_x / sx - q h), q = a / (a + c), h = tau_x / sx + tau_s / s - rho
         x0, x1, x2 = [], [], []
         for w, sx, s, a, c, rho, dsx, dmu, ds, dpi in zip(
-            r.wx, r.sx, r.s, r.a, r.c, r.rho, r.dsx, r.dmu, r.ds, r.dpi, strict=True
+            rows.wx,
+            rows.sx,
+            rows.s,
+            rows.a,
+            rows.c,
+            rows.rho,
+            r.dsx,
+            r.dmu,
+            r.ds,
+            r.dpi,
+            strict=True,
         ):
             q = a / (a + c)
             px, ps = (dsx * dmu) / sx, (ds * dpi) / s
             x0.append(w * (q * rho))
             x1.append(w * (1.0 / sx - q * (1.0 / sx + 1.0 / s)))
             x2.append(-(w * (px - q * (px + ps))))
-        G_u = [_load(bu_r, t, nu), _mtv(r.Fu, u1), _mtv(r.Fu, u2)]
-        G_x = [[b + v for b, v in zip(_load(bx_r, t, nx), _mtv(r.Fx, x0), strict=True)]]
-        G_x += [_mtv(r.Fx, x1), _mtv(r.Fx, x2)]
+        G_u = [_load(bu_r, t, nu), _mtv(rows.Fu, u1), _mtv(rows.Fu, u2)]
+        G_x = [[b + v for b, v in zip(_load(bx_r, t, nx), _mtv(rows.Fx, x0), strict=True)]]
+        G_x += [_mtv(rows.Fx, x1), _mtv(rows.Fx, x2)]
         _store(Gu_out, t, G_u)
         _store(Gx_out, t, G_x)
         _store(Fdu_out, t, r.Fdu)
@@ -170,103 +225,162 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
     _store(sc_out, 0, [alpha, kappa])
 
 
-def pd_rows(
-    Fx,
-    Fu,
-    s,
-    g,
-    mu,
-    pi,
-    wx,
-    rho,
-    su,
-    lam,
-    wu,
-    dx,
-    du,
-    base_x,
-    base_u,
-    scalars,
-    rule,
-    interpret: bool = False,
-):
-    """The corrector's right-hand side from the predictor's step, for a batch.
+def _step_kernel(dims, N, *refs):
+    """One program of :func:`pd_step_rows`: the sweep for a tile of problems.
 
-    Args (batch last, b problems): Fx (N, mx, nx, b), Fu (N, mu, nu, b); the soft rows' slack
-    s, values g = Fx x - fx, multipliers mu, pi, mask wx and penalty rho (N, mx, b); the input
-    rows' slack su = fu - Fu u, multiplier lam and mask wu (N, mu, b); the predictor's step
-    dx (N, nx, b), du (N, nu, b); the cost gradients base_x (N, nx, b), base_u (N, nu, b);
-    scalars (3, b): the complementarity gap, the relative dual residual and the number of
-    barrier terms; ``rule`` the :class:`SigmaRule`.
+    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, the
+    predictor's row products Fdx_a, Fdu_a, scalars (alpha_a, kappa); outputs Fdu, Fdx,
+    U (N, 2, nu), X (N, 2, nx), (alpha, c0, c1, c2). The step length is known only after the
+    sweep: the complementarity at the new point is summed as c0 + alpha c1 + alpha^2 c2 and
+    the dual residual's row terms F^T w (y + alpha dy) as two vectors a stage."""
+    mx, mu, nx, nu = dims
+    row_refs = refs[:11]
+    dx_r, du_r, Fdxa_r, Fdua_r, sc_r = refs[11:16]
+    Fdu_out, Fdx_out, U_out, X_out, sc_out = refs[16:]
+    alpha_a, kappa = _load(sc_r, 0, 2)
 
-    Returns:
-        g_u (N, nu, b), g_x (N, nx, b) the corrector's right-hand side, Fdu (N, mu, b) and
-        Fdx (N, mx, b) the predictor's row steps, alpha_a (b,) its step length and kappa (b,)
-        the corrector's barrier weight.
-    """
+    def stage(t, carry):
+        alpha, c0, c1, c2 = carry
+        rows = StageRows(dims, row_refs, t)
+        aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
+        dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
+        r = _corrector(dims, rows, aff, _mv(rows.Fu, du), _mv(rows.Fx, dx), alpha_a, kappa)
+        alpha = _min_ratio(r.pairs(rows), alpha, nan_if_not_finite=True)
+        c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
+
+        def weighted(w, v):
+            return [a * b for a, b in zip(w, v, strict=True)]
+
+        U = [_mtv(rows.Fu, weighted(rows.wu, rows.lam)), _mtv(rows.Fu, weighted(rows.wu, r.dlam))]
+        X = [_mtv(rows.Fx, weighted(rows.wx, rows.mu)), _mtv(rows.Fx, weighted(rows.wx, r.dmu))]
+        _store(Fdu_out, t, r.Fdu)
+        _store(Fdx_out, t, r.Fdx)
+        _store(U_out, t, U)
+        _store(X_out, t, X)
+        return alpha, c0, c1, c2
+
+    zero = 0.0 * kappa
+    alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
+    _store(sc_out, 0, [jnp.minimum(1.0, alpha), c0, c1, c2])
+
+
+def _launch(body, name, ins, outs, interpret):
+    """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
+    stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b)."""
     from jax.experimental import pallas as pl
 
-    N, mx, nx, b = Fx.shape
-    mu_, nu = Fu.shape[1], Fu.shape[2]
-    cfg = lanes.default_config()
+    b = ins[0].shape[-1]
+    cfg = dataclasses.replace(lanes.default_config(), interpret=interpret)
     L = cfg.block
     b_pad = -(-b // L) * L
-    flat = [a.reshape(N, -1, b) for a in (Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, dx, du)]
-    flat += [base_x, base_u, scalars[None]]
-    ins = [_pad(a, b_pad) for a in flat]
-    outs = [(N, 3 * nu), (N, 3 * nx), (N, mu_), (N, mx), (1, 2)]
-    out_shape = [jax.ShapeDtypeStruct((*o, b_pad), Fx.dtype) for o in outs]
+    ins = [_pad(a.reshape(a.shape[0], -1, b), b_pad) for a in ins]
+    out_shape = [jax.ShapeDtypeStruct((*o, b_pad), ins[0].dtype) for o in outs]
 
     def spec(shape):
         n = len(shape)
         return pl.BlockSpec((*shape[:-1], L), lambda i: (0,) * (n - 1) + (i,))
 
-    def kernel(*refs):
-        _rows_kernel((mx, mu_, nx, nu), N, rule, *(_Block(r) for r in refs))
-
-    cfg = dataclasses.replace(cfg, interpret=interpret)
-    G_u, G_x, Fdu, Fdx, sc = pl.pallas_call(
-        kernel,
+    out = pl.pallas_call(
+        lambda *refs: body(*(_Block(r) for r in refs)),
         out_shape=out_shape,
         grid=(b_pad // L,),
         in_specs=[spec(a.shape) for a in ins],
         out_specs=[spec(o.shape) for o in out_shape],
         interpret=interpret,
         compiler_params=_compiler_params(cfg),
-        name="rvdjax_pd_rows",
+        name=name,
     )(*ins)
-    alpha, kappa = sc[0, 0, :b], sc[0, 1, :b]
-    G_u, G_x = G_u[..., :b].reshape(N, 3, nu, b), G_x[..., :b].reshape(N, 3, nx, b)
+    return [o[..., :b] for o in out]
+
+
+def pd_rows(rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: bool = False):
+    """The corrector's right-hand side from the predictor's step, for a batch.
+
+    Args (batch last, b problems): ``rows`` = (Fx (N, mx, nx, b), Fu (N, mu, nu, b), the soft
+    rows' slack s, values g = Fx x - fx, multipliers mu, pi, mask wx and penalty rho
+    (N, mx, b), the input rows' slack su = fu - Fu u, multiplier lam and mask wu (N, mu, b));
+    the predictor's step dx (N, nx, b), du (N, nu, b); the cost gradients base_x (N, nx, b),
+    base_u (N, nu, b); scalars (3, b): the complementarity gap, the relative dual residual
+    and the number of barrier terms; ``rule`` the :class:`SigmaRule`.
+
+    Returns:
+        g_u (N, nu, b), g_x (N, nx, b) the corrector's right-hand side, Fdu (N, mu, b) and
+        Fdx (N, mx, b) the predictor's row products, alpha_a (b,) its step length and kappa
+        (b,) the corrector's barrier weight.
+    """
+    N, mx, nx, b = rows[0].shape
+    mu, nu = rows[1].shape[1:3]
+    dims = (mx, mu, nx, nu)
+    G_u, G_x, Fdu, Fdx, sc = _launch(
+        functools.partial(_rows_kernel, dims, N, rule),
+        "rvdjax_pd_rows",
+        [*rows, dx, du, base_x, base_u, scalars[None]],
+        [(N, 3 * nu), (N, 3 * nx), (N, mu), (N, mx), (1, 2)],
+        interpret,
+    )
+    alpha, kappa = sc[0, 0], sc[0, 1]
+    G_u, G_x = G_u.reshape(N, 3, nu, b), G_x.reshape(N, 3, nx, b)
     g_u = G_u[:, 0] + kappa * G_u[:, 1] + alpha * G_u[:, 2]
     g_x = G_x[:, 0] + kappa * G_x[:, 1] + alpha * G_x[:, 2]
-    return g_u, g_x, Fdu[..., :b], Fdx[..., :b], alpha, kappa
+    return g_u, g_x, Fdu, Fdx, alpha, kappa
+
+
+def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False):
+    """The row work of the corrector's step, for a batch: its row products, its step length
+    (NaN where a row's step is not finite), the complementarity at the new point and the dual
+    residual's row terms, as functions of the step length.
+
+    Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the corrector's step
+    dx (N, nx, b), du (N, nu, b); the predictor's row products Fdx_a (N, mx, b),
+    Fdu_a (N, mu, b); scalars (2, b): the predictor's step length alpha_a and the corrector's
+    barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's steps).
+
+    Returns:
+        Fdu (N, mu, b), Fdx (N, mx, b); U (N, 2, nu, b) with Fu^T (wu lam) and Fu^T (wu dlam),
+        X (N, 2, nx, b) with Fx^T (wx mu) and Fx^T (wx dmu); alpha (b,) the largest step in
+        (0, 1] keeping the rows' values and multipliers >= 0 (primal_dual._max_step); c (3, b)
+        the complementarity after a step alpha' as c0 + alpha' c1 + alpha'^2 c2.
+    """
+    N, mx, nx, b = rows[0].shape
+    mu, nu = rows[1].shape[1:3]
+    dims = (mx, mu, nx, nu)
+    Fdu, Fdx, U, X, sc = _launch(
+        functools.partial(_step_kernel, dims, N),
+        "rvdjax_pd_step_rows",
+        [*rows, dx, du, Fdx_a, Fdu_a, scalars[None]],
+        [(N, mu), (N, mx), (N, 2 * nu), (N, 2 * nx), (1, 4)],
+        interpret,
+    )
+    return Fdu, Fdx, U.reshape(N, 2, nu, b), X.reshape(N, 2, nx, b), sc[0, 0], sc[0, 1:]
 
 
 @functools.cache
-def batched(rule: SigmaRule, interpret: bool):
-    """:func:`pd_rows` for one problem (arrays without the batch axis; a batch of one), and
-    under ``vmap`` for the batch (``jax.custom_batching.custom_vmap``); unbatched inputs are
-    broadcast."""
-
-    def per_problem_to_last(axis_size, args, in_batched):
-        return [
-            jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
-            for a, bt in zip(args, in_batched, strict=True)
-        ]
+def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool):
+    """:func:`pd_rows` (``kind`` "rows") or :func:`pd_step_rows` ("step") for one problem
+    (arrays without the batch axis; a batch of one), and under ``vmap`` for the batch
+    (``jax.custom_batching.custom_vmap``); unbatched inputs are broadcast. The arguments are
+    the 11 row arrays, the kernel's other arrays, then ``n_scalars`` scalars a problem."""
 
     def run(args):
-        *rows, gap, res, m_eff = args
-        scalars = jnp.stack([gap, res, m_eff])
-        out = pd_rows(*rows, scalars, rule, interpret)
+        rows, rest = args[:11], args[11 : len(args) - n_scalars]
+        scalars = jnp.stack(args[len(args) - n_scalars :])
+        if kind == "rows":
+            out = pd_rows(rows, *rest, scalars, rule, interpret)
+        else:
+            out = pd_step_rows(rows, *rest, scalars, interpret)
         return tuple(jnp.moveaxis(a, -1, 0) for a in out)
 
     @jax.custom_batching.custom_vmap
     def fn(*args):
-        out = run([a[..., None] for a in args])
-        return tuple(a[0] for a in out)
+        return tuple(a[0] for a in run([a[..., None] for a in args]))
 
     @fn.def_vmap
     def rule_(axis_size, in_batched, *args):
-        return run(per_problem_to_last(axis_size, args, in_batched)), (True,) * 6
+        full = [
+            jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
+            for a, bt in zip(args, in_batched, strict=True)
+        ]
+        out = run(full)
+        return out, (True,) * len(out)
 
     return fn

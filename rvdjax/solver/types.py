@@ -97,9 +97,10 @@ class SolverSettings:
             factorisation only, the solves entry by entry; "pallas-fused": the factorisation and
             first step in one kernel, and the corrector's step with its refinement in another;
             "pallas-block-fused": the same with block loads and stores; "pallas-block-rows":
-            that, and the accurate mode's row work between its two solves (the predictor's
-            step length, Mehrotra's sigma, the corrector's right-hand side) as a third kernel
-            (:mod:`rvdjax.solver.rows_kernel`); "unrolled": the
+            that, and the accurate mode's row work as two more kernels: between its two solves
+            (the predictor's step length, Mehrotra's sigma, the corrector's right-hand side)
+            and after them (the corrector's step length, the complementarity and the dual
+            residual's row terms) (:mod:`rvdjax.solver.rows_kernel`); "unrolled": the
             kernels' entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`). They
             give the same iterates to rounding. The measurements behind "auto" are in
             docs/solver.md.
