@@ -2,7 +2,7 @@
 sweeps as XLA loops (:mod:`rvdjax.solver.unrolled`), one kernel per process.
 
     PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py
-        apply|apply_refined|factor|factor_solve
+        apply|apply_refined|factor|factor_solve|pd_rows|pd_step_rows
         [--batch 65536] [--block 128] [--warps 4] [--block-io] [--out FILE]
 
 On a CUDA GPU the kernel is compiled by Triton (bounded only by the caller's ``timeout``:
@@ -13,13 +13,17 @@ are times, not answers. A JSON line per measurement goes to ``--out`` as it is t
 ``apply_refined`` (a step and its refinement in one kernel) is compared with XLA's
 elementwise form of the same two solves and residual, one problem per ``vmap`` lane (there is
 no unrolled form of it). The default GPU form (``"pallas-block-rows"``) is ``factor_solve``
-and ``apply_refined`` with ``--block-io``, and the row work between them
-(:mod:`rvdjax.solver.rows_kernel`, not timed here).
+and ``apply_refined`` with ``--block-io``, and the row work of an accurate iteration,
+``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always with block loads
+and stores), compared with XLA's form of the same work (``primal_dual._corrector_rhs`` and
+``_step_xla`` under ``vmap``) on random interior iterates of thesis-vbar's shapes (12 soft
+rows and 6 input rows a stage).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -89,6 +93,62 @@ def _fns(part: str, cfg):
     )
 
 
+def _row_inputs(b: int):
+    """Batch-first inputs of the row kernels' wrappers in rvdjax.solver.primal_dual: random
+    interior iterates of thesis-vbar's shapes (N = 30, 12 soft rows and 6 input rows a stage),
+    rows with a fifth of their entries masked, a random step, the predictor's row products."""
+    from rvdjax.solver.barrier import Rows
+    from rvdjax.solver.primal_dual import PDState, _row_steps, _soft_h, _targets
+
+    mx, mu = 12, 6
+    rng = np.random.default_rng(0)
+
+    def normal(*shape):
+        return jnp.asarray(rng.standard_normal((b, *shape)))
+
+    def positive(*shape):
+        return jnp.exp(normal(*shape))
+
+    def mask(*shape):
+        return jnp.asarray((rng.random((b, *shape)) > 0.2).astype(float))
+
+    rows = Rows(normal(N, mu, NU), positive(N, mu), mask(N, mu), normal(N, mx, NX),
+                positive(N, mx), mask(N, mx), 10.0 * positive(N, mx))  # fmt: skip
+    s, su = positive(N, mx), positive(N, mu)
+    g = s - positive(N, mx)
+    one = jnp.ones((b,))
+    st = PDState(normal(N, NU), normal(N, NX), normal(N, NX), s, positive(N, mu),
+                 positive(N, mx), positive(N, mx), 3 * one.astype(int), one < 0,
+                 one.astype(int), 5.0 * one, 20.0 * one, su, g)  # fmt: skip
+    sx = s - g
+    step = riccati.NewtonStep(normal(N, NU), normal(N, NX), normal(N, NX))
+    h = 0.0 / sx + 0.0 / s - rows.rho
+    m_eff = jnp.sum(rows.wu, (1, 2)) + 2.0 * jnp.sum(rows.wx, (1, 2))
+    pred = (rows, st, normal(N, NU), normal(N, NX), su, sx, step, h, m_eff)
+    # the corrector's inputs: the predictor's row products, step length and weight
+    Fdu_a, Fdx_a, alpha_a, kappa = normal(N, mu), normal(N, mx), 0.7 * one, 0.05 * one
+    zu, zx = jnp.zeros_like(su), jnp.zeros_like(sx)
+    aff = jax.vmap(_row_steps)(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h)
+    taus = jax.vmap(_targets)(aff, alpha_a, kappa)
+    h_c = jax.vmap(_soft_h)(rows, st, sx, taus[1], taus[2])
+    corr = (rows, st, su, sx, step, taus, h_c, one < 0, (Fdu_a, Fdx_a, alpha_a, kappa))
+    return pred, corr
+
+
+def _row_fns(part: str):
+    """(kernel, XLA) forms of a row kernel's work, vmapped over batch-first inputs."""
+    from rvdjax.solver import primal_dual as pd
+
+    if part == "pd_rows":
+        kernel = functools.partial(pd._rows_in_kernel, interpret=False)
+        return jax.vmap(kernel), jax.vmap(pd._corrector_rhs)
+
+    def kernel(*a):
+        return pd._step_in_kernel(*a[:-1], aff=a[-1], interpret=False)
+
+    return jax.vmap(kernel), jax.vmap(lambda *a: pd._step_xla(*a[:-1]))
+
+
 def _best(fn, args, repeats=5):
     best = np.inf
     for _ in range(repeats):
@@ -100,7 +160,10 @@ def _best(fn, args, repeats=5):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("apply", "apply_refined", "factor", "factor_solve"))
+    ap.add_argument(
+        "part",
+        choices=("apply", "apply_refined", "factor", "factor_solve", "pd_rows", "pd_step_rows"),
+    )
     ap.add_argument("--batch", type=int, default=65536)
     ap.add_argument("--block", type=int, default=128)
     ap.add_argument("--warps", type=int, default=4)
@@ -111,8 +174,13 @@ def main(argv=None) -> int:
     cfg = lanes.KernelConfig(
         block=args.block, num_warps=args.warps, interpret=False, block_io=args.block_io
     )
-    args_ = _inputs(args.batch)
-    pallas_fn, xla_fn = _fns(args.part, cfg)
+    if args.part.startswith("pd_"):  # the row kernels: always block loads and stores
+        pred, corr = _row_inputs(args.batch)
+        args_ = pred if args.part == "pd_rows" else corr
+        pallas_fn, xla_fn = _row_fns(args.part)
+    else:
+        args_ = _inputs(args.batch)
+        pallas_fn, xla_fn = _fns(args.part, cfg)
     prov = benchmark_block("sweeps/pallas_compile.py", vars(args))
 
     def emit(**row):
@@ -132,7 +200,9 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     xla = jax.jit(xla_fn).lower(*args_).compile()
-    xla_form = "XLA loops" if args.part == "apply_refined" else "unrolled (XLA loops)"
+    xla_form = "unrolled (XLA loops)"
+    if args.part == "apply_refined" or args.part.startswith("pd_"):
+        xla_form = "XLA"
     emit(form=xla_form, compile_s=time.perf_counter() - t0)
     if gpu:
         emit(form=xla_form, ms=1e3 * _best(xla, args_))
@@ -146,6 +216,7 @@ def main(argv=None) -> int:
     emit(form="pallas", compile_s=time.perf_counter() - t0)
     emit(form="pallas", ms=1e3 * _best(compiled, args_))
     a, b = jax.tree.leaves(compiled(*args_)), jax.tree.leaves(xla(*args_))
+    a, b = ([jnp.asarray(x, jnp.float64) for x in v] for v in (a, b))  # flags as 0 / 1
     err = max(
         float(jnp.max(jnp.abs(x - y)) / (jnp.max(jnp.abs(y)) + 1e-300))
         for x, y in zip(a, b, strict=True)
