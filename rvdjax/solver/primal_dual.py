@@ -214,6 +214,20 @@ def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     alpha = _max_step(
         ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, True
     )
+    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, (ds, dlam, dmu, dpi, dsu, Fdx))
+    u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
+    sx_n = s_new - g_n
+    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
+    Fu_lam, Fx_mu = sw.mtv(rows.Fu, rows.wu * lam), sw.mtv(rows.Fx, rows.wx * mu)
+    return new, gap_n, Fu_lam, Fx_mu, finite
+
+
+def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
+    """(finite, the step length taken, the new u, x, nu, s, lam, mu, pi, su, g) from the ratio
+    test's ``alpha`` (NaN where a step is not finite) and the rows' steps (ds, dlam, dmu, dpi,
+    dsu, Fdx): 0.99 of the way to the boundary, at most 1; a step of length zero where it is
+    not finite or the solve is stopped."""
+    ds, dlam, dmu, dpi, dsu, Fdx = row_steps
     finite = all_finite(step) & ~jnp.isnan(alpha)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite & ~stop, alpha, 0.0)
@@ -227,10 +241,7 @@ def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     nu = upd(st.nu, step.nu - st.nu)
     su_n = upd(su, dsu)
     g_n = upd(st.g, Fdx)  # soft-row values at the new point
-    sx_n = s_new - g_n
-    gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
-    Fu_lam, Fx_mu = sw.mtv(rows.Fu, rows.wu * lam), sw.mtv(rows.Fx, rows.wx * mu)
-    return (u, x, nu, s_new, lam, mu, pi, su_n, g_n), gap_n, Fu_lam, Fx_mu, finite
+    return finite, alpha, (u, x, nu, s_new, lam, mu, pi, su_n, g_n)
 
 
 def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret):
@@ -242,25 +253,13 @@ def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpr
     Fdu, Fdx, U, X, alpha, c = fn(
         *_kernel_rows(rows, st, su), step.dx, step.du, Fdx_a, Fdu_a, alpha_a, kappa
     )
-    finite = all_finite(step) & ~jnp.isnan(alpha)
-    alpha = jnp.minimum(1.0, 0.99 * alpha)
-    alpha = jnp.where(finite & ~stop, alpha, 0.0)
-    ds, dlam, dmu, dpi, dsu, dsx, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
-
-    def upd(v, dv, w=1.0):
-        return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
-
-    u, x, s_new = upd(st.u, step.du), upd(st.x, step.dx), upd(st.s, ds, rows.wx)
-    lam, mu = upd(st.lam, dlam, rows.wu), upd(st.mu, dmu, rows.wx)
-    pi = upd(st.pi, dpi, rows.wx)
-    nu = upd(st.nu, step.nu - st.nu)
-    su_n = upd(su, dsu)
-    g_n = upd(st.g, Fdx)
+    ds, dlam, dmu, dpi, dsu, _, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
+    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, (ds, dlam, dmu, dpi, dsu, Fdx))
     # a step of length zero (stopped, or not finite) leaves the sums at the old point
     gap_n = jnp.where(finite, c[0] + alpha * (c[1] + alpha * c[2]), c[0])
     Fu_lam = jnp.where(finite, U[:, 0] + alpha * U[:, 1], U[:, 0])
     Fx_mu = jnp.where(finite, X[:, 0] + alpha * X[:, 1], X[:, 0])
-    return (u, x, nu, s_new, lam, mu, pi, su_n, g_n), gap_n, Fu_lam, Fx_mu, finite
+    return new, gap_n, Fu_lam, Fx_mu, finite
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
