@@ -304,7 +304,7 @@ def _lane_ops(impl):
         block_io=kernel
         in ("pallas-block-io", "pallas-block-factor", "pallas-block-fused", "pallas-block-rows"),
         solve_block_io=kernel != "pallas-block-factor",
-        fused=kernel in ("pallas-fused", "pallas-block-fused", "pallas-block-rows"),
+        fused=kernel in REFINED_IN_KERNEL,
     )
     factor, apply, apply_refined = (
         functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply, lanes.apply_refined)
@@ -573,7 +573,7 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
             Phi_x positive semidefinite).
         kernel: "auto" (:data:`AUTO_ON_CUDA` on a CUDA GPU, else XLA's loops), "xla"
             (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor",
-            "pallas-fused" or "pallas-block-fused" (the kernels of
+            "pallas-fused", "pallas-block-fused" or "pallas-block-rows" (the kernels of
             :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
             "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
     """
