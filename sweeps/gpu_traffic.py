@@ -253,10 +253,11 @@ def kernel_sweeps(jaxpr) -> dict[str, tuple[int, int]]:
         v = getattr(v, "val", v)
         return int(v) if isinstance(v, int) or hasattr(v, "__index__") else None
 
-    def entry_keys(indexer) -> set:
-        """The entries (all but the stage, first, and the problems, last) an indexer takes."""
+    def entry_keys(indices) -> set:
+        """The entries the indices of the entry axes take (an indexer's all but the stage,
+        first, and the problems, last)."""
         keys = {()}
-        for i in indexer.indices[1:-1]:
+        for i in indices:
             if hasattr(i, "size"):  # a slice: its entries, or as many anonymous ones
                 start = static(i.start)
                 ax = (
@@ -269,20 +270,35 @@ def kernel_sweeps(jaxpr) -> dict[str, tuple[int, int]]:
             keys = {k + (v,) for k in keys for v in ax}
         return keys
 
+    def gathered(indexer) -> bool:
+        """Whether an indexer gathers (a vector of indices first: a model table read at
+        each problem's index)."""
+        first = indexer.indices[0]
+        return not hasattr(first, "size") and bool(getattr(first, "aval", first).shape)
+
     def body(j, refs: dict, trips: int, acc: list):
         """Add the loads and stores of ``j`` (refs: var -> kernel ref index) run ``trips``
-        times to acc = [read, written]."""
+        times to acc = [read, written]. A gather from a table of K models ([model][stage]
+        [entry...], no problem axis) counts the table's K rows of the entries it takes, as a
+        shared model counts its entries: once a tile's sweep, however many lanes read them."""
         loads, stores = collections.defaultdict(set), collections.defaultdict(set)
-        avals = {}
+        avals, tables = {}, {}
         for eqn in j.eqns:
             name = eqn.primitive.name
             if name in ("get", "swap"):
                 ref = eqn.invars[0]
                 leaves = eqn.invars[1:] if name == "get" else eqn.invars[2:]
-                indexer = jax.tree_util.tree_unflatten(eqn.params["tree"], leaves)[0]
+                indexers = jax.tree_util.tree_unflatten(eqn.params["tree"], leaves)
                 who = refs.get(ref, ref)  # the kernel's ref a loop's variable stands for
                 avals[who] = ref.aval
-                (loads if name == "get" else stores)[who] |= entry_keys(indexer)
+                if not indexers:  # the whole ref (a tile's indices)
+                    keys = {()}
+                elif gathered(indexers[0]):  # [model][stage][entries]
+                    keys = entry_keys(indexers[0].indices[2:])
+                    tables[who] = ref.aval.shape[0]
+                else:
+                    keys = entry_keys(indexers[0].indices[1:-1])
+                (loads if name == "get" else stores)[who] |= keys
             elif name == "scan":
                 inner = eqn.params["jaxpr"].jaxpr
                 sub = {
@@ -294,7 +310,10 @@ def kernel_sweeps(jaxpr) -> dict[str, tuple[int, int]]:
             elif name in ("while", "cond", "pjit", "closed_call"):
                 for sub_j in jax.extend.core.jaxprs_in_params(eqn.params):
                     body(sub_j, refs, trips, acc)
-        acc[0] += trips * sum(ref_bytes(avals[r], k) for r, k in loads.items())
+        acc[0] += trips * sum(
+            len(k) * tables[r] * avals[r].dtype.itemsize if r in tables else ref_bytes(avals[r], k)
+            for r, k in loads.items()
+        )
         acc[1] += trips * sum(ref_bytes(avals[r], k) for r, k in stores.items())
 
     found = {}

@@ -3,7 +3,7 @@ sweeps as XLA loops (:mod:`rvdjax.solver.unrolled`), one kernel per process.
 
     PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py
         apply|apply_refined|factor|factor_solve|pd_rows|pd_step_rows
-        [--batch 65536] [--block 128] [--warps 4] [--block-io] [--out FILE]
+        [--batch 65536] [--block 128] [--warps 4] [--block-io] [--tabled] [--out FILE]
 
 On a CUDA GPU the kernel is compiled by Triton (bounded only by the caller's ``timeout``:
 on an H100, 2026-11-26, the solver's programs with the kernels did not finish compiling in
@@ -17,7 +17,10 @@ and ``apply_refined`` with ``--block-io``, and the row work of an accurate itera
 ``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always with block loads
 and stores), compared with XLA's form of the same work (``primal_dual._corrector_rhs`` and
 ``_step_xla`` under ``vmap``) on random interior iterates of thesis-vbar's shapes (12 soft
-rows and 6 input rows a stage).
+rows and 6 input rows a stage). With ``--tabled`` the Riccati kernels read each problem's
+model from a table of three, at the problem's index (as they read thesis-vbar's phase models
+in the batch engine), and XLA's form reads the copies of the models that the table stands
+for.
 """
 
 from __future__ import annotations
@@ -54,41 +57,72 @@ def _inputs(b: int):
     return M, Phi_u, Phi_x, g_u, g_x, rp
 
 
-def _fns(part: str, cfg):
+def _tabled(args, b: int):
+    """(table, index, copies, ...) from _inputs' (M, ...): three models (M and two
+    perturbations), problem i running model i mod 3, and the batch-last copies of each
+    problem's model."""
+    M, rest = args[0], args[1:]
+    table = jnp.stack([M, 1.01 * M, 0.99 * M])
+    index = jnp.arange(b, dtype=jnp.int32) % 3
+    return (table, index, jnp.moveaxis(table[index], 0, -1), *rest)
+
+
+def _fns(part: str, cfg, tabled: bool = False):
+    """(kernel, XLA) forms of ``part``: functions of _inputs' arrays, or (``tabled``) of
+    _tabled's."""
+    kernel, xla = _plain_fns(part, cfg)
+    if not tabled:
+        return kernel, xla
+    return (
+        lambda T, i, C, *a: kernel(T, *a, index=i, copy=C),
+        lambda T, i, C, *a: xla(C, *a),
+    )
+
+
+def _plain_fns(part: str, cfg):
+    """(kernel, XLA) forms, each f(M, Pu, Px, gu, gx, r); the kernel's also takes a table's
+    ``index`` (M is then the table) and ``copy``, the copies of the problems' models."""
     if part == "factor":
         return (
-            lambda M, Pu, Px, gu, gx, r: lanes.factor(M, Pu, Px, cfg=cfg),
+            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.factor(
+                M, Pu, Px, cfg=cfg, index=index
+            ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor(M, Pu, Px),
         )
     if part == "factor_solve":
         return (
-            lambda M, Pu, Px, gu, gx, r: lanes.factor_solve(M, Pu, Px, gu, gx, r, cfg=cfg),
+            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.factor_solve(
+                M, Pu, Px, gu, gx, r, cfg=cfg, index=index
+            ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor_solve(M, Pu, Px, gu, gx, r),
         )
 
-    def stored(M, Pu, Px):  # the apply kernels take a factorisation computed beforehand
-        return unrolled.factor(M, Pu, Px)
+    def stored(M, Pu, Px, copy=None):  # the apply kernels take a factorisation made before
+        return unrolled.factor(M if copy is None else copy, Pu, Px)
 
     if part == "apply_refined":
 
         def xla_refined(M, Pu, Px, gu, gx, r):
             f = riccati.RiccatiFactor(M, *stored(M, Pu, Px))
+            m_axis = -1 if M.ndim == 4 else None  # copies per problem, or one shared model
             one = jax.vmap(  # batch-last arrays: one problem a lane
                 lambda f, *a: riccati._apply_refined(f, *a, riccati._ELEMENTWISE),
-                in_axes=(riccati.RiccatiFactor(None, -1, -1, -1, -1), -1, -1, -1, -1, -1),
+                in_axes=(riccati.RiccatiFactor(m_axis, -1, -1, -1, -1), -1, -1, -1, -1, -1),
                 out_axes=-1,
             )
             return one(f, Pu, Px, gu, gx, r)
 
         return (
-            lambda M, Pu, Px, gu, gx, r: lanes.apply_refined(
-                M, *stored(M, Pu, Px), Pu, Px, gu, gx, r, cfg=cfg
+            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.apply_refined(
+                M, *stored(M, Pu, Px, copy), Pu, Px, gu, gx, r, cfg=cfg, index=index
             ),
             xla_refined,
         )
 
     return (
-        lambda M, Pu, Px, gu, gx, r: lanes.apply(M, *stored(M, Pu, Px), gu, gx, r, cfg=cfg),
+        lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.apply(
+            M, *stored(M, Pu, Px, copy), gu, gx, r, cfg=cfg, index=index
+        ),
         lambda M, Pu, Px, gu, gx, r: unrolled.apply(M, *stored(M, Pu, Px), gu, gx, r),
     )
 
@@ -168,6 +202,11 @@ def main(argv=None) -> int:
     ap.add_argument("--block", type=int, default=128)
     ap.add_argument("--warps", type=int, default=4)
     ap.add_argument("--block-io", action="store_true", help="KernelConfig.block_io")
+    ap.add_argument(
+        "--tabled",
+        action="store_true",
+        help="the Riccati kernels read each problem's model from a table of three",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     gpu = jax.default_backend() == "gpu"
@@ -180,7 +219,9 @@ def main(argv=None) -> int:
         pallas_fn, xla_fn = _row_fns(args.part)
     else:
         args_ = _inputs(args.batch)
-        pallas_fn, xla_fn = _fns(args.part, cfg)
+        if args.tabled:
+            args_ = _tabled(args_, args.batch)
+        pallas_fn, xla_fn = _fns(args.part, cfg, args.tabled)
     prov = benchmark_block("sweeps/pallas_compile.py", vars(args))
 
     def emit(**row):
@@ -190,6 +231,7 @@ def main(argv=None) -> int:
             block=args.block,
             warps=args.warps,
             block_io=args.block_io,
+            tabled=args.tabled,
             **row,
         )
         print(json.dumps(row), flush=True)

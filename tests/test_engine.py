@@ -24,7 +24,7 @@ from rvdjax.loop.engine import (
     run_batch,
     run_stream,
 )
-from rvdjax.loop.engine.slots import _strip_model, model_of
+from rvdjax.loop.engine.slots import _strip_model, model_of, table_of
 from rvdjax.loop.kernel import init, prepare
 from rvdjax.scenarios import SCENARIOS
 from rvdjax.solver.barrier import rows_of
@@ -239,9 +239,9 @@ def test_engine_settings_are_chosen_for_the_device():
 def test_the_fields_a_family_rebuilds_are_its_ocps(name):
     """What the engine rebuilds instead of storing per slot (``model_of``: the model, and for
     these families the linear costs and the input rows, for the three-phase family also the
-    state rows' mask and penalty, neutralised as the solver's start does) is, bit for bit,
-    the OCP the family builds at a run's first step; fields it rebuilds are stored as
-    scalars."""
+    state rows' mask and penalty, neutralised as the solver's start does, and the model's
+    table with the slot's entry) is, bit for bit, the OCP the family builds at a run's first
+    step; fields it rebuilds are stored as scalars."""
     sc = SCENARIOS[name]
     params, x0 = sc.build()
     loop = sc.loop(n_steps=2)
@@ -252,6 +252,12 @@ def test_the_fields_a_family_rebuilds_are_its_ocps(name):
         return prep.ocp, model_of(loop, p, prep.guidance)
 
     ocp, fields = first(params, x0)
+    table = table_of(fields)
+    assert (table is not None) == (name == "thesis-vbar")
+    if table is not None:
+        BA = np.asarray(table.M)[int(table.index)]
+        np.testing.assert_array_equal(BA, np.concatenate([ocp.B, ocp.A], axis=-1))
+        del fields["table"]
     state_rows = {"x_mask", "rho"} if name == "thesis-vbar" else set()
     assert set(fields) == {"A", "B", "c", "Q", "R", "Fu", "fu", "q", "r"} | state_rows
     for field, a in fields.items():

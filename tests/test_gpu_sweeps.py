@@ -189,6 +189,52 @@ def test_kernel_sweeps_count_a_kernels_loads_once_a_sweep():
     assert sweeps == {"two_sweeps": (((3 + 2) * N * 8 + N * 8) * b, (N * 8 + 8) * b)}
 
 
+def test_kernel_sweeps_count_a_gathered_table_once_a_tile():
+    """A kernel that reads, at each stage, two entries of the lanes' models from a table of
+    K = 3 (a gather by each lane's index, as the Riccati kernels read the phase models) is
+    charged the table's K rows of those entries once a tile's sweep, not once a lane, and its
+    tile of indices once: per tile N x 2 x K x 8 bytes + lanes x 4."""
+    import jax
+    import jax.numpy as jnp
+    from jax.experimental import pallas as pl
+
+    gt = _import("gpu_traffic")
+    N, K, lanes, b = 4, 3, 8, 16
+
+    def kernel(table_ref, index_ref, z_ref):
+        index = index_ref[...]
+
+        def stage(t, c):
+            z_ref[t, 0:2] = table_ref[index, t, 0:2].T
+            return c
+
+        jax.lax.fori_loop(0, N, stage, 0)
+
+    def run(table, index):
+        return pl.pallas_call(
+            kernel,
+            out_shape=jax.ShapeDtypeStruct((N, 2, b), jnp.float64),
+            grid=(b // lanes,),
+            in_specs=[
+                pl.BlockSpec((K, N, 5), lambda i: (0, 0, 0)),
+                pl.BlockSpec((lanes,), lambda i: (i,)),
+            ],
+            out_specs=pl.BlockSpec((N, 2, lanes), lambda i: (0, 0, i)),
+            interpret=True,
+            name="gathered",
+        )(table, index)
+
+    table = jnp.arange(K * N * 5, dtype=jnp.float64).reshape(K, N, 5)
+    index = jnp.arange(b, dtype=jnp.int32) % K
+    z = run(table, index)
+    np.testing.assert_array_equal(
+        np.asarray(z), np.moveaxis(np.asarray(table)[index, :, :2], 0, -1)
+    )
+    sweeps = gt.kernel_sweeps(jax.make_jaxpr(run)(table, index).jaxpr)
+    tiles = b // lanes
+    assert sweeps == {"gathered": ((N * 2 * K * 8 + lanes * 4) * tiles, N * 2 * 8 * b)}
+
+
 def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
     gt = _import("gpu_traffic")
     assert gt.main(["--kernels", "xla,bogus", "--out", str(tmp_path)]) == 2

@@ -300,6 +300,67 @@ def test_kernel_gradients_match_central_differences():
         assert fds[kernel] == pytest.approx(fds["xla"], rel=1e-8), kernel
 
 
+@pytest.mark.parametrize(
+    "block_io",
+    [True, pytest.param(False, marks=pytest.mark.slow)],  # entry by entry: opt-in
+)
+def test_the_kernels_read_a_model_table_as_the_copies_it_stands_for(block_io):
+    """Given a table of models and each problem's index (the batch engine's phase models),
+    the Riccati kernels (interpreted) compute, bit for bit, what they compute from the [B, A]
+    copy each problem would otherwise carry, with block loads (and their refinement) and
+    entry by entry; the solver's form for a CUDA GPU passes them the table and not the
+    copies."""
+    from rvdjax.solver import riccati
+
+    rng = np.random.default_rng(3)
+    N, nx, nu, K, b = 2, 6, 3, 3, 11  # two tiles, the second padded
+    table = jnp.asarray(0.3 * rng.normal(size=(K, N, nx, nu + nx)))
+    index = jnp.asarray([0, 2, 1, 2, 2, 0, 1, 1, 0, 2, 1])
+    M = jnp.moveaxis(table[index], 0, -1)
+
+    def spd(n):
+        X = rng.normal(size=(N, n, n, b))
+        return jnp.asarray(np.einsum("tijb,tkjb->tikb", X, X) + n * np.eye(n)[..., None])
+
+    Pu, Px = spd(nu), spd(nx)
+    rhs = [jnp.asarray(rng.normal(size=(N, n, b))) for n in (nu, nx, nx)]
+    cfg = dataclasses.replace(lanes.default_config(), interpret=True, block_io=block_io)
+    f, s = lanes.factor_solve(M, Pu, Px, *rhs, cfg)
+    f_t, s_t = lanes.factor_solve(table, Pu, Px, *rhs, cfg, index=index)
+    outs = [*f, *s], [*f_t, *s_t]
+    step = step_t = ()
+    if block_io:  # the solver's form on a GPU
+        step = lanes.apply_refined(M, *f, Pu, Px, *rhs, cfg)
+        step_t = lanes.apply_refined(table, *f, Pu, Px, *rhs, cfg, index=index)
+    for a, t in zip([*outs[0], *step], [*outs[1], *step_t], strict=True):
+        np.testing.assert_array_equal(np.asarray(t), np.asarray(a))
+    if not block_io:
+        return
+
+    def solve_both(A, B, Pu, Px, gu, gx, rp, i):
+        kkt, s = riccati.riccati_factor_solve(A, B, Pu, Px, gu, gx, rp, AUTO_ON_CUDA, (table, i))
+        return riccati.riccati_apply_refined(kkt, Pu, Px, gu, gx, rp, AUTO_ON_CUDA, (table, i))
+
+    first = [jnp.moveaxis(a, -1, 0) for a in (Pu, Px, *rhs)]
+    args = (table[index][..., nu:], table[index][..., :nu], *first, index)
+    with tracing_for_cuda():
+        jaxpr = jax.make_jaxpr(jax.vmap(solve_both))(*args)
+    models = [
+        [str(v.aval) for v in e.invars[:2]]
+        for e in _eqns(jaxpr.jaxpr)
+        if e.primitive.name == "pallas_call" and "riccati" in str(e.params["name"])
+    ]
+    want = [f"float64[{K},{N},{nx * (nu + nx)}]", f"int32[{-(-b // BLOCK) * BLOCK}]"]
+    assert len(models) == 4 and all(m == want for m in models), models  # CPU's and CUDA's
+
+
+def _eqns(jaxpr):
+    for e in jaxpr.eqns:
+        yield e
+        for sub in jax.extend.core.jaxprs_in_params(e.params):
+            yield from _eqns(sub)
+
+
 def _cuda_text(fn, *args):
     with tracing_for_cuda():
         return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()

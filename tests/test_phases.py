@@ -182,8 +182,8 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
     """The fields the batch engine rebuilds from a slot's phase instead of storing them (the
     model A, B, c, Q, R, the linear costs, the input rows, and the state rows' mask and
     penalty, neutralised as the solver's start does) are, bit for bit, those of that phase's
-    OCP at any state and time; none with the thrusters' finite burns (their B and c follow
-    the plan)."""
+    OCP at any state and time, and the model table's entry that the GPU kernels read is its
+    [B, A]; none with the thrusters' finite burns (their B and c follow the plan)."""
     sc = SCENARIOS[name]
     p, x0 = sc.build()
     fc = sc.loop().config.family_config
@@ -198,8 +198,12 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
     states = [(x0, 100.0), (0.3 * x0[::-1], 2500.0)]
     for phase, (x, t) in itertools.product(range(3), states):
         ocp, rho, fields = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)), x, t)
+        table, index = fields.pop("table")
         assert set(fields) == {"A", "B", "c", "Q", "R", "q", "r", "Fu", "fu", "x_mask", "rho"}
         assert 0 < np.sum(np.asarray(ocp.x_mask)) < np.size(ocp.x_mask)
+        assert np.shape(table)[0] == 3 and int(index) == phase
+        BA = np.concatenate([np.asarray(ocp.B), np.asarray(ocp.A)], axis=-1)
+        np.testing.assert_array_equal(np.asarray(table)[phase], BA)
         for field, a in fields.items():
             want = rho if field == "rho" else getattr(ocp, field)
             np.testing.assert_array_equal(np.asarray(a), np.asarray(want), field)

@@ -336,8 +336,25 @@ def model(p: Params, fc: Config, g: Guidance):
     del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
     x_mask, rho = row_weights(p, fc)
     return dict(
-        fields, c=jnp.zeros((_N(fc), 6), p.A.dtype), x_mask=x_mask[g.phase], rho=rho[g.phase]
+        fields,
+        c=jnp.zeros((_N(fc), 6), p.A.dtype),
+        x_mask=x_mask[g.phase],
+        rho=rho[g.phase],
+        table=(model_table(p, fc), g.phase),
     )
+
+
+def model_table(p: Params, fc: Config):
+    """(3, N, 6, nu + 6) each phase's stages [B, A] as :func:`model` builds them (the same
+    operations with the phase a constant, so ``model_table(p, fc)[phase]`` is the
+    concatenation of :func:`model`'s B and A bit for bit). On a GPU the Riccati kernels read a
+    slot's model from it instead of from a copy of every slot's
+    (:class:`rvdjax.solver.riccati.ModelTable`)."""
+    Ms = []
+    for phase in range(3):
+        f = _phase_fields(p, fc, phase, p.B[phase])
+        Ms.append(jnp.concatenate([f["B"], f["A"]], axis=-1))
+    return jnp.stack(Ms)
 
 
 def row_weights(p: Params, fc: Config):

@@ -167,18 +167,24 @@ def freeze(state: SolveState, where=True) -> SolveState:
     return state._replace(core=core._replace(done=core.done | where))
 
 
-def iterate(ocp: OCP, settings: SolverSettings, params: SolverParams, state: SolveState):
+def iterate(
+    ocp: OCP, settings: SolverSettings, params: SolverParams, state: SolveState, table=None
+):
     """One iteration from ``state`` on the OCP returned by :func:`start`; a finished state is
-    returned unchanged."""
+    returned unchanged. ``table``: a :class:`~rvdjax.solver.riccati.ModelTable` whose entry is
+    the OCP's [B, A] (the batch engine's phase models), which the GPU kernels read instead of
+    a copy of A and B per problem, or None."""
     params = _prepared(params, ocp.B.dtype)
     rows = rows_in(ocp)
     stop = finished(settings, state)
     if settings.mode == "accurate":  # a step of length zero where stopped
         core = pd_iteration(
-            ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, stop
+            ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, stop, table
         )
         return state._replace(core=core)
-    new = newton_iteration(ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params)
+    new = newton_iteration(
+        ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, table
+    )
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
 

@@ -32,6 +32,7 @@ from rvdjax.solver.riccati import (  # noqa: F401  (KERNELS and the Riccati name
     AUTO_ON_CUDA,
     KERNELS,
     REFINED_IN_KERNEL,
+    ModelTable,
     NewtonStep,
     RiccatiFactor,
     _shift,
@@ -86,29 +87,33 @@ KKT_SOLVERS = {"riccati": riccati_solve, "dense": dense_solve}
 class KKT(NamedTuple):
     """A Newton (KKT) matrix ready for right-hand sides: the stage data and, for the Riccati
     method, its factorisation (computed once, applied to every right-hand side: predictor,
-    corrector and the implicit derivative's adjoint solve)."""
+    corrector and the implicit derivative's adjoint solve), and the model's table, if any
+    (:class:`~rvdjax.solver.riccati.ModelTable`: the GPU kernels read A and B from it)."""
 
     A: jnp.ndarray
     B: jnp.ndarray
     Phi_u: jnp.ndarray
     Phi_x: jnp.ndarray
     factor: RiccatiFactor | None
+    table: ModelTable | None = None
 
 
-def kkt_factor(A, B, Phi_u, Phi_x, method: str, kernel: str = "auto") -> KKT:
+def kkt_factor(A, B, Phi_u, Phi_x, method: str, kernel: str = "auto", table=None) -> KKT:
     """Factorise (Riccati) or keep (dense) the Newton matrix of the given Hessian blocks."""
-    factor = riccati_factor(A, B, Phi_u, Phi_x, kernel) if method == "riccati" else None
-    return KKT(A, B, Phi_u, Phi_x, factor)
+    factor = riccati_factor(A, B, Phi_u, Phi_x, kernel, table) if method == "riccati" else None
+    return KKT(A, B, Phi_u, Phi_x, factor, table)
 
 
-def kkt_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, method: str, kernel: str = "auto"):
+def kkt_factor_solve(
+    A, B, Phi_u, Phi_x, g_u, g_x, rp, method: str, kernel: str = "auto", table=None
+):
     """:func:`kkt_factor` and :func:`kkt_solve` of a first right-hand side: (KKT, step), with
     the Riccati method through :func:`riccati_factor_solve`."""
     if method != "riccati":
         kkt = kkt_factor(A, B, Phi_u, Phi_x, method)
         return kkt, kkt_solve(kkt, g_u, g_x, rp, method)
-    factor, step = riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)
-    return KKT(A, B, Phi_u, Phi_x, factor), step
+    factor, step = riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel, table)
+    return KKT(A, B, Phi_u, Phi_x, factor, table), step
 
 
 def kkt_residual(kkt: KKT, g_u, g_x, rp, step: NewtonStep):
@@ -146,11 +151,11 @@ def kkt_solve_refined(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto")
 
 
 def _refined_in_kernel(kernel, kkt: KKT, g_u, g_x, rp) -> NewtonStep:
-    return riccati_apply_refined(kkt.factor, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, kernel)
+    return riccati_apply_refined(kkt.factor, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp, kernel, kkt.table)
 
 
 def kkt_solve(kkt: KKT, g_u, g_x, rp, method: str, kernel: str = "auto") -> NewtonStep:
     """Solve the Newton system of ``kkt`` for one right-hand side (g_u, g_x, rp)."""
     if method == "riccati":
-        return riccati_apply(kkt.factor, g_u, g_x, rp, kernel)
+        return riccati_apply(kkt.factor, g_u, g_x, rp, kernel, kkt.table)
     return KKT_SOLVERS[method](kkt.A, kkt.B, kkt.Phi_u, kkt.Phi_x, g_u, g_x, rp)

@@ -299,26 +299,65 @@ def _interleaved(vals):
     return jnp.stack([a, b], axis=-1).reshape(a.shape[0], 2 * a.shape[1])
 
 
-def _block_entries(ref: _Block, t):
-    """The lane vectors of stage t's entries, read chunk by chunk."""
+class _Gathered:
+    """The model of a tile read from a table of K models, ``[model][stage][entry...]`` (no
+    problem axis), at each lane's model index (a ``(lanes,)`` int vector loaded once): one
+    gather per entry, or (``block``, entries flattened) per power-of-two chunk of a stage's
+    entries. The batch engine's three-phase family flies one of three models per slot: the
+    kernels read the table (kilobytes, cached) instead of a [B, A] copy of every problem
+    (13 KB a thesis-vbar slot, read in each of the Riccati kernels' sweeps)."""
+
+    def __init__(self, ref, index, block: bool):
+        self.ref, self.index = ref, index
+        self.chunks = _chunks(ref.shape[2]) if block else None
+
+
+def _block_entries(ref, t):
+    """The lane vectors of stage t's entries, read chunk by chunk (a :class:`_Block`, or a
+    :class:`_Gathered` with block loads, whose chunks are (lanes, size))."""
     flat = []
     for off, size in ref.chunks:
-        x = ref.ref[t, off : off + size]
-        rows = [v.reshape(v.shape[-1]) for v in jnp.split(x, size, axis=0)]
+        if isinstance(ref, _Gathered):
+            x = ref.ref[ref.index, t, off : off + size]
+            rows = [v.reshape(v.shape[0]) for v in jnp.split(x, size, axis=1)]
+        else:
+            x = ref.ref[t, off : off + size]
+            rows = [v.reshape(v.shape[-1]) for v in jnp.split(x, size, axis=0)]
         flat += rows[len(flat) - off :]  # an overlap's entries come from the first chunk
     return flat
 
 
 def _load(ref, t, *shape):
-    """The (shape) entries of stage t of a [stage][entry...][problem] ref."""
-    if isinstance(ref, _Block):
+    """The (shape) entries of stage t of a [stage][entry...][problem] ref (or of the lanes'
+    models in a :class:`_Gathered` table)."""
+    if isinstance(ref, _Block) or (isinstance(ref, _Gathered) and ref.chunks is not None):
         flat = _block_entries(ref, t)
         if len(shape) == 1:
             return flat[: shape[0]]
         return [flat[i * shape[1] : (i + 1) * shape[1]] for i in range(shape[0])]
+    if isinstance(ref, _Gathered):
+        return [[ref.ref[ref.index, t, i, j] for j in range(shape[1])] for i in range(shape[0])]
     if len(shape) == 1:
         return [ref[t, i] for i in range(shape[0])]
     return [[ref[t, i, j] for j in range(shape[1])] for i in range(shape[0])]
+
+
+def _model_refs(refs, model: str, block_io: bool, padded: bool):
+    """The kernel's refs with the model's first: ``model`` "batched" (a [B, A] per problem),
+    "shared" (one [B, A], read entry by entry) or "tabled" (a table and the lanes' indices,
+    the second ref, dropped here: :class:`_Gathered`); with ``block_io`` the per-problem
+    arrays as :class:`_Block`."""
+    refs = list(refs)
+    if model == "tabled":
+        M = _Gathered(refs[0], refs[1][...], block_io)
+        refs = [refs[0], *refs[2:]]
+    if block_io:
+        refs = [
+            r if i == 0 and model != "batched" else _Block(r, padded) for i, r in enumerate(refs)
+        ]
+    if model == "tabled":
+        refs[0] = M
+    return refs
 
 
 def _store(ref, t, X):
@@ -354,19 +393,15 @@ def _untri(flat, n):
     return P
 
 
-def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched, *refs):
+def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
     factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp; outputs: (factorise) L, K, BPA,
     P; (with_rhs) du, dx, nu. The backward sweep keeps k_t in du's rows and p_{t+1} in nu's
-    rows until the forward sweep overwrites them.
+    rows until the forward sweep overwrites them. ``model`` as :func:`_model_refs`.
     """
-    refs = list(refs)
-    if block_io:
-        refs = [
-            r if i == 0 and not model_batched else _Block(r, padded) for i, r in enumerate(refs)
-        ]
+    refs = _model_refs(refs, model, block_io, padded)
     M_ref = refs[0]
     pos = 1
     if factorise:
@@ -461,20 +496,16 @@ def _forward_sweep(dims, zero, M_ref, K_ref, P_ref, k_ref, r_ref, p_ref, out, ad
     lax.fori_loop(0, N, stage, tuple(zero for _ in range(nx)))
 
 
-def _refined_kernel(N, nx, nu, lanes, block_io, padded, model_batched, *refs):
+def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
     """One program of :func:`apply_refined`: the step of one right-hand side, then one step of
     iterative refinement against the KKT matrix (:func:`rvdjax.solver.kkt.kkt_refine`), whose
     residual is formed stage by stage inside the sweeps instead of in a pass of its own.
 
     refs: M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
     then the refined one), and k2, p2, rp2 (the correction's affine terms and its dynamics
-    residual, kept between its sweeps).
+    residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
     """
-    refs = list(refs)
-    if block_io:
-        refs = [
-            r if i == 0 and not model_batched else _Block(r, padded) for i, r in enumerate(refs)
-        ]
+    refs = _model_refs(refs, model, block_io, padded)
     M_ref, L_ref, K_ref, BPA_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:10]
     du_ref, dx_ref, nu_ref, k2_ref, p2_ref, rp2_ref = refs[10:]
     zero = jnp.zeros((lanes,), Phx_ref.dtype)
@@ -569,9 +600,17 @@ def _pad(a, b_pad):
     return jnp.concatenate([a, jnp.broadcast_to(a[..., -1:], (*a.shape[:-1], b_pad - b))], -1)
 
 
-def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs, refine=False):
+def _call(
+    cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs, refine=False, index=None
+):
+    """The kernel's launch. ``M``: the stages' [B, A] of each problem (N, nx, nu + nx, b), of
+    all (N, nx, nu + nx), or (``index``, (b,) int) a table (K, N, nx, nu + nx) of K models
+    and the one each problem runs."""
     from jax.experimental import pallas as pl
 
+    tabled = index is not None
+    if tabled:
+        M_table, M = M, M[0]
     N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
     b = mats[-1].shape[-1]
     block_io = cfg.block_io and (factorise or refine or cfg.solve_block_io)
@@ -605,20 +644,25 @@ def _call(cfg: KernelConfig, factorise: bool, with_rhs: bool, M, mats, rhs, refi
         mats, rhs = [flat(m) for m in mats], [flat(r) for r in rhs]
         out_shapes = [(N, _entries(math.prod(e), padded)) for e in entries]
     out_shapes = [jax.ShapeDtypeStruct((*s, b_pad), dtype) for s in out_shapes]
+    model = "tabled" if tabled else "batched" if model_batched else "shared"
     ins = [M, *mats, *rhs]
+    specs = [spec(M.shape, model_batched)] + [spec(a.shape) for a in ins[1:]]
+    if tabled:  # the table, flattened as a block array's stages are, then the indices
+        K = M_table.shape[0]
+        M_table = M_table.reshape(K, N, nx * (nu + nx)) if block_io else M_table
+        ins = [M_table, _pad(index.astype(jnp.int32), b_pad), *ins[1:]]
+        specs = [spec(M_table.shape, False), spec((b_pad,)), *specs[1:]]
     if refine:
-        kernel = functools.partial(
-            _refined_kernel, N, nx, nu, lanes, block_io, padded, model_batched
-        )
+        kernel = functools.partial(_refined_kernel, N, nx, nu, lanes, block_io, padded, model)
     else:
         kernel = functools.partial(
-            _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model_batched
+            _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model
         )
     res = pl.pallas_call(
         kernel,
         out_shape=out_shapes,
         grid=(b_pad // lanes,),
-        in_specs=[spec(M.shape, model_batched)] + [spec(a.shape) for a in ins[1:]],
+        in_specs=specs,
         out_specs=[spec(s.shape) for s in out_shapes],
         interpret=cfg.interpret,
         compiler_params=_compiler_params(cfg),
@@ -648,30 +692,39 @@ def _flat(a, padded: bool = False):
     return jnp.pad(a, ((0, 0), (0, _entries(e, padded) - e), (0, 0)))
 
 
-def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig()):
+def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
     """Backward Riccati factorisation: (L, K, BPA, P), each ``[stage][entry][problem]``.
 
     Args:
-        M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared).
+        M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared), or with
+            ``index`` a table (K, N, nx, nu + nx) of K models.
         Phi_u: (N, nu, nu, b), Phi_x: (N, nx, nx, b) Hessian blocks.
+        index: (b,) int, the model of each problem in the table ``M`` (the same arithmetic
+            as ``M[index]`` moved batch last, without that copy).
     """
-    return tuple(_call(cfg, True, False, M, [Phi_u, Phi_x], []))
+    return tuple(_call(cfg, True, False, M, [Phi_u, Phi_x], [], index=index))
 
 
-def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
+def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
     """Factorisation and the step of one right-hand side in one kernel:
-    ((L, K, BPA, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b)."""
-    out = _call(cfg, True, True, M, [Phi_u, Phi_x], [g_u, g_x, rp])
+    ((L, K, BPA, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b); ``M`` and
+    ``index`` as :func:`factor`."""
+    out = _call(cfg, True, True, M, [Phi_u, Phi_x], [g_u, g_x, rp], index=index)
     return tuple(out[:4]), tuple(out[4:])
 
 
-def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
-    """The step (du, dx, nu) of one right-hand side with a stored factorisation."""
-    return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp]))
+def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation (``M`` and
+    ``index`` as :func:`factor`)."""
+    return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp], index=index))
 
 
-def apply_refined(M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig()):
+def apply_refined(
+    M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
+):
     """The step (du, dx, nu) of one right-hand side with a stored factorisation, plus one step
     of iterative refinement (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the
-    residual needs the Hessian blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too."""
-    return tuple(_call(cfg, False, True, M, [L, K, BPA, P, Phi_u, Phi_x], [g_u, g_x, rp], True))
+    residual needs the Hessian blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too
+    (``M`` and ``index`` as :func:`factor`)."""
+    mats = [L, K, BPA, P, Phi_u, Phi_x]
+    return tuple(_call(cfg, False, True, M, mats, [g_u, g_x, rp], True, index=index))

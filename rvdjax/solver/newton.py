@@ -174,14 +174,22 @@ def backtrack(accept, t0, beta, max_steps: int, group: int):
 
 
 def newton_iteration(
-    ocp, rows, m_eff, x_scale, s: NewtonState, settings: SolverSettings, params: SolverParams
+    ocp,
+    rows,
+    m_eff,
+    x_scale,
+    s: NewtonState,
+    settings: SolverSettings,
+    params: SolverParams,
+    table=None,
 ) -> NewtonState:
-    """One primal Newton iteration (paper or barrier mode) from ``s``."""
+    """One primal Newton iteration (paper or barrier mode) from ``s`` (``table``: the model's
+    :class:`~rvdjax.solver.riccati.ModelTable`, for the GPU kernels, or None)."""
     Phi_u, Phi_x = hessian(ocp, rows, s.u, s.x, s.kappa)
     g_u, g_x = gradient(ocp, rows, s.u, s.x, s.kappa)
     r_p = dyn_residual(ocp, s.u, s.x)
     _, step = kkt_factor_solve(
-        ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, r_p, settings.method, settings.kernel
+        ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, r_p, settings.method, settings.kernel, table
     )
     finite = (
         jnp.all(jnp.isfinite(step.du))

@@ -292,10 +292,13 @@ def pd_iteration(
     settings: SolverSettings,
     params: SolverParams,
     stop=False,
+    table=None,
 ) -> PDState:
     """One Mehrotra predictor-corrector iteration from ``st``; where ``stop`` (a bool, traced
     or not), ``st`` itself: a step of length zero, so that a finished solve costs no select
-    over the state's arrays (docs/benchmark.md, "A stopped solve's step of length zero")."""
+    over the state's arrays (docs/benchmark.md, "A stopped solve's step of length zero").
+    ``table``: the model's :class:`~rvdjax.solver.riccati.ModelTable`, for the GPU kernels,
+    or None."""
     stop = jnp.asarray(stop, bool)
     method, kernel = settings.method, settings.kernel
     su = st.su
@@ -314,7 +317,7 @@ def pd_iteration(
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
     taus = (zero_u, zero_x, zero_x)
     g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
-    kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel)
+    kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel, table)
     args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
     g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _by_kernel(
         args, kernel, _corrector_rhs, _rows_in_kernel

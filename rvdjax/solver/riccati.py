@@ -27,6 +27,7 @@ from rvdjax.solver.stagewise import shift as _shift
 from rvdjax.solver.types import KERNELS  # the Newton step's forms, checked by SolverSettings
 
 __all__ = [
+    "ModelTable",
     "NewtonStep",
     "RiccatiFactor",
     "riccati_factor",
@@ -76,6 +77,23 @@ class RiccatiFactor(NamedTuple):
     K: jnp.ndarray
     BPA: jnp.ndarray
     P: jnp.ndarray
+
+
+class ModelTable(NamedTuple):
+    """K models' stage dynamics and the one a problem runs: ``M[index]`` is the problem's
+    [B_t, A_t]. The batch engine's three-phase family flies one model per phase: under
+    ``vmap``, with the table shared and the index batched, the GPU kernels read each problem's
+    stages from the table instead of from a [B, A] copy of every problem (13 KB a thesis-vbar
+    slot, read in every sweep: docs/benchmark.md). Every other form ignores it: A and B are
+    passed too, and must equal the table's entry (the caller's promise, not checked).
+
+    Attributes:
+        M: (K, N, nx, nu + nx) the stages' [B_t, A_t] of each model.
+        index: () int, the problem's model.
+    """
+
+    M: Any
+    index: Any
 
 
 def _small_chol(H):
@@ -291,10 +309,11 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
 
 
 def _lane_ops(impl):
-    """(factor, factor_solve, apply) of the batch-last forms: ``impl`` "unrolled" (XLA's
-    loops, :mod:`rvdjax.solver.unrolled`), or (kernel, interpret): the Pallas kernels of a
-    "pallas*" kernel name, interpreted or not. The variant is in the name (static in
-    SolverSettings, so a program traced with one is never reused for another)."""
+    """(factor, factor_solve, apply, apply_refined) of the batch-last forms: ``impl``
+    "unrolled" (XLA's loops, :mod:`rvdjax.solver.unrolled`), or (kernel, interpret): the
+    Pallas kernels of a "pallas*" kernel name, interpreted or not (each also takes a model
+    table and an ``index``: :func:`rvdjax.solver.lanes.factor`). The variant is in the name
+    (static in SolverSettings, so a program traced with one is never reused for another)."""
     if impl == "unrolled":
         return unrolled.factor, unrolled.factor_solve, unrolled.apply, None
     kernel, interpret = impl
@@ -312,9 +331,9 @@ def _lane_ops(impl):
     if cfg.fused:
         return factor, functools.partial(lanes.factor_solve, cfg=cfg), apply, apply_refined
 
-    def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp):
-        f = factor(M, Phi_u, Phi_x)
-        return f, apply(M, *f, g_u, g_x, rp)
+    def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, **at):
+        f = factor(M, Phi_u, Phi_x, **at)
+        return f, apply(M, *f, g_u, g_x, rp, **at)
 
     return factor, factor_solve, apply, apply_refined
 
@@ -326,43 +345,59 @@ def _model_M(axis_size, A, B, bA, bB, batched: bool):
     return jnp.concatenate([B, A], axis=-1)
 
 
-def _lane_M(M, batched: bool):
-    return _to_last(M) if batched else M
+def _lane_model(impl, M, batched: bool, table):
+    """(model, index) for the kernels: the batch-last [B, A] of each problem (or the shared
+    one) and None, or the shared ``table`` (:class:`ModelTable`, its index batched) and the
+    problems' indices where the model is per problem and the kernels read tables (every
+    "pallas*" form; the "unrolled" loops take the copy)."""
+    if table is not None and batched and impl != "unrolled":
+        return table.M, table.index
+    return (_to_last(M) if batched else M), None
 
 
-def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs):
+def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs, table=None):
     """The factorisation by the kernels (with a right-hand side ``rhs`` = g_u, g_x, rp: and
-    its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's."""
+    its first step, ``(factor, step)``), outputs batch first; flags as the XLA rule's. With
+    a ``table`` the kernels read the model from it (the factor's M is then the copy, for
+    forms that use it)."""
     bA, bB, bPu, bPx = in_batched[:4]
     flags = _factor_flags(in_batched)
     M = _model_M(axis_size, A, B, bA, bB, flags.M)
+    lane_M, index = _lane_model(impl, M, flags.M, table)
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     factor, factor_solve, _, _ = _lane_ops(impl)
+    at = {} if index is None else {"index": index}
     if not rhs:
-        f = factor(_lane_M(M, flags.M), *mats)
+        f = factor(lane_M, *mats, **at)
         return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in zip(rhs, in_batched[4:], strict=True)]
-    f, s = factor_solve(_lane_M(M, flags.M), *mats, *vecs)
+    f, s = factor_solve(lane_M, *mats, *vecs, **at)
     out = (RiccatiFactor(M, *(_to_first(a) for a in f)), NewtonStep(*(_to_first(a) for a in s)))
     return out, (flags, NewtonStep(True, True, True))
 
 
-def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp):
+def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp, table=None):
     fb, bu, bx, br = in_batched
     mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
-    s = _lane_ops(impl)[2](_lane_M(f.M, fb.M), *mats, *vecs)
+    lane_M, index = _lane_model(impl, f.M, fb.M, table)
+    at = {} if index is None else {"index": index}
+    s = _lane_ops(impl)[2](lane_M, *mats, *vecs, **at)
     return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
 
 
-def _pallas_apply_refined_rule(impl, axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp):
+def _pallas_apply_refined_rule(
+    impl, axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp, table=None
+):
     if impl == "unrolled":  # no kernel of its own: the two solves and the residual
         return _xla_apply_refined_rule(axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp)
     fb, bPu, bPx, bu, bx, br = in_batched
     mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
     mats += [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
-    s = _lane_ops(impl)[3](_lane_M(f.M, fb.M), *mats, *vecs)
+    lane_M, index = _lane_model(impl, f.M, fb.M, table)
+    at = {} if index is None else {"index": index}
+    s = _lane_ops(impl)[3](lane_M, *mats, *vecs, **at)
     return NewtonStep(*(_to_first(a) for a in s)), NewtonStep(True, True, True)
 
 
@@ -508,10 +543,12 @@ _OPS = {
 
 
 @functools.cache
-def _batched(op: str, kernel: str):
+def _batched(op: str, kernel: str, tabled: bool = False):
     """The recursion ``op`` as a custom_vmap function dispatching on ``kernel``: unbatched,
     the kernels run a batch of one; under vmap, the rules above (the batch dimension of each
-    output is the same whichever form runs)."""
+    output is the same whichever form runs). ``tabled``: the last argument is a
+    :class:`ModelTable`, which the kernels' rules read where it is shared and its index
+    batched, and everything else ignores."""
     xla_fn, xla_rule, pallas_rule = _OPS[op]
 
     def flags(in_batched):
@@ -528,14 +565,22 @@ def _batched(op: str, kernel: str):
 
     @jax.custom_batching.custom_vmap
     def fn(*args):
+        if tabled:
+            args = args[:-1]
         return _by_platform(kernel, xla_fn, one, *args)
 
     @fn.def_vmap
     def rule(axis_size, in_batched, *args):
+        table = None
+        if tabled:
+            table, tb = args[-1], in_batched[-1]
+            args, in_batched = args[:-1], in_batched[:-1]
+            if tb.M or not tb.index:  # a table per problem, or one model for all: no use
+                table = None
         out = _by_platform(
             kernel,
             lambda *a: xla_rule(axis_size, in_batched, *a)[0],
-            lambda i, *a: pallas_rule(i, axis_size, in_batched, *a)[0],
+            lambda i, *a: pallas_rule(i, axis_size, in_batched, *a, table=table)[0],
             *args,
         )
         return out, flags(in_batched)
@@ -545,12 +590,19 @@ def _batched(op: str, kernel: str):
 
 def _dot_derivative(fn):
     """A custom_jvp rule: the derivative of ``fn``'s dot form (``kernel`` is not
-    differentiated)."""
+    differentiated, and a :class:`ModelTable`, the last primal, only repeats A and B)."""
 
     def jvp(kernel, primals, tangents):
+        primals, tangents = primals[:-1], tangents[:-1]
         return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
 
     return jvp
+
+
+def _run(op: str, kernel: str, args, table):
+    if table is None:
+        return _batched(op, kernel)(*args)
+    return _batched(op, kernel, True)(*args, ModelTable(*table))
 
 
 def _check_kernel(kernel):
@@ -559,7 +611,7 @@ def _check_kernel(kernel):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
-def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
+def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto", table=None) -> RiccatiFactor:
     """Backward Riccati sweep over the KKT matrix (paper 000 Eqs. 24-26 by stage elimination).
 
     The cost-to-go of x_t is 1/2 dx^T P_t dx + p_t^T dx with P_N = Phi_x[N-1] and
@@ -576,36 +628,39 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto") -> RiccatiFactor:
             "pallas-fused", "pallas-block-fused" or "pallas-block-rows" (the kernels of
             :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
             "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
+        table: a :class:`ModelTable` whose entry is [B, A], or None: under ``vmap`` with the
+            table shared and its index batched, the kernels read the model from it.
     """
     _check_kernel(kernel)
-    return _batched("factor", kernel)(A, B, Phi_u, Phi_x)
+    return _run("factor", kernel, (A, B, Phi_u, Phi_x), table)
 
 
 riccati_factor.defjvp(_dot_derivative(_factor))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
-def riccati_apply(f: RiccatiFactor, g_u, g_x, rp, kernel: str = "auto") -> NewtonStep:
+def riccati_apply(f: RiccatiFactor, g_u, g_x, rp, kernel: str = "auto", table=None) -> NewtonStep:
     """Solve the factorised KKT system for one right-hand side (g_u, g_x, rp).
 
     A backward sweep for the affine terms (p_t, k_t) and a forward sweep for the step:
     du_t = K_t dx_t + k_t, dx_{t+1} = A dx_t + B du_t - rp_t, nu+_t = -(P_{t+1} dx_{t+1} +
-    p_{t+1}). ``kernel`` as :func:`riccati_factor`.
+    p_{t+1}). ``kernel`` and ``table`` as :func:`riccati_factor`.
     """
     _check_kernel(kernel)
-    return _batched("apply", kernel)(f, g_u, g_x, rp)
+    return _run("apply", kernel, (f, g_u, g_x, rp), table)
 
 
 riccati_apply.defjvp(_dot_derivative(_apply))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(7,))
-def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto"):
+def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto", table=None):
     """:func:`riccati_factor` and :func:`riccati_apply` of one right-hand side together:
     (RiccatiFactor, NewtonStep). With the kernels, the factorisation and the step are two
-    kernels (:class:`rvdjax.solver.lanes.KernelConfig`, ``fused``)."""
+    kernels (:class:`rvdjax.solver.lanes.KernelConfig`, ``fused``). ``kernel`` and ``table``
+    as :func:`riccati_factor`."""
     _check_kernel(kernel)
-    return _batched("factor_solve", kernel)(A, B, Phi_u, Phi_x, g_u, g_x, rp)
+    return _run("factor_solve", kernel, (A, B, Phi_u, Phi_x, g_u, g_x, rp), table)
 
 
 riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
@@ -621,14 +676,14 @@ ROWS_IN_KERNEL = ("pallas-block-rows",)
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(6,))
 def riccati_apply_refined(
-    f: RiccatiFactor, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "pallas-block-fused"
+    f: RiccatiFactor, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "pallas-block-fused", table=None
 ) -> NewtonStep:
     """:func:`riccati_apply` and one step of iterative refinement against the KKT matrix of
     ``f`` and the Hessian blocks Phi_u, Phi_x (:func:`newton_residual`, then one more solve):
     with a kernel of :data:`REFINED_IN_KERNEL`, one kernel that forms the residual inside its
-    sweeps. ``kernel`` as :func:`riccati_factor`."""
+    sweeps. ``kernel`` and ``table`` as :func:`riccati_factor`."""
     _check_kernel(kernel)
-    return _batched("apply_refined", kernel)(f, Phi_u, Phi_x, g_u, g_x, rp)
+    return _run("apply_refined", kernel, (f, Phi_u, Phi_x, g_u, g_x, rp), table)
 
 
 riccati_apply_refined.defjvp(_dot_derivative(_apply_refined))

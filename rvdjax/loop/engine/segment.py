@@ -20,6 +20,7 @@ from rvdjax.loop.engine.slots import (
     _strip_model,
     _with_model,
     model_of,
+    table_of,
 )
 from rvdjax.loop.kernel import (
     Loop,
@@ -53,7 +54,12 @@ class _Ctx(NamedTuple):
         )
 
     def ocp_of(self, slot, params):
-        return _with_model(slot.ocp, model_of(self.loop, params, slot.guidance))
+        return self.problem_of(slot, params)[0]
+
+    def problem_of(self, slot, params):
+        """The slot's OCP and its model table (:func:`table_of`)."""
+        model = model_of(self.loop, params, slot.guidance)
+        return _with_model(slot.ocp, model), table_of(model)
 
 
 @jax.named_scope("refresh")
@@ -130,8 +136,8 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
             g, st = cuda_or_default(
                 (slot.guidance, st), cuda=lax.optimization_barrier, default=lambda gs: gs
             )
-            ocp = ctx.ocp_of(slot._replace(guidance=g), params)
-            return iterate(ocp, settings, sp, st)
+            ocp, table = ctx.problem_of(slot._replace(guidance=g), params)
+            return iterate(ocp, settings, sp, st, table)
 
         return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
 

@@ -25,6 +25,7 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, freeze, start
 from rvdjax.solver.barrier import rows_of
 from rvdjax.solver.driver import MODEL_FIELDS
+from rvdjax.solver.riccati import ModelTable
 
 
 def slot_bytes(loop: Loop, source: Source, params=None, solver_params=None) -> int:
@@ -135,10 +136,12 @@ ROWS_REBUILT = ("q", "r", "Fu", "fu", "x_mask", "rho")
 def model_of(loop: Loop, params, guidance) -> dict | None:
     """The OCP fields that the family rebuilds from its parameters and a slot's guidance state
     instead of storing them in every slot (its ``model`` hook: (A, B, c, Q, R), or a dict of
-    those and any of :data:`ROWS_REBUILT`), or None (all stored). Computed inside the slots'
-    ``vmap``, they stay unbatched where they depend on neither (one model and one input box
-    for the batch); the three-phase family's depend on the phase, a few small tables gathered
-    by each fusion that reads them instead of 31 KB a slot read from device memory."""
+    those and any of :data:`ROWS_REBUILT`, and optionally ``table``, a
+    :class:`~rvdjax.solver.riccati.ModelTable` whose entry is the slot's [B, A]), or None (all
+    stored). Computed inside the slots' ``vmap``, they stay unbatched where they depend on
+    neither (one model and one input box for the batch); the three-phase family's depend on
+    the phase, a few small tables gathered by each fusion that reads them instead of 31 KB a
+    slot read from device memory, and by the GPU kernels from the table (:func:`table_of`)."""
     if loop.family.model is None:
         return None
     fields = loop.family.model(params, loop.config.family_config, guidance)
@@ -148,7 +151,7 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
         return dict(zip(MODEL_FIELDS, fields, strict=True))
     names = set(fields)
     if (
-        names - set(MODEL_FIELDS) - set(ROWS_REBUILT)
+        names - set(MODEL_FIELDS) - set(ROWS_REBUILT) - {"table"}
         or not set(MODEL_FIELDS) <= names
         or len({"Fu", "fu"} & names) == 1
         or len({"x_mask", "rho"} & names) == 1
@@ -156,16 +159,26 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
         raise TypeError(
             f"{loop.family.name}: model must return (A, B, c, Q, R) or a dict of those and "
             f"any of q, r, the input rows (Fu and fu together) and the state rows' mask and "
-            f"penalty (x_mask and rho together), got {sorted(names)}"
+            f"penalty (x_mask and rho together), and a model table, got {sorted(names)}"
         )
     return fields
+
+
+def table_of(model) -> ModelTable | None:
+    """The model table of a family's rebuilt fields (:func:`model_of`), or None."""
+    table = None if model is None else model.get("table")
+    return None if table is None else ModelTable(*table)
+
+
+def _fields(model) -> dict:
+    return {k: v for k, v in model.items() if k != "table"}
 
 
 def _strip_model(ocp: OCP, model) -> OCP:
     """The OCP without the fields a family rebuilds (:func:`model_of`), stored per slot."""
     if model is None:
         return ocp
-    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in model})
+    return ocp._replace(**{k: jnp.zeros((), ocp.B.dtype) for k in _fields(model)})
 
 
 def _with_model(ocp: OCP, model) -> OCP:
@@ -174,7 +187,7 @@ def _with_model(ocp: OCP, model) -> OCP:
     the rows it iterates on (``barrier.rows_of``)."""
     if model is None:
         return ocp
-    ocp = ocp._replace(**model)
+    ocp = ocp._replace(**_fields(model))
     if "Fu" in model:
         rows = rows_of(ocp)
         ocp = ocp._replace(Fu=rows.Fu, fu=rows.fu)
