@@ -254,9 +254,12 @@ def test_the_fields_a_family_rebuilds_are_its_ocps(name):
     ocp, fields = first(params, x0)
     table = table_of(fields)
     assert (table is not None) == (name == "thesis-vbar")
-    if table is not None:
-        BA = np.asarray(table.M)[int(table.index)]
-        np.testing.assert_array_equal(BA, np.concatenate([ocp.B, ocp.A], axis=-1))
+    if table is not None:  # the slot's entries of the tables (the input rows not neutralised)
+        at = int(table.index)
+        np.testing.assert_array_equal(table.M[at], np.concatenate([ocp.B, ocp.A], axis=-1))
+        np.testing.assert_array_equal(table.Fu[at], fields["Fu"])
+        np.testing.assert_array_equal(table.x_mask[at], ocp.x_mask)
+        np.testing.assert_array_equal(table.rho[at], rows_of(ocp).rho)
         del fields["table"]
     state_rows = {"x_mask", "rho"} if name == "thesis-vbar" else set()
     assert set(fields) == {"A", "B", "c", "Q", "R", "Fu", "fu", "q", "r"} | state_rows

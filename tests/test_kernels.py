@@ -9,6 +9,7 @@ import dataclasses
 import functools
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -237,6 +238,68 @@ def test_the_step_kernel_takes_the_xla_step():
             np.testing.assert_array_equal(np.asarray(new_g[3]), np.asarray(st.s))
         else:
             assert _rel(new_g[3], st.s) > 1e-3  # a step taken
+
+
+def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
+    """With the input rows and the soft rows' mask and penalty given as tables of K = 3 and
+    each problem's index (the batch engine's phase tables; the input rows before the
+    problem's own mask zeroes some of them), both row kernels (interpreted, under vmap)
+    compute, bit for bit, what they compute from each problem's rows."""
+    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver.riccati import ModelTable
+
+    N, mx, mu, K, b = 5, 3, 4, 3, 3
+    k = iter(jax.random.split(jax.random.key(20), 8))
+    Fu_t = jax.random.normal(next(k), (K, N, mu, 3), jnp.float64)
+    wx_t = (jax.random.uniform(next(k), (K, N, mx)) > 0.3).astype(jnp.float64)
+    rho_t = jnp.where(wx_t > 0, 10.0 * jnp.exp(jax.random.normal(next(k), (K, N, mx))), 1.0)
+    index = jnp.asarray([2, 0, 2])
+    cases = []
+    for i in range(b):
+        args = _random_rows_inputs(jax.random.key(30 + i), N=N, mx=mx, mu=mu)
+        r = args[0]
+        at = int(index[i])
+        rows = r._replace(
+            Fu=jnp.where(r.wu[..., None] > 0, Fu_t[at], 0.0), wx=wx_t[at], rho=rho_t[at]
+        )
+        assert 0 < float(jnp.sum(r.wu)) < r.wu.size  # some input rows zeroed by the mask
+        cases.append((rows, *args[1:]))
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *cases)
+
+    def both(table, *args):
+        plain = pd._rows_in_kernel(*args, interpret=True)
+        tabled = pd._rows_in_kernel(*args, interpret=True, table=table)
+        rows, st, _, _, su, sx, step, h, _ = args
+        Fdu_a, Fdx_a, alpha_a, kappa = plain[2:]
+        taus = pd._targets(
+            pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, 0 * su, 0 * sx, 0 * sx, h),
+            alpha_a,
+            kappa,
+        )
+        h_c = pd._soft_h(rows, st, sx, taus[1], taus[2])
+        step_args = (rows, st, su, sx, step, taus, h_c, jnp.asarray(False))
+        aff = (Fdu_a, Fdx_a, alpha_a, kappa)
+        steps = [
+            pd._step_in_kernel(*step_args, aff=aff, interpret=True, table=t) for t in (None, table)
+        ]
+        return (plain, *steps[:1]), (tabled, *steps[1:])
+
+    table = ModelTable(jnp.zeros((K, N, 6, 9)), index, Fu_t, wx_t, rho_t)
+    axes = (ModelTable(None, 0, None, None, None), *(0,) * len(batch))
+    run = jax.vmap(both, in_axes=axes)
+    calls = [
+        [str(v.aval) for v in e.invars]
+        for e in _eqns(jax.make_jaxpr(run)(table, *batch).jaxpr)
+        if e.primitive.name == "pallas_call"
+    ]
+    with_index = [c for c in calls if f"int32[{BLOCK}]" in c]
+    assert len(calls) == 4 and len(with_index) == 2  # each kernel once with the tables
+    assert all(f"float64[{K},{N},{mu * 3}]" in c for c in with_index)
+    plain, tabled = jax.jit(run)(table, *batch)
+    leaves = jax.tree.leaves(plain)
+    assert len(leaves) > 10
+    for a, t in zip(leaves, jax.tree.leaves(tabled), strict=True):
+        np.testing.assert_array_equal(np.asarray(t), np.asarray(a))
 
 
 @pytest.mark.slow  # the kernels are opt-in; 15-20 s

@@ -198,12 +198,14 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
     states = [(x0, 100.0), (0.3 * x0[::-1], 2500.0)]
     for phase, (x, t) in itertools.product(range(3), states):
         ocp, rho, fields = both(g0._replace(phase=jnp.asarray(phase, jnp.int32)), x, t)
-        table, index = fields.pop("table")
+        table = fields.pop("table")
         assert set(fields) == {"A", "B", "c", "Q", "R", "q", "r", "Fu", "fu", "x_mask", "rho"}
         assert 0 < np.sum(np.asarray(ocp.x_mask)) < np.size(ocp.x_mask)
-        assert np.shape(table)[0] == 3 and int(index) == phase
+        assert np.shape(table.M)[0] == 3 and int(table.index) == phase
         BA = np.concatenate([np.asarray(ocp.B), np.asarray(ocp.A)], axis=-1)
-        np.testing.assert_array_equal(np.asarray(table)[phase], BA)
+        np.testing.assert_array_equal(np.asarray(table.M)[phase], BA)
+        for field, want in (("Fu", ocp.Fu), ("x_mask", ocp.x_mask), ("rho", rho)):
+            np.testing.assert_array_equal(np.asarray(getattr(table, field))[phase], want)
         for field, a in fields.items():
             want = rho if field == "rho" else getattr(ocp, field)
             np.testing.assert_array_equal(np.asarray(a), np.asarray(want), field)

@@ -73,6 +73,7 @@ from rvdjax.families.phases_inputs import (  # noqa: F401  (the family's inputs,
 from rvdjax.loop.family import Family, Hooks, Tuning, lazy
 from rvdjax.ocp import OCP
 from rvdjax.solver import drift_plan
+from rvdjax.solver.riccati import ModelTable
 
 __all__ = [
     "Params",
@@ -335,26 +336,30 @@ def model(p: Params, fc: Config, g: Guidance):
     fields = _phase_fields(p, fc, g.phase, p.B[g.phase])
     del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
     x_mask, rho = row_weights(p, fc)
+    BA, Fu = model_table(p, fc)
+    table = ModelTable(BA, g.phase, Fu, x_mask, rho)
     return dict(
         fields,
         c=jnp.zeros((_N(fc), 6), p.A.dtype),
         x_mask=x_mask[g.phase],
         rho=rho[g.phase],
-        table=(model_table(p, fc), g.phase),
+        table=table,
     )
 
 
 def model_table(p: Params, fc: Config):
-    """(3, N, 6, nu + 6) each phase's stages [B, A] as :func:`model` builds them (the same
-    operations with the phase a constant, so ``model_table(p, fc)[phase]`` is the
-    concatenation of :func:`model`'s B and A bit for bit). On a GPU the Riccati kernels read a
-    slot's model from it instead of from a copy of every slot's
-    (:class:`rvdjax.solver.riccati.ModelTable`)."""
-    Ms = []
+    """Each phase's stages [B, A] (3, N, 6, nu + 6) and input rows Fu (3, N, mu, nu) as
+    :func:`model` builds them (the same operations with the phase a constant, so entry
+    ``phase`` of each is :func:`model`'s, bit for bit). On a GPU the solver's kernels read a
+    slot's from these tables instead of from a copy of every slot's
+    (:class:`rvdjax.solver.riccati.ModelTable`; the state rows' mask and penalty come from
+    :func:`row_weights`)."""
+    Ms, Fus = [], []
     for phase in range(3):
         f = _phase_fields(p, fc, phase, p.B[phase])
         Ms.append(jnp.concatenate([f["B"], f["A"]], axis=-1))
-    return jnp.stack(Ms)
+        Fus.append(f["Fu"])
+    return jnp.stack(Ms), jnp.stack(Fus)
 
 
 def row_weights(p: Params, fc: Config):

@@ -179,12 +179,33 @@ def _kernel_rows(rows, st: PDState, su):
     return (rows.Fx, rows.Fu, st.s, st.g, st.mu, st.pi, rows.wx, rows.rho, su, st.lam, rows.wu)
 
 
-def _rows_in_kernel(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret):
-    """:func:`_corrector_rhs` by :mod:`rvdjax.solver.rows_kernel`."""
+def _row_tables(table) -> tuple:
+    """The row kernels' tables (Fu, wx, rho, index) of a model table that has them, or ()."""
+    if table is None or table.Fu is None:
+        return ()
+    return (table.Fu, table.x_mask, table.rho, table.index)
+
+
+def _rows_in_kernel(
+    rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret, table=None
+):
+    """:func:`_corrector_rhs` by :mod:`rvdjax.solver.rows_kernel` (which reads the input rows
+    and the soft rows' mask and penalty from ``table``'s, where it has them)."""
     rule = rows_kernel.SigmaRule(SIGMA_FLOOR, SIGMA_FLOOR_RES)
-    fn = rows_kernel.batched("rows", 3, rule, interpret)
+    tables = _row_tables(table)
+    fn = rows_kernel.batched("rows", 3, rule, interpret, bool(tables))
     m_eff = jnp.asarray(m_eff, st.gap.dtype)
-    return fn(*_kernel_rows(rows, st, su), step.dx, step.du, base_x, base_u, st.gap, st.res, m_eff)
+    return fn(
+        *_kernel_rows(rows, st, su),
+        step.dx,
+        step.du,
+        base_x,
+        base_u,
+        st.gap,
+        st.res,
+        m_eff,
+        *tables,
+    )
 
 
 def _by_kernel(args, kernel: str, xla, in_kernel):
@@ -244,14 +265,15 @@ def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
     return finite, alpha, (u, x, nu, s_new, lam, mu, pi, su_n, g_n)
 
 
-def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret):
+def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None):
     """:func:`_step_xla` with the pass over the rows in :func:`rows_kernel.pd_step_rows`
     (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa, from which it forms the targets
-    ``taus`` and ``h`` again)."""
+    ``taus`` and ``h`` again; ``table`` as :func:`_rows_in_kernel`)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
-    fn = rows_kernel.batched("step", 2, None, interpret)
+    tables = _row_tables(table)
+    fn = rows_kernel.batched("step", 2, None, interpret, bool(tables))
     Fdu, Fdx, U, X, alpha, c = fn(
-        *_kernel_rows(rows, st, su), step.dx, step.du, Fdx_a, Fdu_a, alpha_a, kappa
+        *_kernel_rows(rows, st, su), step.dx, step.du, Fdx_a, Fdu_a, alpha_a, kappa, *tables
     )
     ds, dlam, dmu, dpi, dsu, _, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
     finite, alpha, new = _updated(rows, st, su, step, alpha, stop, (ds, dlam, dmu, dpi, dsu, Fdx))
@@ -320,7 +342,7 @@ def pd_iteration(
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel, table)
     args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
     g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _by_kernel(
-        args, kernel, _corrector_rhs, _rows_in_kernel
+        args, kernel, _corrector_rhs, functools.partial(_rows_in_kernel, table=table)
     )
     # the corrector's targets again (as _corrector_rhs formed them) for its row steps
     aff = _row_steps(rows, st, Fdu_a, Fdx_a, su, sx, *taus, h)
@@ -336,7 +358,7 @@ def pd_iteration(
         args,
         kernel,
         _step_xla,
-        functools.partial(_step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa)),
+        functools.partial(_step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa), table=table),
     )
     u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
 

@@ -80,20 +80,29 @@ class RiccatiFactor(NamedTuple):
 
 
 class ModelTable(NamedTuple):
-    """K models' stage dynamics and the one a problem runs: ``M[index]`` is the problem's
-    [B_t, A_t]. The batch engine's three-phase family flies one model per phase: under
-    ``vmap``, with the table shared and the index batched, the GPU kernels read each problem's
-    stages from the table instead of from a [B, A] copy of every problem (13 KB a thesis-vbar
-    slot, read in every sweep: docs/benchmark.md). Every other form ignores it: A and B are
-    passed too, and must equal the table's entry (the caller's promise, not checked).
+    """K models' stage dynamics (and, optionally, rows) and the one a problem runs:
+    ``M[index]`` is the problem's [B_t, A_t]. The batch engine's three-phase family flies one
+    model per phase: under ``vmap``, with the tables shared and the index batched, the GPU
+    kernels read each problem's stages from the tables instead of from a copy of every
+    problem's (the Riccati kernels [B, A], 13 KB a thesis-vbar slot read in every sweep; the
+    row kernels of :mod:`rvdjax.solver.rows_kernel` the input rows and the soft rows' mask
+    and penalty: docs/benchmark.md). Every other form ignores them: the OCP's arrays are
+    passed too, and must equal the tables' entries (the caller's promise, not checked).
 
     Attributes:
         M: (K, N, nx, nu + nx) the stages' [B_t, A_t] of each model.
         index: () int, the problem's model.
+        Fu: (K, N, mu, nu) the input rows before the problem's mask neutralises them (the
+            kernels zero the rows whose mask is off, as ``barrier.rows_of`` does), or None.
+        x_mask: (K, N, mx) the soft rows' mask, and ``rho`` (K, N, mx) their penalty
+            neutralised (1) where the mask is off, or None (both or neither, with ``Fu``).
     """
 
     M: Any
     index: Any
+    Fu: Any = None
+    x_mask: Any = None
+    rho: Any = None
 
 
 def _small_chol(H):

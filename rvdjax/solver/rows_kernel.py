@@ -38,7 +38,16 @@ import jax
 import jax.numpy as jnp
 
 from rvdjax.solver import lanes
-from rvdjax.solver.lanes import _Block, _compiler_params, _load, _mtv, _mv, _pad, _store
+from rvdjax.solver.lanes import (
+    _Block,
+    _compiler_params,
+    _Gathered,
+    _load,
+    _mtv,
+    _mv,
+    _pad,
+    _store,
+)
 
 __all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "batched"]
 
@@ -56,7 +65,10 @@ class SigmaRule:
 class StageRows:
     """Stage t's rows of one tile (lists of lane vectors): refs Fx, Fu, s, g, mu, pi, wx, rho,
     su, lam, wu (the first 11 of a kernel's inputs), and sx = s - g, a = mu / sx, c = pi / s,
-    Du = wu lam / su."""
+    Du = wu lam / su. Fu, wx and rho may be read from tables at each lane's index
+    (:class:`rvdjax.solver.lanes._Gathered`); the table's input rows are those before the
+    problem's mask neutralises them, so the rows whose mask wu is off are zeroed here, as
+    ``barrier.rows_of`` zeroes them."""
 
     def __init__(self, dims, refs, t):
         mx, mu, nx, nu = dims
@@ -65,6 +77,11 @@ class StageRows:
         self.s, g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
         self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
         self.su, self.lam, self.wu = (_load(r, t, mu) for r in (su_r, lam_r, wu_r))
+        if isinstance(Fu_r, _Gathered):
+            self.Fu = [
+                [jnp.where(w > 0, v, 0.0) for v in row]
+                for row, w in zip(self.Fu, self.wu, strict=True)
+            ]
         self.sx = [si - gi for si, gi in zip(self.s, g, strict=True)]
         self.a = [mi / x for mi, x in zip(self.mu, self.sx, strict=True)]
         self.c = [pi / si for pi, si in zip(self.pi, self.s, strict=True)]
@@ -264,27 +281,52 @@ def _step_kernel(dims, N, *refs):
     _store(sc_out, 0, [jnp.minimum(1.0, alpha), c0, c1, c2])
 
 
-def _launch(body, name, ins, outs, interpret):
+def _launch(body, name, ins, outs, interpret, tables=None):
     """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
-    stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b)."""
+    stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b).
+    ``tables``: (index (b,), {position: table (K, N, ...)}): the inputs at those positions
+    are read from the tables at each problem's index instead (their ``ins`` are not used)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]
     cfg = dataclasses.replace(lanes.default_config(), interpret=interpret)
     L = cfg.block
     b_pad = -(-b // L) * L
-    ins = [_pad(a.reshape(a.shape[0], -1, b), b_pad) for a in ins]
+    index, by_pos = tables if tables is not None else (None, {})
+    ins = [
+        by_pos[i].reshape(*by_pos[i].shape[:2], -1)
+        if i in by_pos
+        else _pad(a.reshape(a.shape[0], -1, b), b_pad)
+        for i, a in enumerate(ins)
+    ]
     out_shape = [jax.ShapeDtypeStruct((*o, b_pad), ins[0].dtype) for o in outs]
 
-    def spec(shape):
+    def spec(shape, batched=True):
         n = len(shape)
+        if not batched:
+            return pl.BlockSpec(tuple(shape), lambda i: (0,) * n)
         return pl.BlockSpec((*shape[:-1], L), lambda i: (0,) * (n - 1) + (i,))
 
+    specs = [spec(a.shape, i not in by_pos) for i, a in enumerate(ins)]
+    if index is not None:  # the tile's indices, the last input
+        ins, specs = [*ins, _pad(index.astype(jnp.int32), b_pad)], [*specs, spec((b_pad,))]
+
+    def kernel(*refs):
+        if index is None:
+            return body(*(_Block(r) for r in refs))
+        n = len(ins) - 1
+        lane_index = refs[n][...]
+        refs = [
+            _Gathered(r, lane_index, True) if i in by_pos else _Block(r)
+            for i, r in enumerate(refs[:n] + refs[n + 1 :])
+        ]
+        return body(*refs)
+
     out = pl.pallas_call(
-        lambda *refs: body(*(_Block(r) for r in refs)),
+        kernel,
         out_shape=out_shape,
         grid=(b_pad // L,),
-        in_specs=[spec(a.shape) for a in ins],
+        in_specs=specs,
         out_specs=[spec(o.shape) for o in out_shape],
         interpret=interpret,
         compiler_params=_compiler_params(cfg),
@@ -293,7 +335,9 @@ def _launch(body, name, ins, outs, interpret):
     return [o[..., :b] for o in out]
 
 
-def pd_rows(rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: bool = False):
+def pd_rows(
+    rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: bool = False, tables=None
+):
     """The corrector's right-hand side from the predictor's step, for a batch.
 
     Args (batch last, b problems): ``rows`` = (Fx (N, mx, nx, b), Fu (N, mu, nu, b), the soft
@@ -307,9 +351,13 @@ def pd_rows(rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: b
         g_u (N, nu, b), g_x (N, nx, b) the corrector's right-hand side, Fdu (N, mu, b) and
         Fdx (N, mx, b) the predictor's row products, alpha_a (b,) its step length and kappa
         (b,) the corrector's barrier weight.
+
+    ``tables``: None, or (index (b,), Fu (K, N, mu, nu), wx (K, N, mx), rho (K, N, mx)):
+    the kernel reads Fu (then zeroed where wu is off), wx and rho from the tables at each
+    problem's index instead of from ``rows``.
     """
     N, mx, nx, b = rows[0].shape
-    mu, nu = rows[1].shape[1:3]
+    mu, nu = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, nu)
     G_u, G_x, Fdu, Fdx, sc = _launch(
         functools.partial(_rows_kernel, dims, N, rule),
@@ -317,6 +365,7 @@ def pd_rows(rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: b
         [*rows, dx, du, base_x, base_u, scalars[None]],
         [(N, 3 * nu), (N, 3 * nx), (N, mu), (N, mx), (1, 2)],
         interpret,
+        _tables(tables),
     )
     alpha, kappa = sc[0, 0], sc[0, 1]
     G_u, G_x = G_u.reshape(N, 3, nu, b), G_x.reshape(N, 3, nx, b)
@@ -325,7 +374,15 @@ def pd_rows(rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: b
     return g_u, g_x, Fdu, Fdx, alpha, kappa
 
 
-def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False):
+def _tables(tables):
+    """_launch's tables from (index, Fu, wx, rho): rows' positions 1, 6 and 7."""
+    if tables is None:
+        return None
+    index, Fu, wx, rho = tables
+    return index, {1: Fu, 6: wx, 7: rho}
+
+
+def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False, tables=None):
     """The row work of the corrector's step, for a batch: its row products, its step length
     (NaN where a row's step is not finite), the complementarity at the new point and the dual
     residual's row terms, as functions of the step length.
@@ -340,9 +397,11 @@ def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False):
         X (N, 2, nx, b) with Fx^T (wx mu) and Fx^T (wx dmu); alpha (b,) the largest step in
         (0, 1] keeping the rows' values and multipliers >= 0 (primal_dual._max_step); c (3, b)
         the complementarity after a step alpha' as c0 + alpha' c1 + alpha'^2 c2.
+
+    ``tables`` as :func:`pd_rows`.
     """
     N, mx, nx, b = rows[0].shape
-    mu, nu = rows[1].shape[1:3]
+    mu, nu = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, nu)
     Fdu, Fdx, U, X, sc = _launch(
         functools.partial(_step_kernel, dims, N),
@@ -350,37 +409,48 @@ def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False):
         [*rows, dx, du, Fdx_a, Fdu_a, scalars[None]],
         [(N, mu), (N, mx), (N, 2 * nu), (N, 2 * nx), (1, 4)],
         interpret,
+        _tables(tables),
     )
     return Fdu, Fdx, U.reshape(N, 2, nu, b), X.reshape(N, 2, nx, b), sc[0, 0], sc[0, 1:]
 
 
 @functools.cache
-def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool):
+def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, tabled=False):
     """:func:`pd_rows` (``kind`` "rows") or :func:`pd_step_rows` ("step") for one problem
     (arrays without the batch axis; a batch of one), and under ``vmap`` for the batch
     (``jax.custom_batching.custom_vmap``); unbatched inputs are broadcast. The arguments are
-    the 11 row arrays, the kernel's other arrays, then ``n_scalars`` scalars a problem."""
+    the 11 row arrays, the kernel's other arrays, then ``n_scalars`` scalars a problem, then
+    (``tabled``) the tables Fu, wx, rho and the problem's index, which the kernel reads
+    instead of the row arrays Fu, wx, rho where they are shared and the index batched
+    (:class:`rvdjax.solver.riccati.ModelTable`)."""
+    n_tables = 4 if tabled else 0
 
-    def run(args):
+    def run(args, tables=None):
         rows, rest = args[:11], args[11 : len(args) - n_scalars]
         scalars = jnp.stack(args[len(args) - n_scalars :])
         if kind == "rows":
-            out = pd_rows(rows, *rest, scalars, rule, interpret)
+            out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
         else:
-            out = pd_step_rows(rows, *rest, scalars, interpret)
+            out = pd_step_rows(rows, *rest, scalars, interpret, tables)
         return tuple(jnp.moveaxis(a, -1, 0) for a in out)
 
     @jax.custom_batching.custom_vmap
     def fn(*args):
+        args = args[: len(args) - n_tables]
         return tuple(a[0] for a in run([a[..., None] for a in args]))
 
     @fn.def_vmap
     def rule_(axis_size, in_batched, *args):
+        n = len(args) - n_tables
+        tables = None
+        if tabled and not any(in_batched[n : n + 3]) and in_batched[-1]:
+            Fu, wx, rho, index = args[n:]
+            tables = (index, Fu, wx, rho)
         full = [
             jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
-            for a, bt in zip(args, in_batched, strict=True)
+            for a, bt in zip(args[:n], in_batched[:n], strict=True)
         ]
-        out = run(full)
+        out = run(full, tables)
         return out, (True,) * len(out)
 
     return fn
