@@ -357,23 +357,29 @@ def _dare_sda(A, B, Q, R, iters: int):
 ZOH_TERMS = 12
 
 
-def zoh_states(Ac, Bc, x, u, taus):
+def _matmul(A, x):
+    return A @ x
+
+
+def zoh_states(Ac, Bc, x, u, taus, mv=_matmul):
     """States at times ``taus`` (M,) [s] after ``x`` under the constant input ``u``:
     x(tau) = e^{Ac tau} x + int_0^tau e^{Ac s} ds Bc u, by the power series of the
     augmented matrix [[Ac, Bc], [0, 0]] to :data:`ZOH_TERMS` terms (Horner's rule). Exact to
     float64 rounding while ||Ac|| tau <= 0.1 (CW with n tau <= 0.1: a 60 s step in LEO).
+    ``mv(A, x)``: the matrix-vector product (a GPU program passes a multiply and sum, which
+    XLA fuses, where ``A @ x`` of a matrix shared by a batch is a launch of its own per term).
 
     Returns:
         (M, nx) states.
     """
     Ac = jnp.asarray(Ac)
-    f = Ac @ x + Bc @ u  # d/dt of the state at tau = 0
+    f = mv(Ac, x) + mv(Bc, u)  # d/dt of the state at tau = 0
 
     def one(tau):
         # x(tau) = x + sum_{k>=1} tau^k / k! Ac^{k-1} f  (the input is constant)
         acc = f
         for k in range(ZOH_TERMS, 1, -1):
-            acc = f + (tau / k) * (Ac @ acc)
+            acc = f + (tau / k) * mv(Ac, acc)
         return x + tau * acc
 
     return jax.vmap(one)(jnp.asarray(taus))

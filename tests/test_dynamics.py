@@ -18,7 +18,9 @@ from rvdjax.dynamics import (
     mean_motion,
     planar2dof_continuous,
     planar3dof_continuous,
+    zoh_states,
 )
+from rvdjax.solver import stagewise as sw
 
 MASS = 6500.0
 TS = 15.0
@@ -74,6 +76,23 @@ def test_zoh_matches_scipy_expm(n705):
     # element-wise against a few ulps of the matrix's norm (its entries span decades)
     np.testing.assert_allclose(Ad, E[:6, :6], rtol=1e-13, atol=1e-13 * np.linalg.norm(E[:6, :6]))
     np.testing.assert_allclose(Bd, E[:6, 6:], rtol=1e-13, atol=1e-13 * np.linalg.norm(E[:6, 6:]))
+
+
+@pytest.mark.parametrize("mv", [None, sw.mv], ids=["matmul", "multiply-and-sum"])
+def test_zoh_states_match_scipy_expm(n705, mv):
+    """The states between samples under a constant input (the power series by Horner's rule,
+    with ``A @ x`` as on the CPU or the multiplies and sums a GPU program uses) are those of
+    SciPy's expm of the augmented matrix, to 1e-13 relative, at taus up to a 60 s step."""
+    Ac, Bc = cw_continuous(n705, MASS)
+    rng = np.random.default_rng(4)
+    x, u = rng.normal(size=6) * [100, 100, 100, 0.1, 0.1, 0.1], rng.normal(size=3)
+    taus = np.array([1.0, 7.5, 30.0, 60.0])
+    kwargs = {} if mv is None else {"mv": mv}
+    got = zoh_states(Ac, Bc, jnp.asarray(x), jnp.asarray(u), jnp.asarray(taus), **kwargs)
+    aug = np.zeros((9, 9))
+    aug[:6, :6], aug[:6, 6:] = np.asarray(Ac), np.asarray(Bc)
+    want = [(sl.expm(aug * t) @ np.concatenate([x, u]))[:6] for t in taus]
+    np.testing.assert_allclose(np.asarray(got), np.stack(want), rtol=1e-13, atol=1e-13 * 100)
 
 
 def test_zoh_matches_ode_with_constant_input(n705):

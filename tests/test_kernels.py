@@ -501,8 +501,9 @@ def test_a_cpu_process_traces_the_cpu_form_alone():
 def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
     """The start's drift (x_{t+1} = A_t x_t + B_t u_t + c_t) and a cold plan's: one loop over
     the stages lowered for the CPU, none lowered for a CUDA GPU (every trip of a loop there is
-    several launches); the states those of the recursion written out in NumPy, and traced
-    for both platforms the same on the CPU, bit for bit."""
+    several launches) and no matrix product there (a product of a matrix shared by a batch is
+    a launch of its own; multiplies and sums fuse); the states those of the recursion written
+    out in NumPy, and traced for both platforms the same on the CPU, bit for bit."""
     from rvdjax.solver.start import drift, drift_plan
 
     ocp = fastmpc3d_first_step(obstacles=True)
@@ -527,6 +528,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
             both = jax.jit(fn)(*args)
             cuda = jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
         assert cuda.count("stablehlo.while") == 0
+        assert "dot_general" not in cuda  # the products as multiplies and sums, which fuse
         np.testing.assert_array_equal(both, jax.jit(fn)(*args))
 
 

@@ -21,33 +21,46 @@ from rvdjax.solver.types import Plan, Solution, SolverSettings
 __all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan", "warm_start"]
 
 
-def _stage_scan(step, x0, xs, length=None):
-    """The states of ``lax.scan(step, x0, xs)`` over a horizon's stages: a loop on the CPU,
-    the stages unrolled where the program runs on a CUDA GPU.
+def _matmul(A, x):
+    return A @ x
 
-    The two do the same arithmetic in the same order. On a CPU, XLA compiles a small loop into
-    one function, and the unrolled form took 1.3-1.8x as long to compile a closed loop
-    (thesis-vbar 8.0 s against 5.6, 2026-11-28). On a GPU every trip of a loop is several
-    kernel launches: in the batch engine's tick, the two drifts of the refresh (the new run's
-    cold plan, the next solve's start) were 270 of thesis-vbar's 874 launches
-    (``sweeps/gpu_traffic.py engine``). A process without a GPU backend traces the loop alone
+
+def _stage_scan(make_step, x0, xs, length=None):
+    """The states of ``lax.scan(make_step(mv), x0, xs)`` over a horizon's stages, ``mv(A, x)``
+    the product of a stage's matrix and a state: a loop of ``A @ x`` on the CPU; where the
+    program runs on a CUDA GPU, the stages unrolled and the products written as multiplies
+    and sums (:func:`rvdjax.solver.stagewise.mv`).
+
+    On a CPU, XLA compiles a small loop into one function, and the unrolled form took 1.3-1.8x
+    as long to compile a closed loop (thesis-vbar 8.0 s against 5.6, 2026-11-28). On a GPU
+    every trip of a loop is several kernel launches: in the batch engine's tick, the two
+    drifts of the refresh (the new run's cold plan, the next solve's start) were 270 of
+    thesis-vbar's 874 launches (``sweeps/gpu_traffic.py engine``); unrolled, each product of
+    a model shared by the slots was still a matrix-multiply launch of its own (30 of a tick's
+    555), where the multiplies and sums of the 30 stages fuse into a couple of kernels. (The
+    sums run in another order than the GPU's matrix products: the same states to rounding.)
+    A process without a GPU backend traces the loop alone
     (:func:`rvdjax.solver.tracing_for_cuda`)."""
 
-    def scan(unroll):
+    def scan(mv, unroll):
+        step = make_step(mv)
         return lambda x0: lax.scan(step, x0, xs, length=length, unroll=unroll)[1]
 
-    return cuda_or_default(x0, cuda=scan(True), default=scan(1))
+    return cuda_or_default(x0, cuda=scan(sw.mv, True), default=scan(_matmul, 1))
 
 
 def drift(ocp: OCP, u):
     """States from propagating x0 with inputs u (a primal-feasible x for the start)."""
 
-    def step(x, stage):
-        A_t, B_t, c_t, u_t = stage
-        x_next = A_t @ x + B_t @ u_t + c_t
-        return x_next, x_next
+    def make_step(mv):
+        def step(x, stage):
+            A_t, B_t, c_t, u_t = stage
+            x_next = mv(A_t, x) + mv(B_t, u_t) + c_t
+            return x_next, x_next
 
-    return _stage_scan(step, ocp.x0, (ocp.A, ocp.B, ocp.c, u))
+        return step
+
+    return _stage_scan(make_step, ocp.x0, (ocp.A, ocp.B, ocp.c, u))
 
 
 def drift_plan(A, x0, N: int, nu: int) -> Plan:
@@ -57,18 +70,24 @@ def drift_plan(A, x0, N: int, nu: int) -> Plan:
     """
     if A.ndim == 2:
 
-        def step(x, _):
-            x = A @ x
-            return x, x
+        def make_step(mv):
+            def step(x, _):
+                x = mv(A, x)
+                return x, x
 
-        x = _stage_scan(step, x0, None, length=N)
+            return step
+
+        x = _stage_scan(make_step, x0, None, length=N)
     else:
 
-        def step(x, A_t):
-            x = A_t @ x
-            return x, x
+        def make_step(mv):
+            def step(x, A_t):
+                x = mv(A_t, x)
+                return x, x
 
-        x = _stage_scan(step, x0, A)
+            return step
+
+        x = _stage_scan(make_step, x0, A)
     return Plan(jnp.zeros((N, nu), x0.dtype), x, jnp.zeros((N, x0.shape[-1]), x0.dtype))
 
 
