@@ -157,6 +157,39 @@ def test_the_compacted_refresh_flies_the_same_runs(reference, config):
         np.testing.assert_allclose(m.delta_v_m_s, reference.delta_v_m_s, rtol=1e-9)
 
 
+def test_a_refresh_group_is_written_back_to_its_slots_only():
+    """The compacted refresh writes a group's rows back into the slots (``_put``: a select
+    over every slot for small arrays, a scatter for large ones and for PRNG keys): each
+    array, flags and keys included, gets the group's rows at the valid ids and keeps every
+    other slot's, as NumPy's indexed assignment does."""
+    from rvdjax.loop.engine.segment import SMALL_LEAF_BYTES, _put
+
+    n, ids = 9, np.array([7, 2, 4, 0])
+    valid = np.array([True, True, False, True])
+    rng = np.random.default_rng(0)
+    big = SMALL_LEAF_BYTES // 8 + 1  # float64 entries a slot past the small size
+    tree = {
+        "scalar": rng.normal(size=n),
+        "flag": rng.random(n) > 0.5,
+        "count": rng.integers(0, 9, (n, 4)).astype(np.int32),
+        "big": rng.normal(size=(n, big)),
+        "key": jax.random.split(jax.random.key(1), n),
+    }
+    new = {
+        "scalar": rng.normal(size=4),
+        "flag": rng.random(4) > 0.5,
+        "count": rng.integers(10, 19, (4, 4)).astype(np.int32),
+        "big": rng.normal(size=(4, big)),
+        "key": jax.random.split(jax.random.key(2), 4),
+    }
+    got = jax.jit(_put)(tree, jnp.asarray(ids), jnp.asarray(valid), new)
+    for name in tree:
+        data = jax.random.key_data if name == "key" else np.asarray
+        want = np.array(data(tree[name]))
+        want[ids[valid]] = np.asarray(data(new[name]))[valid]
+        np.testing.assert_array_equal(np.asarray(data(got[name])), want, name)
+
+
 def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
     """A queue given in three blocks of inputs flies the same bits as one array; every slot's
     run is in the slot's lane (run r in lane r mod chunk: on a vectorising CPU a run's last

@@ -148,10 +148,33 @@ def _take(tree, ids):
     return jax.tree.map(lambda a: jnp.take(a, ids, axis=0, mode="clip"), tree)
 
 
+#: Slot arrays of at most this many bytes a slot are written back from a refresh group by a
+#: select over every slot, larger ones by a scatter of the group's rows (see :func:`_put`).
+SMALL_LEAF_BYTES = 256
+
+
 def _put(tree, ids, valid, new):
+    """``tree`` with rows ``ids`` (where ``valid``; distinct) replaced by ``new``'s. A scatter
+    is a kernel launch of its own on a GPU, one per array: the 71 arrays of a thesis-vbar slot
+    were 71 of the tick's 489 launches (``sweeps/gpu_traffic.py engine``). The small ones
+    (counters, flags, the state; :data:`SMALL_LEAF_BYTES` a slot) are instead selected from
+    the group's rows for every slot, elementwise work that XLA fuses across arrays; the large
+    ones (the OCP's rows, the iterate) keep the scatter, which moves the group's rows only.
+    Either way the same values."""
     n = jax.tree.leaves(tree)[0].shape[0]
+    g = ids.shape[0]
     pos = jnp.where(valid, ids, n)
-    return jax.tree.map(lambda a, v: a.at[pos].set(v, mode="drop"), tree, new)
+    # where each slot's new row is in the group (g: not in it)
+    inv = jnp.full((n,), g, jnp.int32).at[pos].set(jnp.arange(g, dtype=jnp.int32), mode="drop")
+    hit, at = inv < g, jnp.minimum(inv, g - 1)
+
+    def put(a, v):
+        per_slot = a.dtype.itemsize * math.prod(a.shape[1:])
+        if per_slot > SMALL_LEAF_BYTES or jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+            return a.at[pos].set(v, mode="drop")
+        return jnp.where(hit.reshape((n,) + (1,) * (a.ndim - 1)), jnp.take(v, at, axis=0), a)
+
+    return jax.tree.map(put, tree, new)
 
 
 def _slice(tree, start, size):
