@@ -198,8 +198,9 @@ def test_the_step_kernel_takes_the_xla_step():
     primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
     iterates, the predictor's row products and a random corrector step: the new iterate, the
     complementarity there and the dual residual's row terms to 1e-12 relative (the kernel sums
-    the last two as polynomials in the step length); a step with a NaN is refused by both
-    (the iterate kept), and so is a stopped solve's."""
+    the last two as polynomials in the step length); a step with a NaN (in dx, or in the
+    multipliers nu alone, which the kernel tests for the update) is refused by both (the
+    iterate kept), and so is a stopped solve's."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver import stagewise as sw
 
@@ -214,22 +215,24 @@ def test_the_step_kernel_takes_the_xla_step():
         aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
         taus = pd._targets(aff, alpha_a, kappa)
         h = pd._soft_h(rows, st, sx, taus[1], taus[2])
-        if nan:
-            step = step._replace(dx=step.dx.at[2, 1].set(jnp.nan))
+        if nan:  # a NaN in dx (every row's step follows) or in nu alone (no row's does)
+            field = getattr(step, nan)
+            step = step._replace(**{nan: field.at[2, 1].set(jnp.nan)})
         args = (rows, st, su, sx, step, taus, h, jnp.asarray(stop))
         want = pd._step_xla(*args)
         got = pd._step_in_kernel(*args, aff=(Fdu_a, Fdx_a, alpha_a, kappa), interpret=True)
         return st, want, got
 
     for seed, nan, stop in (
-        (0, False, False),
-        (1, False, False),
-        (2, True, False),
-        (3, False, True),
+        (0, None, False),
+        (1, None, False),
+        (2, "dx", False),
+        (4, "nu", False),
+        (3, None, True),
     ):
         st, want, got = jax.jit(functools.partial(case, nan=nan, stop=stop))(jax.random.key(seed))
         (new_w, gap_w, fu_w, fx_w, fin_w), (new_g, gap_g, fu_g, fx_g, fin_g) = want, got
-        assert bool(fin_w) == bool(fin_g) == (not nan)
+        assert bool(fin_w) == bool(fin_g) == (nan is None)
         for w, g in zip(new_w, new_g, strict=True):
             assert _rel(w, g) <= 1e-12
         for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g)):

@@ -243,13 +243,14 @@ def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     return new, gap_n, Fu_lam, Fx_mu, finite
 
 
-def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
+def _updated(rows, st: PDState, su, step, alpha, stop, row_steps, tested=False):
     """(finite, the step length taken, the new u, x, nu, s, lam, mu, pi, su, g) from the ratio
-    test's ``alpha`` (NaN where a step is not finite) and the rows' steps (ds, dlam, dmu, dpi,
-    dsu, Fdx): 0.99 of the way to the boundary, at most 1; a step of length zero where it is
-    not finite or the solve is stopped."""
+    test's ``alpha`` (NaN where a row's step is not finite; ``tested``: also where the Newton
+    step is not) and the rows' steps (ds, dlam, dmu, dpi, dsu, Fdx): 0.99 of the way to the
+    boundary, at most 1; a step of length zero where it is not finite or the solve is
+    stopped."""
     ds, dlam, dmu, dpi, dsu, Fdx = row_steps
-    finite = all_finite(step) & ~jnp.isnan(alpha)
+    finite = ~jnp.isnan(alpha) if tested else all_finite(step) & ~jnp.isnan(alpha)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite & ~stop, alpha, 0.0)
 
@@ -273,10 +274,20 @@ def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpr
     tables = _row_tables(table)
     fn = rows_kernel.batched("step", 2, None, interpret, bool(tables))
     Fdu, Fdx, U, X, alpha, c = fn(
-        *_kernel_rows(rows, st, su), step.dx, step.du, Fdx_a, Fdu_a, alpha_a, kappa, *tables
+        *_kernel_rows(rows, st, su),
+        step.dx,
+        step.du,
+        step.nu,
+        Fdx_a,
+        Fdu_a,
+        alpha_a,
+        kappa,
+        *tables,
     )
     ds, dlam, dmu, dpi, dsu, _, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
-    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, (ds, dlam, dmu, dpi, dsu, Fdx))
+    # the kernel's step length is NaN where the step is not finite: no pass of its own
+    row_steps = (ds, dlam, dmu, dpi, dsu, Fdx)
+    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, row_steps, tested=True)
     # a step of length zero (stopped, or not finite) leaves the sums at the old point
     gap_n = jnp.where(finite, c[0] + alpha * (c[1] + alpha * c[2]), c[0])
     Fu_lam = jnp.where(finite, U[:, 0] + alpha * U[:, 1], U[:, 0])

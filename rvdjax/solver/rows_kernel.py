@@ -245,15 +245,17 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
 def _step_kernel(dims, N, *refs):
     """One program of :func:`pd_step_rows`: the sweep for a tile of problems.
 
-    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, the
+    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, nu, the
     predictor's row products Fdx_a, Fdu_a, scalars (alpha_a, kappa); outputs Fdu, Fdx,
     U (N, 2, nu), X (N, 2, nx), (alpha, c0, c1, c2). The step length is known only after the
     sweep: the complementarity at the new point is summed as c0 + alpha c1 + alpha^2 c2 and
-    the dual residual's row terms F^T w (y + alpha dy) as two vectors a stage."""
+    the dual residual's row terms F^T w (y + alpha dy) as two vectors a stage. The step
+    length is NaN where any entry of the step (du, dx, nu) or of the rows' steps is not
+    finite: the one test of the step that the update needs."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
-    dx_r, du_r, Fdxa_r, Fdua_r, sc_r = refs[11:16]
-    Fdu_out, Fdx_out, U_out, X_out, sc_out = refs[16:]
+    dx_r, du_r, nu_r, Fdxa_r, Fdua_r, sc_r = refs[11:17]
+    Fdu_out, Fdx_out, U_out, X_out, sc_out = refs[17:]
     alpha_a, kappa = _load(sc_r, 0, 2)
 
     def stage(t, carry):
@@ -263,6 +265,8 @@ def _step_kernel(dims, N, *refs):
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
         r = _corrector(dims, rows, aff, _mv(rows.Fu, du), _mv(rows.Fx, dx), alpha_a, kappa)
         alpha = _min_ratio(r.pairs(rows), alpha, nan_if_not_finite=True)
+        for v in (*dx, *du, *_load(nu_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
+            alpha = alpha + 0.0 * v
         c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
 
         def weighted(w, v):
@@ -382,15 +386,16 @@ def _tables(tables):
     return index, {1: Fu, 6: wx, 7: rho}
 
 
-def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False, tables=None):
+def pd_step_rows(rows, dx, du, nu_new, Fdx_a, Fdu_a, scalars, interpret: bool = False, tables=None):
     """The row work of the corrector's step, for a batch: its row products, its step length
-    (NaN where a row's step is not finite), the complementarity at the new point and the dual
-    residual's row terms, as functions of the step length.
+    (NaN where the step or a row's step is not finite), the complementarity at the new point
+    and the dual residual's row terms, as functions of the step length.
 
     Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the corrector's step
-    dx (N, nx, b), du (N, nu, b); the predictor's row products Fdx_a (N, mx, b),
-    Fdu_a (N, mu, b); scalars (2, b): the predictor's step length alpha_a and the corrector's
-    barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's steps).
+    dx (N, nx, b), du (N, nu, b) and new multipliers nu_new (N, nx, b); the predictor's row
+    products Fdx_a (N, mx, b), Fdu_a (N, mu, b); scalars (2, b): the predictor's step length
+    alpha_a and the corrector's barrier weight kappa (its targets are kappa - alpha_a dv dy
+    of the predictor's steps).
 
     Returns:
         Fdu (N, mu, b), Fdx (N, mx, b); U (N, 2, nu, b) with Fu^T (wu lam) and Fu^T (wu dlam),
@@ -406,7 +411,7 @@ def pd_step_rows(rows, dx, du, Fdx_a, Fdu_a, scalars, interpret: bool = False, t
     Fdu, Fdx, U, X, sc = _launch(
         functools.partial(_step_kernel, dims, N),
         "rvdjax_pd_step_rows",
-        [*rows, dx, du, Fdx_a, Fdu_a, scalars[None]],
+        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, scalars[None]],
         [(N, mu), (N, mx), (N, 2 * nu), (N, 2 * nx), (1, 4)],
         interpret,
         _tables(tables),
