@@ -193,7 +193,8 @@ def test_the_phase_model_is_the_one_the_ocp_has(name):
     @jax.jit
     def both(g, x, t):
         ocp = ph.ocp(p, fc, g, x, t, plan)[0]
-        return ocp, rows_of(ocp).rho, ph.model(p, fc, g)
+        fields = ph.model(p, fc, g)
+        return ocp, rows_of(ocp).rho, dict(fields, table=fields["table"]())
 
     states = [(x0, 100.0), (0.3 * x0[::-1], 2500.0)]
     for phase, (x, t) in itertools.product(range(3), states):

@@ -339,8 +339,13 @@ def model(p: Params, fc: Config, g: Guidance):
     fields = _phase_fields(p, fc, g.phase, p.B[g.phase])
     del fields["u_mask"]  # stays in the slot (rvdjax.loop.engine.slots.ROWS_REBUILT)
     x_mask, rho = row_weights(p, fc)
-    BA, Fu = model_table(p, fc)
-    table = ModelTable(BA, g.phase, Fu, x_mask, rho)
+
+    def table():
+        # built only where the GPU kernels read it: unused, its operations still changed
+        # XLA's program for the CPU (the same results, other fusions)
+        BA, Fu = model_table(p, fc)
+        return ModelTable(BA, g.phase, Fu, x_mask, rho)
+
     return dict(
         fields,
         c=jnp.zeros((_N(fc), 6), p.A.dtype),

@@ -31,7 +31,9 @@ of arrays:
 * optionally ``model(params, fconfig, G) -> (A, B, c, Q, R)``, or a dict of those and any of
   q, r, the input rows Fu, fu and the state rows' mask and penalty x_mask, rho: the OCP's
   fields that follow from the parameters and the guidance state (the three-phase family's
-  from the phase), or None where the configuration
+  from the phase), and optionally ``table``, a function of no arguments returning the
+  :class:`rvdjax.solver.riccati.ModelTable` whose entry these fields are (called only where a
+  program has the GPU kernels that read it), or None where the configuration
   has none (decided from static structure). The batch engine then rebuilds them instead of
   storing them in its slots and, where they depend on neither the guidance state nor
   per-run parameters, solves every slot's Newton step with one model (larger matrix

@@ -40,6 +40,7 @@ __all__ = [
     "newton_residual",
     "REFINED_IN_KERNEL",
     "tracing_for_cuda",
+    "traces_cuda",
 ]
 
 
@@ -464,6 +465,12 @@ def _cuda_branch() -> bool:
     :func:`tracing_for_cuda`)."""
     forced = _CUDA_TRACE[0]
     return _process_has_gpu() if forced is None else forced
+
+
+def traces_cuda() -> bool:
+    """Whether programs traced now keep the CUDA form of the Newton step beside the CPU's (a
+    process with a GPU, or inside :func:`tracing_for_cuda`)."""
+    return _cuda_branch()
 
 
 @contextlib.contextmanager

@@ -25,7 +25,7 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, freeze, start
 from rvdjax.solver.barrier import rows_of
 from rvdjax.solver.driver import MODEL_FIELDS
-from rvdjax.solver.riccati import ModelTable
+from rvdjax.solver.riccati import ModelTable, traces_cuda
 
 
 def slot_bytes(loop: Loop, source: Source, params=None, solver_params=None) -> int:
@@ -136,7 +136,7 @@ ROWS_REBUILT = ("q", "r", "Fu", "fu", "x_mask", "rho")
 def model_of(loop: Loop, params, guidance) -> dict | None:
     """The OCP fields that the family rebuilds from its parameters and a slot's guidance state
     instead of storing them in every slot (its ``model`` hook: (A, B, c, Q, R), or a dict of
-    those and any of :data:`ROWS_REBUILT`, and optionally ``table``, a
+    those and any of :data:`ROWS_REBUILT`, and optionally ``table``, a function returning a
     :class:`~rvdjax.solver.riccati.ModelTable` whose entry is the slot's [B, A]), or None (all
     stored). Computed inside the slots' ``vmap``, they stay unbatched where they depend on
     neither (one model and one input box for the batch); the three-phase family's depend on
@@ -165,9 +165,12 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
 
 
 def table_of(model) -> ModelTable | None:
-    """The model table of a family's rebuilt fields (:func:`model_of`), or None."""
+    """The model table of a family's rebuilt fields (:func:`model_of`) where the program
+    traced now has the GPU kernels that read it (:func:`rvdjax.solver.riccati.traces_cuda`),
+    else None: a CPU-only process's programs are the same with or without a table, and
+    without one they carry no unused tables through their loops."""
     table = None if model is None else model.get("table")
-    return None if table is None else ModelTable(*table)
+    return None if table is None or not traces_cuda() else ModelTable(*table())
 
 
 def _fields(model) -> dict:
