@@ -11,6 +11,7 @@ JAX arrays) and are skipped for JAX tracers, so every function stays jittable.
 from __future__ import annotations
 
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -357,11 +358,7 @@ def _dare_sda(A, B, Q, R, iters: int):
 ZOH_TERMS = 12
 
 
-def _matmul(A, x):
-    return A @ x
-
-
-def zoh_states(Ac, Bc, x, u, taus, mv=_matmul):
+def zoh_states(Ac, Bc, x, u, taus, mv=operator.matmul):
     """States at times ``taus`` (M,) [s] after ``x`` under the constant input ``u``:
     x(tau) = e^{Ac tau} x + int_0^tau e^{Ac s} ds Bc u, by the power series of the
     augmented matrix [[Ac, Bc], [0, 0]] to :data:`ZOH_TERMS` terms (Horner's rule). Exact to

@@ -460,17 +460,11 @@ def _process_has_gpu() -> bool:
         return False
 
 
-def _cuda_branch() -> bool:
-    """Whether programs traced now keep the CUDA form beside the CPU's (see
-    :func:`tracing_for_cuda`)."""
-    forced = _CUDA_TRACE[0]
-    return _process_has_gpu() if forced is None else forced
-
-
 def traces_cuda() -> bool:
     """Whether programs traced now keep the CUDA form of the Newton step beside the CPU's (a
     process with a GPU, or inside :func:`tracing_for_cuda`)."""
-    return _cuda_branch()
+    forced = _CUDA_TRACE[0]
+    return _process_has_gpu() if forced is None else forced
 
 
 @contextlib.contextmanager
@@ -488,7 +482,7 @@ def tracing_for_cuda():
     jitted function would otherwise reuse a trace that has only the CPU's form. (Traces made
     inside the block keep both forms; reused on the CPU afterwards, they lower its form.)"""
     old = _CUDA_TRACE[0]
-    if not _cuda_branch():
+    if not traces_cuda():
         jax.clear_caches()
     _CUDA_TRACE[0] = True
     try:
@@ -501,7 +495,7 @@ def cuda_or_default(*args, cuda, default):
     """``cuda(*args)`` where the program runs on a CUDA GPU, ``default(*args)`` elsewhere
     (``lax.platform_dependent``, decided when the program is lowered for its device); a
     process that cannot lower for a GPU traces ``default`` alone (:func:`tracing_for_cuda`)."""
-    if not _cuda_branch():
+    if not traces_cuda():
         return default(*args)
     return lax.platform_dependent(*args, cuda=cuda, default=default)
 

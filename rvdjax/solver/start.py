@@ -7,6 +7,8 @@ fu > 0), and a warm start is pulled towards 0 until it is one.
 
 from __future__ import annotations
 
+import operator
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -19,10 +21,6 @@ from rvdjax.solver.riccati import cuda_or_default
 from rvdjax.solver.types import Plan, Solution, SolverSettings
 
 __all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan", "warm_start"]
-
-
-def _matmul(A, x):
-    return A @ x
 
 
 def _stage_scan(make_step, x0, xs, length=None):
@@ -46,7 +44,7 @@ def _stage_scan(make_step, x0, xs, length=None):
         step = make_step(mv)
         return lambda x0: lax.scan(step, x0, xs, length=length, unroll=unroll)[1]
 
-    return cuda_or_default(x0, cuda=scan(sw.mv, True), default=scan(_matmul, 1))
+    return cuda_or_default(x0, cuda=scan(sw.mv, True), default=scan(operator.matmul, 1))
 
 
 def drift(ocp: OCP, u):
