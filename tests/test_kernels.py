@@ -230,12 +230,14 @@ def test_the_step_kernel_takes_the_xla_step():
         (3, None, True),
     ):
         st, want, got = jax.jit(functools.partial(case, nan=nan, stop=stop))(jax.random.key(seed))
-        (new_w, gap_w, fu_w, fx_w, fin_w), (new_g, gap_g, fu_g, fx_g, fin_g) = want, got
+        (new_w, gap_w, fu_w, fx_w, fin_w, soft_w) = want
+        (new_g, gap_g, fu_g, fx_g, fin_g, soft_g) = got
         assert bool(fin_w) == bool(fin_g) == (nan is None)
         for w, g in zip(new_w, new_g, strict=True):
             assert _rel(w, g) <= 1e-12
-        for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g)):
+        for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g), *zip(soft_w, soft_g, strict=True)):
             assert _rel(w, g) <= 1e-12
+        assert float(soft_g[0]) > 0.0 and float(soft_g[1]) > 0.0  # sums that could differ
         if nan or stop:  # a step of length zero: the iterate kept
             np.testing.assert_array_equal(np.asarray(new_g[3]), np.asarray(st.s))
         else:

@@ -227,7 +227,8 @@ def _by_kernel(args, kernel: str, xla, in_kernel):
 def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     """The corrector's step taken: (the new u, x, nu, s, lam, mu, pi, su, g; the
     complementarity there; the dual residual's row terms Fu^T wu lam, Fx^T wx mu there; whether
-    the step was finite)."""
+    the step was finite; the soft rows' terms of the stopping test there, max |wx (rho - mu -
+    pi)| and sum wx rho max(g, 0))."""
     step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
     wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
     # The rows' steps are finite where this ratio test is not NaN (Fdx is, where ds and dsx
@@ -240,17 +241,23 @@ def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     sx_n = s_new - g_n
     gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
     Fu_lam, Fx_mu = sw.mtv(rows.Fu, rows.wu * lam), sw.mtv(rows.Fx, rows.wx * mu)
-    return new, gap_n, Fu_lam, Fx_mu, finite
+    return new, gap_n, Fu_lam, Fx_mu, finite, _soft_terms(rows, mu, pi, g_n)
 
 
-def _updated(rows, st: PDState, su, step, alpha, stop, row_steps, tested=False):
+def _soft_terms(rows, mu, pi, g):
+    """The soft rows' terms of the stopping test at (mu, pi, g): the largest dual residual
+    |wx (rho - mu - pi)| and the penalty sum wx rho max(g, 0)."""
+    r_s = rows.wx * (rows.rho - mu - pi)
+    return jnp.max(jnp.abs(r_s)), jnp.sum(rows.wx * rows.rho * jnp.maximum(g, 0.0))
+
+
+def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
     """(finite, the step length taken, the new u, x, nu, s, lam, mu, pi, su, g) from the ratio
-    test's ``alpha`` (NaN where a row's step is not finite; ``tested``: also where the Newton
-    step is not) and the rows' steps (ds, dlam, dmu, dpi, dsu, Fdx): 0.99 of the way to the
-    boundary, at most 1; a step of length zero where it is not finite or the solve is
-    stopped."""
+    test's ``alpha`` (NaN where a row's step is not finite) and the rows' steps (ds, dlam,
+    dmu, dpi, dsu, Fdx): 0.99 of the way to the boundary, at most 1; a step of length zero
+    where it is not finite or the solve is stopped."""
     ds, dlam, dmu, dpi, dsu, Fdx = row_steps
-    finite = ~jnp.isnan(alpha) if tested else all_finite(step) & ~jnp.isnan(alpha)
+    finite = all_finite(step) & ~jnp.isnan(alpha)
     alpha = jnp.minimum(1.0, 0.99 * alpha)
     alpha = jnp.where(finite & ~stop, alpha, 0.0)
 
@@ -267,32 +274,32 @@ def _updated(rows, st: PDState, su, step, alpha, stop, row_steps, tested=False):
 
 
 def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None):
-    """:func:`_step_xla` with the pass over the rows in :func:`rows_kernel.pd_step_rows`
+    """:func:`_step_xla` by :func:`rows_kernel.pd_step_rows`, which also takes the step
     (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa, from which it forms the targets
     ``taus`` and ``h`` again; ``table`` as :func:`_rows_in_kernel`)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
     tables = _row_tables(table)
-    fn = rows_kernel.batched("step", 2, None, interpret, bool(tables))
-    Fdu, Fdx, U, X, alpha, c = fn(
+    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables))
+    new, U, X, sc, finite = fn(
         *_kernel_rows(rows, st, su),
         step.dx,
         step.du,
         step.nu,
         Fdx_a,
         Fdu_a,
+        st.u,
+        st.x,
+        st.nu,
         alpha_a,
         kappa,
+        jnp.asarray(stop, kappa.dtype),
         *tables,
     )
-    ds, dlam, dmu, dpi, dsu, _, _ = _row_steps(rows, st, Fdu, Fdx, su, sx, *taus, h)
-    # the kernel's step length is NaN where the step is not finite: no pass of its own
-    row_steps = (ds, dlam, dmu, dpi, dsu, Fdx)
-    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, row_steps, tested=True)
-    # a step of length zero (stopped, or not finite) leaves the sums at the old point
-    gap_n = jnp.where(finite, c[0] + alpha * (c[1] + alpha * c[2]), c[0])
+    alpha, gap_n, r_s, J_s = sc
+    # a step not finite leaves the sums at the old point (its dlam, dmu may be NaN)
     Fu_lam = jnp.where(finite, U[:, 0] + alpha * U[:, 1], U[:, 0])
     Fx_mu = jnp.where(finite, X[:, 0] + alpha * X[:, 1], X[:, 0])
-    return new, gap_n, Fu_lam, Fx_mu, finite
+    return new, gap_n, Fu_lam, Fx_mu, finite, (r_s, J_s)
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
@@ -365,7 +372,7 @@ def pd_iteration(
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
     args = (rows, st, su, sx, step, taus, h, stop)
-    new, gap_n, Fu_lam, Fx_mu, finite = _by_kernel(
+    new, gap_n, Fu_lam, Fx_mu, finite, (r_s, J_s) = _by_kernel(
         args,
         kernel,
         _step_xla,
@@ -380,20 +387,13 @@ def pd_iteration(
     grad_u = 2.0 * Ru + ocp.r
     grad_x = 2.0 * Qe + ocp.q
     r_u, r_x = dual_residual(ocp, grad_u + Fu_lam, grad_x + Fx_mu, nu)
-    r_s = rows.wx * (rows.rho - mu - pi)
     d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
     rel_d = jnp.maximum(
         jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
-        jnp.max(jnp.abs(r_s)) / (1.0 + jnp.max(rows.wx * rows.rho)),
+        r_s / (1.0 + jnp.max(rows.wx * rows.rho)),
     )
     # the objective (barrier.objective) from the products above
-    J = (
-        jnp.sum(e * Qe)
-        + jnp.sum(u * Ru)
-        + jnp.sum(ocp.q * x)
-        + jnp.sum(ocp.r * u)
-        + jnp.sum(rows.wx * rows.rho * jnp.maximum(g_n, 0.0))
-    )
+    J = jnp.sum(e * Qe) + jnp.sum(u * Ru) + jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u) + J_s
     scale = 1.0 + jnp.abs(J)
     tol = params.tol
     # The dual residual bounds the objective error through ||r_d|| ||z - z*||: 100x the gap

@@ -74,7 +74,7 @@ class StageRows:
         mx, mu, nx, nu = dims
         (Fx_r, Fu_r, s_r, g_r, mu_r, pi_r, wx_r, rho_r, su_r, lam_r, wu_r) = refs[:11]
         self.Fx, self.Fu = _load(Fx_r, t, mx, nx), _load(Fu_r, t, mu, nu)
-        self.s, g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
+        self.s, self.g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
         self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
         self.su, self.lam, self.wu = (_load(r, t, mu) for r in (su_r, lam_r, wu_r))
         if isinstance(Fu_r, _Gathered):
@@ -82,7 +82,7 @@ class StageRows:
                 [jnp.where(w > 0, v, 0.0) for v in row]
                 for row, w in zip(self.Fu, self.wu, strict=True)
             ]
-        self.sx = [si - gi for si, gi in zip(self.s, g, strict=True)]
+        self.sx = [si - gi for si, gi in zip(self.s, self.g, strict=True)]
         self.a = [mi / x for mi, x in zip(self.mu, self.sx, strict=True)]
         self.c = [pi / si for pi, si in zip(self.pi, self.s, strict=True)]
         self.Du = [w * lm / v for w, lm, v in zip(self.wu, self.lam, self.su, strict=True)]
@@ -243,29 +243,40 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
 
 
 def _step_kernel(dims, N, *refs):
-    """One program of :func:`pd_step_rows`: the sweep for a tile of problems.
+    """One program of :func:`pd_step_rows`: two sweeps for a tile of problems.
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, nu, the
-    predictor's row products Fdx_a, Fdu_a, scalars (alpha_a, kappa); outputs Fdu, Fdx,
-    U (N, 2, nu), X (N, 2, nx), (alpha, c0, c1, c2). The step length is known only after the
-    sweep: the complementarity at the new point is summed as c0 + alpha c1 + alpha^2 c2 and
-    the dual residual's row terms F^T w (y + alpha dy) as two vectors a stage. The step
-    length is NaN where any entry of the step (du, dx, nu) or of the rows' steps is not
-    finite: the one test of the step that the update needs."""
+    predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, scalars (alpha_a, kappa,
+    stop); outputs U (N, 2, nu), X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi,
+    su, g and (alpha, gap, max |r_s|, J_s).
+
+    The first sweep forms the row products and the ratio test; the step length is known only
+    after it, so it sums the dual residual's row terms F^T w (y + alpha dy) as two vectors a
+    stage and the complementarity as c0 + alpha c1 + alpha^2 c2. The step length is NaN where
+    any entry of the step (du, dx, nu) or of the rows' steps is not finite: the one test of
+    the step that the update needs. The second sweep takes the step (primal_dual._updated):
+    from the row products the first one wrote, it forms the rows' steps again and writes the
+    new iterate, and sums the soft rows' terms of the stopping test at the new point, the
+    largest |wx (rho - mu - pi)| and J_s = sum wx rho max(g, 0). On a GPU that replaced XLA's
+    passes over the row arrays after the kernel, which read them, the steps and the targets
+    again (docs/benchmark.md)."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
-    dx_r, du_r, nu_r, Fdxa_r, Fdua_r, sc_r = refs[11:17]
-    Fdu_out, Fdx_out, U_out, X_out, sc_out = refs[17:]
-    alpha_a, kappa = _load(sc_r, 0, 2)
+    dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r, sc_r = refs[11:20]
+    U_out, X_out, Fdu_out, Fdx_out, *new_out, sc_out = refs[20:]
+    alpha_a, kappa, stop = _load(sc_r, 0, 3)
+
+    def corrector(rows, t, Fdu, Fdx):
+        aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
+        return _corrector(dims, rows, aff, Fdu, Fdx, alpha_a, kappa)
 
     def stage(t, carry):
         alpha, c0, c1, c2 = carry
         rows = StageRows(dims, row_refs, t)
-        aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
-        r = _corrector(dims, rows, aff, _mv(rows.Fu, du), _mv(rows.Fx, dx), alpha_a, kappa)
+        r = corrector(rows, t, _mv(rows.Fu, du), _mv(rows.Fx, dx))
         alpha = _min_ratio(r.pairs(rows), alpha, nan_if_not_finite=True)
-        for v in (*dx, *du, *_load(nu_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
+        for v in (*dx, *du, *_load(nun_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
             alpha = alpha + 0.0 * v
         c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
 
@@ -282,14 +293,54 @@ def _step_kernel(dims, N, *refs):
 
     zero = 0.0 * kappa
     alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
-    _store(sc_out, 0, [jnp.minimum(1.0, alpha), c0, c1, c2])
+    # primal_dual._updated: 0.99 of the way to the boundary, at most 1; zero where the step
+    # is not finite (alpha NaN) or the solve is stopped
+    finite = ~jnp.isnan(alpha)
+    take = finite & (stop == 0.0)
+    alpha = jnp.where(take, jnp.minimum(1.0, 0.99 * jnp.minimum(1.0, alpha)), 0.0)
+    gap = jnp.where(finite, c0 + alpha * (c1 + alpha * c2), c0)
+
+    def upd(v, dv, w=None):
+        keep = finite if w is None else finite & (w > 0)  # padding rows stay put
+        return v + alpha * jnp.where(keep, dv, 0.0)
+
+    def update(t, carry):
+        rs, js = carry
+        rows = StageRows(dims, row_refs, t)
+        r = corrector(rows, t, _load(Fdu_out, t, mu), _load(Fdx_out, t, mx))
+        dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
+        nu_old = _load(nu_r, t, nx)
+        dnu = [a - b for a, b in zip(_load(nun_r, t, nx), nu_old, strict=True)]
+        new = [
+            [upd(v, d) for v, d in zip(_load(u_r, t, nu), du, strict=True)],
+            [upd(v, d) for v, d in zip(_load(x_r, t, nx), dx, strict=True)],
+            [upd(v, d) for v, d in zip(nu_old, dnu, strict=True)],
+            [upd(v, d, w) for v, d, w in zip(rows.s, r.ds, rows.wx, strict=True)],
+            [upd(v, d, w) for v, d, w in zip(rows.lam, r.dlam, rows.wu, strict=True)],
+            [upd(v, d, w) for v, d, w in zip(rows.mu, r.dmu, rows.wx, strict=True)],
+            [upd(v, d, w) for v, d, w in zip(rows.pi, r.dpi, rows.wx, strict=True)],
+            [upd(v, d) for v, d in zip(rows.su, r.dsu, strict=True)],
+            [upd(v, d) for v, d in zip(rows.g, r.Fdx, strict=True)],
+        ]
+        for ref, v in zip(new_out, new, strict=True):
+            _store(ref, t, v)
+        _, _, _, _, _, mu_n, pi_n, _, g_n = new
+        for w, rho, m, p, g in zip(rows.wx, rows.rho, mu_n, pi_n, g_n, strict=True):
+            rs = jnp.maximum(rs, jnp.abs(w * (rho - m - p)))
+            js = js + w * rho * jnp.maximum(g, 0.0)
+        return rs, js
+
+    rs, js = jax.lax.fori_loop(0, N, update, (zero, zero))
+    _store(sc_out, 0, [alpha, gap, rs, js, finite.astype(alpha.dtype)])
 
 
-def _launch(body, name, ins, outs, interpret, tables=None):
+def _launch(body, name, ins, outs, interpret, tables=None, aliases=None):
     """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
     stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b).
     ``tables``: (index (b,), {position: table (K, N, ...)}): the inputs at those positions
-    are read from the tables at each problem's index instead (their ``ins`` are not used)."""
+    are read from the tables at each problem's index instead (their ``ins`` are not used).
+    ``aliases``: {input position: output position} written in the input's buffer (the kernel
+    reads each stage of such an input before it writes that stage of the output)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]
@@ -335,6 +386,7 @@ def _launch(body, name, ins, outs, interpret, tables=None):
         interpret=interpret,
         compiler_params=_compiler_params(cfg),
         name=name,
+        input_output_aliases=dict(aliases or {}),
     )(*ins)
     return [o[..., :b] for o in out]
 
@@ -386,37 +438,51 @@ def _tables(tables):
     return index, {1: Fu, 6: wx, 7: rho}
 
 
-def pd_step_rows(rows, dx, du, nu_new, Fdx_a, Fdu_a, scalars, interpret: bool = False, tables=None):
-    """The row work of the corrector's step, for a batch: its row products, its step length
-    (NaN where the step or a row's step is not finite), the complementarity at the new point
-    and the dual residual's row terms, as functions of the step length.
+def pd_step_rows(
+    rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, scalars, interpret: bool = False, tables=None
+):
+    """The corrector's step taken, for a batch: its row products, its step length (zero where
+    the step or a row's step is not finite, or the solve is stopped), the new iterate, the
+    complementarity there, the dual residual's row terms as functions of the step length and
+    the soft rows' terms of the stopping test.
 
     Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the corrector's step
     dx (N, nx, b), du (N, nu, b) and new multipliers nu_new (N, nx, b); the predictor's row
-    products Fdx_a (N, mx, b), Fdu_a (N, mu, b); scalars (2, b): the predictor's step length
-    alpha_a and the corrector's barrier weight kappa (its targets are kappa - alpha_a dv dy
-    of the predictor's steps).
+    products Fdx_a (N, mx, b), Fdu_a (N, mu, b); the iterate's u (N, nu, b), x (N, nx, b) and
+    nu (N, nx, b); scalars (3, b): the predictor's step length alpha_a, the corrector's
+    barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's steps) and
+    whether the solve is stopped (1) or not (0).
 
     Returns:
-        Fdu (N, mu, b), Fdx (N, mx, b); U (N, 2, nu, b) with Fu^T (wu lam) and Fu^T (wu dlam),
-        X (N, 2, nx, b) with Fx^T (wx mu) and Fx^T (wx dmu); alpha (b,) the largest step in
-        (0, 1] keeping the rows' values and multipliers >= 0 (primal_dual._max_step); c (3, b)
-        the complementarity after a step alpha' as c0 + alpha' c1 + alpha'^2 c2.
+        new: the new u, x, nu, s, lam, mu, pi, su, g (as the inputs);
+        U (N, 2, nu, b) with Fu^T (wu lam) and Fu^T (wu dlam), X (N, 2, nx, b) with
+        Fx^T (wx mu) and Fx^T (wx dmu), so that the row terms at the new point are
+        U0 + alpha U1, X0 + alpha X1;
+        sc (4, b): the step length taken alpha (0.99 of the way to the boundary, at most 1;
+        NaN in no case: whether the step was finite is ``finite``), the complementarity at the
+        new point, max |wx (rho - mu - pi)| and sum wx rho max(g, 0) there;
+        finite (b,) bool: whether every entry of the step and of the rows' steps is finite.
 
     ``tables`` as :func:`pd_rows`.
     """
     N, mx, nx, b = rows[0].shape
-    mu, nu = rows[10].shape[1], du.shape[1]
-    dims = (mx, mu, nx, nu)
-    Fdu, Fdx, U, X, sc = _launch(
+    mu, nu_ = rows[10].shape[1], du.shape[1]
+    dims = (mx, mu, nx, nu_)
+    U, X, _, _, *new, sc = _launch(
         functools.partial(_step_kernel, dims, N),
         "rvdjax_pd_step_rows",
-        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, scalars[None]],
-        [(N, mu), (N, mx), (N, 2 * nu), (N, 2 * nx), (1, 4)],
+        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, scalars[None]],
+        [(N, 2 * nu_), (N, 2 * nx), (N, mu), (N, mx)]
+        + [(N, nu_), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
+        + [(1, 5)],
         interpret,
         _tables(tables),
+        # the new iterate in the old one's buffers: otherwise XLA copies each new array into
+        # the solver loop's carry (on a GPU 8 copies an iteration, 17 KB a thesis-vbar slot)
+        {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
     )
-    return Fdu, Fdx, U.reshape(N, 2, nu, b), X.reshape(N, 2, nx, b), sc[0, 0], sc[0, 1:]
+    sc = sc[0]
+    return tuple(new), U.reshape(N, 2, nu_, b), X.reshape(N, 2, nx, b), sc[:4], sc[4] > 0
 
 
 @functools.cache
@@ -437,12 +503,12 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
             out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
         else:
             out = pd_step_rows(rows, *rest, scalars, interpret, tables)
-        return tuple(jnp.moveaxis(a, -1, 0) for a in out)
+        return jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), out)
 
     @jax.custom_batching.custom_vmap
     def fn(*args):
         args = args[: len(args) - n_tables]
-        return tuple(a[0] for a in run([a[..., None] for a in args]))
+        return jax.tree.map(lambda a: a[0], run([a[..., None] for a in args]))
 
     @fn.def_vmap
     def rule_(axis_size, in_batched, *args):
@@ -456,6 +522,6 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
             for a, bt in zip(args[:n], in_batched[:n], strict=True)
         ]
         out = run(full, tables)
-        return out, (True,) * len(out)
+        return out, jax.tree.map(lambda _: True, out)
 
     return fn
