@@ -4,6 +4,8 @@ batch, settings chosen for the device, a segment program that lowers for a GPU."
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -161,7 +163,8 @@ def test_a_refresh_group_is_written_back_to_its_slots_only():
     """The compacted refresh writes a group's rows back into the slots (``_put``: a select
     over every slot for small arrays, a scatter for large ones and for PRNG keys): each
     array, flags and keys included, gets the group's rows at the valid ids and keeps every
-    other slot's, as NumPy's indexed assignment does."""
+    other slot's, as NumPy's indexed assignment does; so too with the slots stored as the
+    arrays' last axis."""
     from rvdjax.loop.engine.segment import SMALL_LEAF_BYTES, _put
 
     n, ids = 9, np.array([7, 2, 4, 0])
@@ -183,11 +186,17 @@ def test_a_refresh_group_is_written_back_to_its_slots_only():
         "key": jax.random.split(jax.random.key(2), 4),
     }
     got = jax.jit(_put)(tree, jnp.asarray(ids), jnp.asarray(valid), new)
+    # the same with the slots as the arrays' last axis (an accelerator's tick loop)
+    last = jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), tree)
+    put_last = jax.jit(functools.partial(_put, last=True))
+    got_last = put_last(last, jnp.asarray(ids), jnp.asarray(valid), new)
+    got_last = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), got_last)
     for name in tree:
         data = jax.random.key_data if name == "key" else np.asarray
         want = np.array(data(tree[name]))
         want[ids[valid]] = np.asarray(data(new[name]))[valid]
         np.testing.assert_array_equal(np.asarray(data(got[name])), want, name)
+        np.testing.assert_array_equal(np.asarray(data(got_last[name])), want, name)
 
 
 def test_a_queue_in_blocks_and_runs_in_their_lanes(reference):
@@ -307,12 +316,15 @@ def test_the_fields_a_family_rebuilds_are_its_ocps(name):
 
 def test_the_segment_program_lowers_for_a_gpu():
     """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
-    lowering error would show here), with the accelerator settings (one chunk, compacted),
-    and the solver's default Newton step as Pallas (Triton) kernels there: the factorisation
-    with the predictor's step, the row work between the solves, the corrector's step with its
-    refinement, and its row work."""
+    lowering error would show here), with the accelerator settings (one chunk, compacted,
+    the slots stored last), and the solver's default Newton step as Pallas (Triton) kernels
+    there: the factorisation with the predictor's step, the row work between the solves, the
+    corrector's step with its refinement, and its row work."""
+    from rvdjax.loop.engine.segment import _slots_last
+
     exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
     assert exported.platforms == ("cuda",)
+    assert _slots_last(EngineConfig(slots=8, chunk=8, refresh="compacted", platform="cuda"))
     text = exported.mlir_module()
     assert "stablehlo.while" in text and "__gpu$xla.gpu.triton" in text
     assert "rvdjax_riccati_factor_solve" in text and "rvdjax_riccati_solve_refined" in text
@@ -353,3 +365,26 @@ def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
             np.testing.assert_array_equal(out[1], jax.jit(f)(*per_device[1]))
     finally:
         monitoring.unregister_event_duration_listener(count)
+
+
+def test_slots_stored_last_fly_the_same_bits(monkeypatch):
+    """On an accelerator the loop over ticks keeps the slots as its arrays' last axis, the
+    GPU kernels' layout (``segment._slots_last``). Forced on the CPU, with the accelerator's
+    settings (one chunk, the compacted refresh, runs in any slot), it flies the same bits as
+    the slots stored first."""
+    from rvdjax.loop.engine import program, segment
+
+    cfg = EngineConfig(slots=6, chunk=6, refresh="compacted", group=3, assign="any")
+    assert not segment._slots_last(cfg)  # the CPU keeps the slots first
+    first = fly_batch(LOOP, PARAMS, X0S, config=cfg)
+    asked = []
+    monkeypatch.setattr(segment, "_slots_last", lambda c: asked.append(c) or True)
+    program._build_one.cache_clear()
+    try:
+        last = fly_batch(LOOP, PARAMS, X0S, config=cfg)
+    finally:
+        program._build_one.cache_clear()
+    assert asked  # the program was built again, with the slots last
+    assert len(set(np.asarray(first.steps).tolist())) > 1  # runs of different lengths
+    for a, b in zip(_bits(last), _bits(first), strict=True):
+        np.testing.assert_array_equal(a, b)

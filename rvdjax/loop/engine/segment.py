@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from rvdjax.loop.engine.config import EngineConfig
+from rvdjax.loop.engine.config import EngineConfig, default_platform
 from rvdjax.loop.engine.slots import (
     Block,
     EngineState,
@@ -144,7 +144,10 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
     return jax.vmap(iterations)(slots)
 
 
-def _take(tree, ids):
+def _take(tree, ids, last=False):
+    """Rows ``ids`` of every array (slots first), of slots stored last (``last``) too."""
+    if last:
+        return jax.tree.map(lambda a: jnp.moveaxis(jnp.take(a, ids, -1, mode="clip"), -1, 0), tree)
     return jax.tree.map(lambda a: jnp.take(a, ids, axis=0, mode="clip"), tree)
 
 
@@ -153,15 +156,16 @@ def _take(tree, ids):
 SMALL_LEAF_BYTES = 256
 
 
-def _put(tree, ids, valid, new):
+def _put(tree, ids, valid, new, last=False):
     """``tree`` with rows ``ids`` (where ``valid``; distinct) replaced by ``new``'s. A scatter
     is a kernel launch of its own on a GPU, one per array: the 71 arrays of a thesis-vbar slot
     were 71 of the tick's 489 launches (``sweeps/gpu_traffic.py engine``). The small ones
     (counters, flags, the state; :data:`SMALL_LEAF_BYTES` a slot) are instead selected from
     the group's rows for every slot, elementwise work that XLA fuses across arrays; the large
     ones (the OCP's rows, the iterate) keep the scatter, which moves the group's rows only.
-    Either way the same values."""
-    n = jax.tree.leaves(tree)[0].shape[0]
+    Either way the same values. ``last``: ``tree``'s slots are its arrays' last axis (``new``'s
+    still the first)."""
+    n = jax.tree.leaves(tree)[0].shape[-1 if last else 0]
     g = ids.shape[0]
     pos = jnp.where(valid, ids, n)
     # where each slot's new row is in the group (g: not in it)
@@ -169,12 +173,35 @@ def _put(tree, ids, valid, new):
     hit, at = inv < g, jnp.minimum(inv, g - 1)
 
     def put(a, v):
-        per_slot = a.dtype.itemsize * math.prod(a.shape[1:])
-        if per_slot > SMALL_LEAF_BYTES or jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key):
+        per_slot = a.dtype.itemsize * math.prod(a.shape[:-1] if last else a.shape[1:])
+        big = per_slot > SMALL_LEAF_BYTES or jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)
+        if last:
+            v = jnp.moveaxis(v, 0, -1)
+            if big:
+                return a.at[..., pos].set(v, mode="drop")
+            return jnp.where(hit, jnp.take(v, at, axis=-1), a)
+        if big:
             return a.at[pos].set(v, mode="drop")
         return jnp.where(hit.reshape((n,) + (1,) * (a.ndim - 1)), jnp.take(v, at, axis=0), a)
 
     return jax.tree.map(put, tree, new)
+
+
+def _slots_last(cfg: EngineConfig) -> bool:
+    """Whether the segment's loop over ticks keeps the slots as its arrays' last axis: on an
+    accelerator, with the compacted refresh and the slots in one chunk (the accelerator
+    defaults). The GPU kernels read the slots batch-last ([stage][entry][slot]): with the
+    slots first in the tick loop's arrays, XLA transposed the iterate and the OCP's rows in
+    and out of the solver's loop in every tick (on an H100 about 110 KB a thesis-vbar slot
+    and 22 launches of a tick's 405; ``sweeps/gpu_traffic.py engine``). Stored last, they are
+    the layout the kernels read; the refresh gathers and scatters its group along that axis.
+    The same values either way (tests); the CPU keeps the slots first."""
+    platform = cfg.platform or default_platform()
+    return cfg.refresh == "compacted" and cfg.n_chunks == 1 and platform != "cpu"
+
+
+def _moved(tree, src: int, dst: int):
+    return jax.tree.map(lambda a: jnp.moveaxis(a, src, dst), tree)
 
 
 def _slice(tree, start, size):
@@ -192,6 +219,7 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
     C, n_chunks, R = cfg.chunk_size, cfg.n_chunks, cfg.ring_size
     S = cfg.n_slots
     G = cfg.group_size
+    last = _slots_last(cfg)
 
     def position(seq, d, D):
         """The queue position of this device's sequence number ``seq``: with lanes, runs
@@ -217,7 +245,8 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
         end = _local_end(cfg, limit, d, D, jnp)
 
         def tick(eng: EngineState):
-            slots = eng.slots
+            stored = eng.slots  # slots last where `last`
+            slots = _moved(stored, -1, 0) if last else stored
             free = ~slots.live
             # hand out runs to free slots in slot order (per lane queue), while the ring has room
             if cfg.assign == "lane":
@@ -333,21 +362,23 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
                 def one_group(carry):
                     g, slots, ring, ring_done = carry
                     ids, valid = ids_of(g)
-                    sl = _take(slots, ids)
+                    sl = _take(slots, ids, last)
                     sv = jnp.take(solved, ids) & valid
                     asg = jnp.take(assign, ids) & valid
                     sq = jnp.take(seq, ids)
                     new, ring, ring_done = refresh(sl, sv, asg, sq, ring, ring_done)
-                    return g + 1, _put(slots, ids, valid, new), ring, ring_done
+                    return g + 1, _put(slots, ids, valid, new, last), ring, ring_done
 
                 _, slots, ring, ring_done = lax.while_loop(
                     lambda c: c[0] < n_groups,
                     one_group,
-                    (jnp.asarray(0, n_groups.dtype), slots, eng.ring, eng.ring_done),
+                    (jnp.asarray(0, n_groups.dtype), stored, eng.ring, eng.ring_done),
                 )
 
                 # solver iterations, chunk by chunk (a chunk with no run in flight is skipped)
-                if n_chunks == 1:
+                if last:
+                    slots = _moved(_iterate_chunk(ctx, cfg, _moved(slots, -1, 0)), 0, -1)
+                elif n_chunks == 1:
                     slots = _iterate_chunk(ctx, cfg, slots)
                 else:
 
@@ -376,8 +407,19 @@ def _segment(loop: Loop, cfg: EngineConfig, source_fn):
             ring_run=jnp.where(eng.ring_done, -1, eng.ring_run),
             ring_done=jnp.zeros_like(eng.ring_done),
         )
-        eng, _ = lax.while_loop(cond, lambda c: (tick(c[0]), c[1] + 1), (eng, 0))
-        return eng
+        if not last:
+            eng, _ = lax.while_loop(cond, lambda c: (tick(c[0]), c[1] + 1), (eng, 0))
+            return eng
+
+        def moved(e, src, dst):
+            return e._replace(slots=_moved(e.slots, src, dst))
+
+        eng, _ = lax.while_loop(
+            lambda c: cond((moved(c[0], -1, 0), c[1])),
+            lambda c: (tick(c[0]), c[1] + 1),
+            (moved(eng, 0, -1), 0),
+        )
+        return moved(eng, -1, 0)
 
     return segment
 

@@ -440,8 +440,15 @@ def export_segment(
     that platform needed): a GPU lowering error shows up here on a CPU-only machine. Returns
     the :class:`jax.export.Exported`."""
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
-    if config is None:
-        config = EngineConfig(slots=256, chunk=256, refresh="compacted", group=64, assign="any")
+    if config is None:  # the accelerator settings, for the first platform
+        config = EngineConfig(
+            slots=256,
+            chunk=256,
+            refresh="compacted",
+            group=64,
+            assign="any",
+            platform=platforms[0],
+        )
     program = segment_program(loop, config, source.fn)
     # The solver's Pallas kernels (the default on a CUDA GPU) are Triton custom calls, which
     # jax.export refuses by default because their serialised form is not kept compatible
