@@ -13,17 +13,19 @@ in one sweep over the stages that reads each stage's rows once (:func:`pd_rows`)
 
 After the corrector's solve the same holds for its row steps, its step length (the ratio
 test, NaN where a step is not finite), the complementarity at the new point and the dual
-residual's row terms Fu^T wu lam, Fx^T wx mu there (:func:`pd_step_rows`); XLA then updates
-the iterate, one elementwise pass.
+residual's row terms Fu^T wu lam, Fx^T wx mu there, and for the update of the iterate itself
+(:func:`pd_step_rows`).
 
-One sweep, because a kernel that sweeps again reads its arrays again from device memory (a
-tile's rows are megabytes; they do not stay in the cache between sweeps while a hundred tiles
-run at once). The step length and the barrier weight are known only at the sweep's end, so
-the sweep sums what depends on them as polynomials: the complementarity after the step,
+A sweep reads its arrays from device memory (a tile's rows are megabytes; they do not stay in
+the cache between sweeps while a hundred tiles run at once), so a kernel sweeps as few times
+as it can. The step length and the barrier weight are known only at a sweep's end, so the
+sweep sums what depends on them as polynomials: the complementarity after the step,
 c0 + alpha c1 + alpha^2 c2, and the right-hand side, G0 + kappa G1 + alpha G2 (the targets
-kappa - alpha dv dy are affine in both), evaluated once they are known. Otherwise it computes
-the expressions of :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to
-rounding (tests).
+kappa - alpha dv dy are affine in both), evaluated once they are known. The update needs the
+step length at every row: the corrector's kernel sweeps a second time for it, reading the
+rows but not Fx (the row products it wrote in the first sweep), and writes the new iterate
+into the old one's buffers. Otherwise the kernels compute the expressions of
+:mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see
 :func:`pd_rows`.
