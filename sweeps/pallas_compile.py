@@ -2,7 +2,7 @@
 sweeps as XLA loops (:mod:`rvdjax.solver.unrolled`), one kernel per process.
 
     PYTHONPATH=. timeout 90 python sweeps/pallas_compile.py
-        apply|apply_refined|factor|factor_solve|pd_rows|pd_step_rows
+        apply|apply_refined|factor|factor_solve|pd_rows|pd_step_rows|pd_blocks
         [--batch 65536] [--block 128] [--warps 4] [--block-io] [--tabled] [--out FILE]
 
 On a CUDA GPU the kernel is compiled by Triton (bounded only by the caller's ``timeout``:
@@ -14,10 +14,11 @@ are times, not answers. A JSON line per measurement goes to ``--out`` as it is t
 elementwise form of the same two solves and residual, one problem per ``vmap`` lane (there is
 no unrolled form of it). The default GPU form (``"pallas-block-rows"``) is ``factor_solve``
 and ``apply_refined`` with ``--block-io``, and the row work of an accurate iteration,
-``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always with block loads
-and stores), compared with XLA's form of the same work (``primal_dual._corrector_rhs`` and
-``_step_xla`` under ``vmap``) on random interior iterates of thesis-vbar's shapes (12 soft
-rows and 6 input rows a stage). With ``--tabled`` the Riccati kernels read each problem's
+``pd_blocks``, ``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always
+with block loads and stores), compared with XLA's form of the same work
+(``primal_dual._newton_blocks``, ``_corrector_rhs`` and ``_step_xla`` under ``vmap``; the
+cost blocks Q, R shared by the batch) on random interior iterates of thesis-vbar's shapes
+(12 soft rows and 6 input rows a stage). With ``--tabled`` the Riccati kernels read each problem's
 model from a table of three, at the problem's index (as they read thesis-vbar's phase models
 in the batch engine), and XLA's form reads the copies of the models that the table stands
 for.
@@ -166,12 +167,21 @@ def _row_inputs(b: int):
     taus = jax.vmap(_targets)(aff, alpha_a, kappa)
     h_c = jax.vmap(_soft_h)(rows, st, sx, taus[1], taus[2])
     corr = (rows, st, su, sx, step, taus, h_c, one < 0, (Fdu_a, Fdx_a, alpha_a, kappa))
-    return pred, corr
+    blocks = (rows, st, normal(N, NU), normal(N, NX), su, sx)
+    return {"pd_rows": pred, "pd_step_rows": corr, "pd_blocks": blocks}
 
 
 def _row_fns(part: str):
     """(kernel, XLA) forms of a row kernel's work, vmapped over batch-first inputs."""
     from rvdjax.solver import primal_dual as pd
+
+    if part == "pd_blocks":  # one Q, R for the batch (closed over: unbatched)
+        Q, R = 2.0 * jnp.eye(NX)[None].repeat(N, 0), jnp.eye(NU)[None].repeat(N, 0)
+
+        def blocks(fn, **kw):
+            return jax.vmap(lambda r, st, bu, bx, su, sx: fn(r, st, Q, R, bu, bx, su, sx, **kw))
+
+        return blocks(pd._blocks_in_kernel, interpret=False), blocks(pd._newton_blocks)
 
     if part == "pd_rows":
         kernel = functools.partial(pd._rows_in_kernel, interpret=False)
@@ -196,7 +206,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "part",
-        choices=("apply", "apply_refined", "factor", "factor_solve", "pd_rows", "pd_step_rows"),
+        choices=(
+            "apply",
+            "apply_refined",
+            "factor",
+            "factor_solve",
+            "pd_rows",
+            "pd_step_rows",
+            "pd_blocks",
+        ),
     )
     ap.add_argument("--batch", type=int, default=65536)
     ap.add_argument("--block", type=int, default=128)
@@ -214,8 +232,7 @@ def main(argv=None) -> int:
         block=args.block, num_warps=args.warps, interpret=False, block_io=args.block_io
     )
     if args.part.startswith("pd_"):  # the row kernels: always block loads and stores
-        pred, corr = _row_inputs(args.batch)
-        args_ = pred if args.part == "pd_rows" else corr
+        args_ = _row_inputs(args.batch)[args.part]
         pallas_fn, xla_fn = _row_fns(args.part)
     else:
         args_ = _inputs(args.batch)

@@ -318,8 +318,8 @@ def test_the_segment_program_lowers_for_a_gpu():
     """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
     lowering error would show here), with the accelerator settings (one chunk, compacted,
     the slots stored last), and the solver's default Newton step as Pallas (Triton) kernels
-    there: the factorisation with the predictor's step, the row work between the solves, the
-    corrector's step with its refinement, and its row work."""
+    there: the Newton blocks, the factorisation with the predictor's step, the row work between
+    the solves, the corrector's step with its refinement, and its row work."""
     from rvdjax.loop.engine.segment import _slots_last
 
     exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
@@ -329,6 +329,7 @@ def test_the_segment_program_lowers_for_a_gpu():
     assert "stablehlo.while" in text and "__gpu$xla.gpu.triton" in text
     assert "rvdjax_riccati_factor_solve" in text and "rvdjax_riccati_solve_refined" in text
     assert "rvdjax_pd_rows" in text and "rvdjax_pd_step_rows" in text
+    assert "rvdjax_pd_blocks" in text
 
 
 def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():

@@ -196,15 +196,16 @@ def test_the_rows_kernel_forms_the_xla_corrector_rhs():
 def test_the_step_kernel_takes_the_xla_step():
     """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
     primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
-    iterates, the predictor's row products and a random corrector step: the new iterate, the
-    complementarity there and the dual residual's row terms to 1e-12 relative (the kernel sums
-    the last two as polynomials in the step length); a step with a NaN (in the multipliers
+    iterates, the predictor's row products and a random corrector step, four problems of a
+    batch: the new iterate, the complementarity there, the dual residual's row terms and the
+    stopping test's soft-row terms to 1e-12 relative (the kernel sums the complementarity and
+    the row terms as polynomials in the step length); a step with a NaN (in the multipliers
     nu, which no row's step reads: the kernel tests the step itself) is refused by both (the
     iterate kept), and so is a stopped solve's."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver import stagewise as sw
 
-    def case(key, nan=False, stop=False):
+    def case(key, nan, stop):
         rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
         k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
         pred = jax.random.normal(k1, step.dx.shape, jnp.float64)
@@ -215,33 +216,99 @@ def test_the_step_kernel_takes_the_xla_step():
         aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
         taus = pd._targets(aff, alpha_a, kappa)
         h = pd._soft_h(rows, st, sx, taus[1], taus[2])
-        if nan:
-            field = getattr(step, nan)
-            step = step._replace(**{nan: field.at[2, 1].set(jnp.nan)})
-        args = (rows, st, su, sx, step, taus, h, jnp.asarray(stop))
+        step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
+        args = (rows, st, su, sx, step, taus, h, stop)
         want = pd._step_xla(*args)
         got = pd._step_in_kernel(*args, aff=(Fdu_a, Fdx_a, alpha_a, kappa), interpret=True)
         return st, want, got
 
-    for seed, nan, stop in (
-        (0, None, False),
-        (1, None, False),
-        (2, "nu", False),
-        (3, None, True),
-    ):
-        st, want, got = jax.jit(functools.partial(case, nan=nan, stop=stop))(jax.random.key(seed))
+    # four problems of one batch: two steps taken, one with a NaN, one stopped
+    nan, stop = np.array([False, False, True, False]), np.array([False, False, False, True])
+    keys = jax.random.split(jax.random.key(0), 4)
+    out = jax.jit(jax.vmap(case))(keys, jnp.asarray(nan), jnp.asarray(stop))
+    for i in range(4):
+        st, want, got = jax.tree.map(lambda a, i=i: a[i], out)
         (new_w, gap_w, fu_w, fx_w, fin_w, soft_w) = want
         (new_g, gap_g, fu_g, fx_g, fin_g, soft_g) = got
-        assert bool(fin_w) == bool(fin_g) == (nan is None)
+        assert bool(fin_w) == bool(fin_g) == (not nan[i])
         for w, g in zip(new_w, new_g, strict=True):
             assert _rel(w, g) <= 1e-12
         for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g), *zip(soft_w, soft_g, strict=True)):
             assert _rel(w, g) <= 1e-12
         assert float(soft_g[0]) > 0.0 and float(soft_g[1]) > 0.0  # sums that could differ
-        if nan or stop:  # a step of length zero: the iterate kept
+        if nan[i] or stop[i]:  # a step of length zero: the iterate kept
             np.testing.assert_array_equal(np.asarray(new_g[3]), np.asarray(st.s))
         else:
             assert _rel(new_g[3], st.s) > 1e-3  # a step taken
+
+
+def test_the_blocks_kernel_forms_the_xla_newton_blocks():
+    """The predictor's Newton blocks as one kernel (rows_kernel.pd_blocks, interpreted):
+    Phi_u, Phi_x and the right-hand side against XLA's primal_dual._newton_blocks to 1e-12
+    relative, from random interior iterates with masked rows: one problem; a vmapped batch
+    whose cost blocks are shared (read as a table of one); and a batch reading its input rows,
+    soft rows' mask and penalty and cost blocks from tables of K = 3 at each problem's index
+    (the batch engine's phase tables)."""
+    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver.riccati import ModelTable
+
+    N, mx, mu, K = 5, 3, 4, 3
+    k = iter(jax.random.split(jax.random.key(40), 8))
+
+    def square(n, *lead):
+        X = jax.random.normal(next(k), (*lead, N, n, n), jnp.float64)
+        return X @ jnp.swapaxes(X, -1, -2) + n * jnp.eye(n)
+
+    def args_of(key, rows=None, Q=None, R=None):
+        rows_, st, base_u, base_x, su, sx, _, _, _ = _random_rows_inputs(key, rows, N, mx, mu)
+        return (rows_, st, Q, R, base_u, base_x, su, sx)
+
+    def check(want, got):
+        for w, g in zip(want, got, strict=True):
+            assert _rel(w, g) <= 1e-12
+
+    Q, R = square(6), square(3)
+    one = args_of(jax.random.key(41), Q=Q, R=R)
+    check(
+        *jax.jit(lambda a: (pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True)))(one)
+    )
+    # a batch sharing Q and R: the kernel reads them as a table of one
+    batch = [args_of(jax.random.key(42 + i), Q=Q, R=R) for i in range(3)]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *[(b[:2], b[4:]) for b in batch])
+    both = jax.vmap(
+        lambda a, b: (
+            pd._newton_blocks(*a, Q, R, *b),
+            pd._blocks_in_kernel(*a, Q, R, *b, interpret=True),
+        )
+    )
+    jaxpr = jax.make_jaxpr(both)(*stacked).jaxpr
+    calls = [e for e in _eqns(jaxpr) if e.primitive.name == "pallas_call"]
+    assert len(calls) == 1 and f"int32[{BLOCK}]" in str([v.aval for v in calls[0].invars])
+    want, got = jax.jit(both)(*stacked)
+    check(want, got)
+    # the phase tables: each problem's rows and blocks are entries of the tables
+    Fu_t = jax.random.normal(next(k), (K, N, mu, 3), jnp.float64)
+    wx_t = (jax.random.uniform(next(k), (K, N, mx)) > 0.3).astype(jnp.float64)
+    rho_t = jnp.where(wx_t > 0, 10.0 * jnp.exp(jax.random.normal(next(k), (K, N, mx))), 1.0)
+    Q_t, R_t = square(6, K), square(3, K)
+    index = jnp.asarray([2, 0, 1])
+    cases = []
+    for i in range(3):
+        a = args_of(jax.random.key(50 + i))
+        r, at = a[0], int(index[i])
+        rows = r._replace(
+            Fu=jnp.where(r.wu[..., None] > 0, Fu_t[at], 0.0), wx=wx_t[at], rho=rho_t[at]
+        )
+        cases.append((rows, a[1], Q_t[at], R_t[at], *a[4:]))
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *cases)
+    table = ModelTable(jnp.zeros((K, N, 6, 9)), index, Fu_t, wx_t, rho_t, Q_t, R_t)
+    axes = (ModelTable(None, 0, None, None, None, None, None), 0)
+    tabled = jax.vmap(
+        lambda t, a: (pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True, table=t)),
+        in_axes=axes,
+    )
+    want, got = jax.jit(tabled)(table, batch)
+    check(want, got)
 
 
 def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
@@ -449,15 +516,15 @@ def _triton_calls(text):
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
         # "pallas-block-fused": the factorisation with the predictor's step, and the
         # corrector's step with its refinement; in "pallas-block-rows", the default on a
-        # GPU, the row work between them and after them two more); loops: the solve alone (the
-        # start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in forms in
-        # the slow run: "auto" lowers the default GPU form, 10-15 s each)
+        # GPU, the row work before, between and after them three more); loops: the solve
+        # alone (the start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in
+        # forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
         pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
-        (SolverSettings(), 4, 1, "auto"),
+        (SolverSettings(), 5, 1, "auto"),
         # paper: factorisation + step; loops: the solve, the line search (the count of
         # launches and loops is the mode's, whichever kernels run them)
         (SolverSettings.paper(), 1, 2, "auto"),

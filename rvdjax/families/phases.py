@@ -343,8 +343,8 @@ def model(p: Params, fc: Config, g: Guidance):
     def table():
         # built only where the GPU kernels read it: unused, its operations still changed
         # XLA's program for the CPU (the same results, other fusions)
-        BA, Fu = model_table(p, fc)
-        return ModelTable(BA, g.phase, Fu, x_mask, rho)
+        BA, Fu, Q, R = model_table(p, fc)
+        return ModelTable(BA, g.phase, Fu, x_mask, rho, Q, R)
 
     return dict(
         fields,
@@ -356,18 +356,19 @@ def model(p: Params, fc: Config, g: Guidance):
 
 
 def model_table(p: Params, fc: Config):
-    """Each phase's stages [B, A] (3, N, 6, nu + 6) and input rows Fu (3, N, mu, nu) as
-    :func:`model` builds them (the same operations with the phase a constant, so entry
-    ``phase`` of each is :func:`model`'s, bit for bit). On a GPU the solver's kernels read a
-    slot's from these tables instead of from a copy of every slot's
-    (:class:`rvdjax.solver.riccati.ModelTable`; the state rows' mask and penalty come from
-    :func:`row_weights`)."""
-    Ms, Fus = [], []
+    """Each phase's stages [B, A] (3, N, 6, nu + 6), input rows Fu (3, N, mu, nu) and cost
+    blocks Q (3, N, 6, 6), R (3, N, nu, nu) as :func:`model` builds them (the same operations
+    with the phase a constant, so entry ``phase`` of each is :func:`model`'s, bit for bit). On
+    a GPU the solver's kernels read a slot's from these tables instead of from a copy of every
+    slot's (:class:`rvdjax.solver.riccati.ModelTable`; the state rows' mask and penalty come
+    from :func:`row_weights`)."""
+    tables = [], [], [], []
     for phase in range(3):
         f = _phase_fields(p, fc, phase, p.B[phase])
-        Ms.append(jnp.concatenate([f["B"], f["A"]], axis=-1))
-        Fus.append(f["Fu"])
-    return jnp.stack(Ms), jnp.stack(Fus)
+        BA = jnp.concatenate([f["B"], f["A"]], axis=-1)
+        for table, a in zip(tables, (BA, f["Fu"], f["Q"], f["R"]), strict=True):
+            table.append(a)
+    return tuple(jnp.stack(t) for t in tables)
 
 
 def row_weights(p: Params, fc: Config):

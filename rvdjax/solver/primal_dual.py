@@ -100,6 +100,33 @@ def _soft_h(rows, st: PDState, sx, tau_x, tau_s):
     return tau_x / sx + tau_s / st.s - rows.rho
 
 
+def _newton_blocks(rows, st: PDState, Q, R, base_u, base_x, su, sx):
+    """The predictor's Newton system from ``st``: the Hessian blocks Phi_u, Phi_x (the cost's
+    and the rows' barrier terms, :func:`_pd_rhs`'s elimination) and the right-hand side
+    g_u, g_x for zero targets."""
+    Du = rows.wu * st.lam / su
+    a = st.mu / sx
+    c = st.pi / st.s
+    Phi_u = 2.0 * R + sw.congruence(rows.Fu, Du)
+    Phi_x = 2.0 * Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
+    zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
+    g_u, g_x, _ = _pd_rhs(rows, st, base_u, base_x, su, sx, zero_u, zero_x, zero_x)
+    return Phi_u, Phi_x, g_u, g_x
+
+
+def _blocks_in_kernel(rows, st: PDState, Q, R, base_u, base_x, su, sx, interpret, table=None):
+    """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one sweep that reads Fx once
+    (the input rows' targets are zero: g_u is base_u). ``table``: the model's table, whose
+    input rows, soft rows' mask and penalty and cost blocks the kernel reads where it has
+    them all."""
+    del sx  # the kernel forms s - g itself
+    tabled = table is not None and table.Fu is not None and table.Q is not None
+    tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.index) if tabled else ()
+    fn = rows_kernel.batched("blocks", 0, None, interpret, tabled)
+    Phi_u, Phi_x, g_x = fn(*_kernel_rows(rows, st, su), base_x, Q, R, *tables)
+    return Phi_u, Phi_x, base_u, g_x
+
+
 def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
     """The full steps of every variable from the step of the stage system, and Fx dx."""
     Fdu = sw.mv(rows.Fu, step.du)
@@ -347,16 +374,16 @@ def pd_iteration(
     base_u = 2.0 * sw.mv(ocp.R, st.u) + ocp.r
     base_x = 2.0 * sw.mv(ocp.Q, st.x - ocp.x_ref) + ocp.q
     rp = dyn_residual(ocp, st.u, st.x)
-    Du = rows.wu * st.lam / su
-    a = st.mu / sx
-    c = st.pi / st.s
-    Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, Du)
-    Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
-
     # Predictor: the affine-scaling direction (tau = 0), solved with the factorisation.
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
     taus = (zero_u, zero_x, zero_x)
-    g_u, g_x, h = _pd_rhs(rows, st, base_u, base_x, su, sx, *taus)
+    h = _soft_h(rows, st, sx, zero_x, zero_x)
+    Phi_u, Phi_x, g_u, g_x = _by_kernel(
+        (rows, st, ocp.Q, ocp.R, base_u, base_x, su, sx),
+        kernel,
+        _newton_blocks,
+        functools.partial(_blocks_in_kernel, table=table),
+    )
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel, table)
     args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
     g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _by_kernel(

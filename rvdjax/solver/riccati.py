@@ -97,6 +97,9 @@ class ModelTable(NamedTuple):
             kernels zero the rows whose mask is off, as ``barrier.rows_of`` does), or None.
         x_mask: (K, N, mx) the soft rows' mask, and ``rho`` (K, N, mx) their penalty
             neutralised (1) where the mask is off, or None (both or neither, with ``Fu``).
+        Q: (K, N, nx, nx) and ``R`` (K, N, nu, nu) the cost blocks, or None (both or
+            neither): with the rows' tables, the kernel that forms the Newton blocks reads
+            them too.
     """
 
     M: Any
@@ -104,6 +107,8 @@ class ModelTable(NamedTuple):
     Fu: Any = None
     x_mask: Any = None
     rho: Any = None
+    Q: Any = None
+    R: Any = None
 
 
 def _small_chol(H):

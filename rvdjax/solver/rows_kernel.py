@@ -1,4 +1,10 @@
-"""The accurate mode's row work as two GPU kernels: between its two Newton solves, and after.
+"""The accurate mode's row work as three GPU kernels: before, between and after its two
+Newton solves.
+
+Before the first solve, the Newton matrix's diagonal blocks Phi_u = 2 R + Fu^T Du Fu,
+Phi_x = 2 Q + Fx^T D Fx and the predictor's right-hand side g_x depend on the rows and their
+multipliers; XLA formed them in three passes, two of which read Fx. :func:`pd_blocks` forms
+them in one sweep.
 
 Between the predictor's solve and the corrector's, a Mehrotra iteration
 (:func:`rvdjax.solver.primal_dual.pd_iteration`) works on the constraint rows only: the
@@ -51,7 +57,7 @@ from rvdjax.solver.lanes import (
     _store,
 )
 
-__all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "batched"]
+__all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "pd_blocks", "batched"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -336,6 +342,48 @@ def _step_kernel(dims, N, *refs):
     _store(sc_out, 0, [alpha, gap, rs, js, finite.astype(alpha.dtype)])
 
 
+def _blocks_kernel(dims, N, *refs):
+    """One program of :func:`pd_blocks`: the sweep for a tile of problems.
+
+    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, base_x, the cost blocks Q, R; outputs
+    Phi_u (N, nu nu), Phi_x (N, nx nx), g_x (N, nx)."""
+    mx, mu, nx, nu = dims
+    row_refs = refs[:11]
+    bx_r, Q_r, R_r = refs[11:14]
+    Pu_out, Px_out, gx_out = refs[14:]
+
+    def twice_plus(W, P):  # 2 W + P
+        return [[2.0 * w + p for w, p in zip(*ab, strict=True)] for ab in zip(W, P, strict=True)]
+
+    def congruence(F, d):  # F^T diag(d) F, as stagewise.congruence
+        n = len(F[0])
+        return [
+            [sum(F[k][i] * (d[k] * F[k][j]) for k in range(len(F))) for j in range(n)]
+            for i in range(n)
+        ]
+
+    def stage(t, carry):
+        rows = StageRows(dims, row_refs, t)
+        d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
+        Phi_u = congruence(rows.Fu, rows.Du)
+        Phi_x = congruence(rows.Fx, d)
+        Phi_u = twice_plus(_load(R_r, t, nu, nu), Phi_u)
+        Phi_x = twice_plus(_load(Q_r, t, nx, nx), Phi_x)
+        # the predictor's soft rows: tau = 0, h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
+        h = rows.h([0.0] * mx, [0.0] * mx)
+        v = [
+            w * (0.0 / x - a * hi / (a + c))
+            for w, x, a, hi, c in zip(rows.wx, rows.sx, rows.a, h, rows.c, strict=True)
+        ]
+        g_x = [b + f for b, f in zip(_load(bx_r, t, nx), _mtv(rows.Fx, v), strict=True)]
+        _store(Pu_out, t, Phi_u)
+        _store(Px_out, t, Phi_x)
+        _store(gx_out, t, g_x)
+        return carry
+
+    jax.lax.fori_loop(0, N, stage, 0)
+
+
 def _launch(body, name, ins, outs, interpret, tables=None, aliases=None):
     """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
     stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b).
@@ -432,12 +480,17 @@ def pd_rows(
     return g_u, g_x, Fdu, Fdx, alpha, kappa
 
 
+#: The kernels' inputs that tables can stand for: the rows' Fu, wx, rho, and
+#: :func:`pd_blocks`'s Q and R.
+_TABLE_POSITIONS = (1, 6, 7, 12, 13)
+
+
 def _tables(tables):
-    """_launch's tables from (index, Fu, wx, rho): rows' positions 1, 6 and 7."""
+    """_launch's tables from (index, Fu, wx, rho[, Q, R]), those given (not None)."""
     if tables is None:
         return None
-    index, Fu, wx, rho = tables
-    return index, {1: Fu, 6: wx, 7: rho}
+    index, *ts = tables
+    return index, {p: t for p, t in zip(_TABLE_POSITIONS, ts, strict=False) if t is not None}
 
 
 def pd_step_rows(
@@ -487,19 +540,55 @@ def pd_step_rows(
     return tuple(new), U.reshape(N, 2, nu_, b), X.reshape(N, 2, nx, b), sc[:4], sc[4] > 0
 
 
+def pd_blocks(rows, base_x, Q, R, interpret: bool = False, tables=None):
+    """The predictor's Newton blocks, for a batch: the Hessian blocks Phi_u = 2 R + Fu^T Du Fu
+    and Phi_x = 2 Q + Fx^T diag(wx a c / (a + c)) Fx, and the state part of the right-hand
+    side g_x = base_x + Fx^T (wx a rho / (a + c)) (the input part is base_u itself: the
+    input rows' targets are zero), from the rows in one sweep that reads Fx once (XLA: in
+    three passes, two of them reading Fx; primal_dual.pd_iteration).
+
+    Args (batch last, b problems): ``rows`` as :func:`pd_rows`; base_x (N, nx, b) the cost
+    gradient; Q (N, nx, nx, b), R (N, nu, nu, b) the cost blocks.
+
+    Returns:
+        Phi_u (N, nu, nu, b), Phi_x (N, nx, nx, b), g_x (N, nx, b).
+
+    ``tables``: None, or (index (b,), Fu, wx, rho, Q, R) with each table (K, N, ...) or None:
+    the kernel reads those given from the tables at each problem's index.
+    """
+    N, mx, nx, b = rows[0].shape
+    mu, nu = rows[10].shape[1], R.shape[1]
+    dims = (mx, mu, nx, nu)
+    Pu, Px, g_x = _launch(
+        functools.partial(_blocks_kernel, dims, N),
+        "rvdjax_pd_blocks",
+        [*rows, base_x, Q, R],
+        [(N, nu * nu), (N, nx * nx), (N, nx)],
+        interpret,
+        _tables(tables),
+    )
+    return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x
+
+
 @functools.cache
 def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, tabled=False):
-    """:func:`pd_rows` (``kind`` "rows") or :func:`pd_step_rows` ("step") for one problem
-    (arrays without the batch axis; a batch of one), and under ``vmap`` for the batch
-    (``jax.custom_batching.custom_vmap``); unbatched inputs are broadcast. The arguments are
-    the 11 row arrays, the kernel's other arrays, then ``n_scalars`` scalars a problem, then
-    (``tabled``) the tables Fu, wx, rho and the problem's index, which the kernel reads
-    instead of the row arrays Fu, wx, rho where they are shared and the index batched
-    (:class:`rvdjax.solver.riccati.ModelTable`)."""
-    n_tables = 4 if tabled else 0
+    """:func:`pd_rows` (``kind`` "rows"), :func:`pd_step_rows` ("step") or :func:`pd_blocks`
+    ("blocks") for one problem (arrays without the batch axis; a batch of one), and under
+    ``vmap`` for the batch (``jax.custom_batching.custom_vmap``); unbatched inputs are
+    broadcast. The arguments are the 11 row arrays, the kernel's other arrays, then
+    ``n_scalars`` scalars a problem, then (``tabled``) the tables Fu, wx, rho (and Q, R for
+    "blocks") and the problem's index, which the kernel reads instead of those arrays where
+    the tables are shared and the index batched (:class:`rvdjax.solver.riccati.ModelTable`).
+    Without tables, :func:`pd_blocks` reads cost blocks Q, R shared by the batch as a table
+    of one, not as a copy for every problem."""
+    n_tables = (6 if kind == "blocks" else 4) if tabled else 0
 
     def run(args, tables=None):
         rows, rest = args[:11], args[11 : len(args) - n_scalars]
+        if kind == "blocks":
+            return jax.tree.map(
+                lambda a: jnp.moveaxis(a, -1, 0), pd_blocks(rows, *rest, interpret, tables)
+            )
         scalars = jnp.stack(args[len(args) - n_scalars :])
         if kind == "rows":
             out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
@@ -516,9 +605,12 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
     def rule_(axis_size, in_batched, *args):
         n = len(args) - n_tables
         tables = None
-        if tabled and not any(in_batched[n : n + 3]) and in_batched[-1]:
-            Fu, wx, rho, index = args[n:]
-            tables = (index, Fu, wx, rho)
+        if tabled and not any(in_batched[n:-1]) and in_batched[-1]:
+            *ts, index = args[n:]
+            tables = (index, *ts)
+        elif kind == "blocks" and not any(in_batched[12:14]):
+            one = jnp.zeros((axis_size,), jnp.int32)
+            tables = (one, None, None, None, args[12][None], args[13][None])
         full = [
             jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
             for a, bt in zip(args[:n], in_batched[:n], strict=True)
