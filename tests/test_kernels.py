@@ -625,15 +625,16 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
 
 
-@pytest.mark.slow  # interpreted kernels in a closed loop: ~30 s
-def test_the_engine_flies_with_the_gpu_form_as_with_xla():
+@pytest.mark.slow  # interpreted kernels in a closed loop: ~60 s
+def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
     """The batch engine with the default GPU form of the Newton step ("pallas-block-rows":
-    the factorisation with the predictor's step, the row work between the solves, the
-    corrector's step with its refinement; interpreted) flies thesis-vbar's first steps (a
-    model per slot, rebuilt from the phase) as with XLA's loops: the same steps, run statuses
-    and solver statuses, delta-v to 1e-9."""
+    the Newton blocks, the factorisation with the predictor's step, the row work between the
+    solves, the corrector's step with its refinement and its update; interpreted) flies
+    thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's loops:
+    the same steps, run statuses and solver statuses, delta-v to 1e-9; so too with the phase
+    tables read by the kernels and the slots stored last, as on a GPU."""
     from rvdjax.bench import perturbed_states
-    from rvdjax.loop.engine import EngineConfig, fly_batch
+    from rvdjax.loop.engine import EngineConfig, fly_batch, program, segment
     from rvdjax.scenarios import FlightOptions, get_scenario
 
     sc = get_scenario("thesis-vbar")
@@ -644,8 +645,23 @@ def test_the_engine_flies_with_the_gpu_form_as_with_xla():
         x0s = perturbed_states(flight.x0, 3, rel=0.05)
         config = EngineConfig(slots=2, chunk=2, iterations=3)
         flown[kernel] = fly_batch(flight.loop, flight.params, x0s, config=config)
-    xla, gpu = flown["xla"], flown[AUTO_ON_CUDA]
-    np.testing.assert_array_equal(np.asarray(gpu.steps), np.asarray(xla.steps))
-    np.testing.assert_array_equal(np.asarray(gpu.status), np.asarray(xla.status))
-    np.testing.assert_array_equal(np.asarray(gpu.status_counts), np.asarray(xla.status_counts))
-    np.testing.assert_allclose(np.asarray(gpu.delta_v_m_s), np.asarray(xla.delta_v_m_s), rtol=1e-9)
+    # and as a GPU runs it: the kernels read the phase tables (traced for CUDA, so that the
+    # family builds them), the slots stored last in the accelerator's engine settings
+    asked = []
+    monkeypatch.setattr(segment, "_slots_last", lambda c: asked.append(c) or True)
+    program._build_one.cache_clear()
+    try:
+        with tracing_for_cuda():
+            config = EngineConfig(slots=2, chunk=2, iterations=3, refresh="compacted", assign="any")
+            flown["tables"] = fly_batch(flight.loop, flight.params, x0s, config=config)
+    finally:
+        program._build_one.cache_clear()
+    assert asked  # built again, with the slots last
+    xla = flown["xla"]
+    for gpu in (flown[AUTO_ON_CUDA], flown["tables"]):
+        np.testing.assert_array_equal(np.asarray(gpu.steps), np.asarray(xla.steps))
+        np.testing.assert_array_equal(np.asarray(gpu.status), np.asarray(xla.status))
+        np.testing.assert_array_equal(np.asarray(gpu.status_counts), np.asarray(xla.status_counts))
+        np.testing.assert_allclose(
+            np.asarray(gpu.delta_v_m_s), np.asarray(xla.delta_v_m_s), rtol=1e-9
+        )
