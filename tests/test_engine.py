@@ -137,19 +137,28 @@ def test_engine_rejects_bad_use():
         run_batch(LOOP, arrays_source(X0S), 3)
 
 
+#: The accelerator's engine settings, small: one chunk, the compacted refresh, any slot.
+ANY_SLOT = EngineConfig(slots=6, chunk=6, refresh="compacted", group=3, assign="any")
+
+
+@pytest.fixture(scope="module")
+def any_slot():
+    return fly_batch(LOOP, PARAMS, X0S, config=ANY_SLOT)
+
+
 @pytest.mark.parametrize(
     "config",
-    [
-        EngineConfig(slots=12, chunk=CHUNK, refresh="compacted"),
-        EngineConfig(slots=6, chunk=6, refresh="compacted", group=3, assign="any"),
-    ],
+    [EngineConfig(slots=12, chunk=CHUNK, refresh="compacted"), ANY_SLOT],
     ids=["compacted-lanes", "compacted-any-slot"],
 )
-def test_the_compacted_refresh_flies_the_same_runs(reference, config):
+def test_the_compacted_refresh_flies_the_same_runs(reference, config, request):
     """Refreshing only the slots that need it (gathered into groups) flies the same runs: with
     lanes (each slot refreshed in its own lane) the same bits as the masked refresh, with runs
     in any slot the same steps and statuses and figures to rounding."""
-    m = fly_batch(LOOP, PARAMS, X0S, config=config)
+    if config is ANY_SLOT:
+        m = request.getfixturevalue("any_slot")
+    else:
+        m = fly_batch(LOOP, PARAMS, X0S, config=config)
     if config.assign == "lane":
         for a, b in zip(_bits(m), _bits(reference), strict=True):
             np.testing.assert_array_equal(a, b)
@@ -368,16 +377,16 @@ def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
         monitoring.unregister_event_duration_listener(count)
 
 
-def test_slots_stored_last_fly_the_same_bits(monkeypatch):
+def test_slots_stored_last_fly_the_same_bits(monkeypatch, any_slot):
     """On an accelerator the loop over ticks keeps the slots as its arrays' last axis, the
     GPU kernels' layout (``segment._slots_last``). Forced on the CPU, with the accelerator's
     settings (one chunk, the compacted refresh, runs in any slot), it flies the same bits as
     the slots stored first."""
     from rvdjax.loop.engine import program, segment
 
-    cfg = EngineConfig(slots=6, chunk=6, refresh="compacted", group=3, assign="any")
+    cfg = ANY_SLOT
     assert not segment._slots_last(cfg)  # the CPU keeps the slots first
-    first = fly_batch(LOOP, PARAMS, X0S, config=cfg)
+    first = any_slot
     asked = []
     monkeypatch.setattr(segment, "_slots_last", lambda c: asked.append(c) or True)
     program._build_one.cache_clear()

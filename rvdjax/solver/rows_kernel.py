@@ -521,23 +521,24 @@ def pd_step_rows(
     ``tables`` as :func:`pd_rows`.
     """
     N, mx, nx, b = rows[0].shape
-    mu, nu_ = rows[10].shape[1], du.shape[1]
-    dims = (mx, mu, nx, nu_)
+    mu, n_u = rows[10].shape[1], du.shape[1]
+    dims = (mx, mu, nx, n_u)
     U, X, _, _, *new, sc = _launch(
         functools.partial(_step_kernel, dims, N),
         "rvdjax_pd_step_rows",
         [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, scalars[None]],
-        [(N, 2 * nu_), (N, 2 * nx), (N, mu), (N, mx)]
-        + [(N, nu_), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
+        [(N, 2 * n_u), (N, 2 * nx), (N, mu), (N, mx)]
+        + [(N, n_u), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
         + [(1, 5)],
         interpret,
         _tables(tables),
         # the new iterate in the old one's buffers: otherwise XLA copies each new array into
-        # the solver loop's carry (on a GPU 8 copies an iteration, 17 KB a thesis-vbar slot)
+        # the solver loop's carry (counted for an H100: 8 copies an iteration, 35 KB a
+        # thesis-vbar slot read and written)
         {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
     )
     sc = sc[0]
-    return tuple(new), U.reshape(N, 2, nu_, b), X.reshape(N, 2, nx, b), sc[:4], sc[4] > 0
+    return tuple(new), U.reshape(N, 2, n_u, b), X.reshape(N, 2, nx, b), sc[:4], sc[4] > 0
 
 
 def pd_blocks(rows, base_x, Q, R, interpret: bool = False, tables=None):

@@ -192,10 +192,11 @@ def _slots_last(cfg: EngineConfig) -> bool:
     accelerator, with the compacted refresh and the slots in one chunk (the accelerator
     defaults). The GPU kernels read the slots batch-last ([stage][entry][slot]): with the
     slots first in the tick loop's arrays, XLA transposed the iterate and the OCP's rows in
-    and out of the solver's loop in every tick (on an H100 about 110 KB a thesis-vbar slot
-    and 22 launches of a tick's 405; ``sweeps/gpu_traffic.py engine``). Stored last, they are
-    the layout the kernels read; the refresh gathers and scatters its group along that axis.
-    The same values either way (tests); the CPU keeps the slots first."""
+    and out of the solver's loop in every tick (counted for an H100: about 110 KB a
+    thesis-vbar slot and 22 launches of a tick's 405; ``sweeps/gpu_traffic.py engine``).
+    Stored last, they are the layout the kernels read; the refresh gathers and scatters its
+    group along that axis. The same values either way (tests); the CPU keeps the slots
+    first."""
     platform = cfg.platform or default_platform()
     return cfg.refresh == "compacted" and cfg.n_chunks == 1 and platform != "cpu"
 
