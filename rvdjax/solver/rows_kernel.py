@@ -47,10 +47,12 @@ import jax.numpy as jnp
 
 from rvdjax.solver import lanes
 from rvdjax.solver.lanes import (
+    _add,
     _Block,
     _compiler_params,
     _Gathered,
     _load,
+    _mtm,
     _mtv,
     _mv,
     _pad,
@@ -352,23 +354,15 @@ def _blocks_kernel(dims, N, *refs):
     bx_r, Q_r, R_r = refs[11:14]
     Pu_out, Px_out, gx_out = refs[14:]
 
-    def twice_plus(W, P):  # 2 W + P
-        return [[2.0 * w + p for w, p in zip(*ab, strict=True)] for ab in zip(W, P, strict=True)]
-
-    def congruence(F, d):  # F^T diag(d) F, as stagewise.congruence
-        n = len(F[0])
-        return [
-            [sum(F[k][i] * (d[k] * F[k][j]) for k in range(len(F))) for j in range(n)]
-            for i in range(n)
-        ]
+    def blocks(W, F, d):  # 2 W + F^T diag(d) F, as primal_dual._newton_blocks
+        scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
+        return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
 
     def stage(t, carry):
         rows = StageRows(dims, row_refs, t)
         d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
-        Phi_u = congruence(rows.Fu, rows.Du)
-        Phi_x = congruence(rows.Fx, d)
-        Phi_u = twice_plus(_load(R_r, t, nu, nu), Phi_u)
-        Phi_x = twice_plus(_load(Q_r, t, nx, nx), Phi_x)
+        Phi_u = blocks(_load(R_r, t, nu, nu), rows.Fu, rows.Du)
+        Phi_x = blocks(_load(Q_r, t, nx, nx), rows.Fx, d)
         # the predictor's soft rows: tau = 0, h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
         h = rows.h([0.0] * mx, [0.0] * mx)
         v = [
@@ -586,12 +580,10 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
 
     def run(args, tables=None):
         rows, rest = args[:11], args[11 : len(args) - n_scalars]
+        scalars = jnp.stack(args[len(args) - n_scalars :]) if n_scalars else None
         if kind == "blocks":
-            return jax.tree.map(
-                lambda a: jnp.moveaxis(a, -1, 0), pd_blocks(rows, *rest, interpret, tables)
-            )
-        scalars = jnp.stack(args[len(args) - n_scalars :])
-        if kind == "rows":
+            out = pd_blocks(rows, *rest, interpret, tables)
+        elif kind == "rows":
             out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
         else:
             out = pd_step_rows(rows, *rest, scalars, interpret, tables)
