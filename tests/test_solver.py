@@ -643,6 +643,10 @@ def test_iterate_leaves_a_finished_or_frozen_solve_unchanged():
     step = jax.jit(lambda s: iterate(ocp, ACCURATE, params, s))
     moved = step(st)
     assert not np.array_equal(np.asarray(moved.core.u), np.asarray(st.core.u))
+    # the barrier terms, counted once at the start for every iteration: one per input row,
+    # two per soft state row (s >= 0, s >= g)
+    wu, wx = np.asarray(ocp.u_mask, float), np.asarray(ocp.x_mask, float)
+    assert float(moved.n_barrier) == float(st.n_barrier) == wu.sum() + 2.0 * wx.sum() > 0
     for state in (freeze(st), jax.lax.while_loop(lambda s: ~s.core.done, step, st)):
         again = step(state)
         assert bool(state.core.done)

@@ -64,10 +64,14 @@ class SolveState(NamedTuple):
         core: the iterate: :class:`~rvdjax.solver.newton.NewtonState` (paper, barrier mode) or
             :class:`~rvdjax.solver.primal_dual.PDState` (accurate mode).
         x_scale: () 1 + the largest state entry at the start (scale of the primal residual).
+        n_barrier: () the number of barrier terms (:func:`~rvdjax.solver.barrier.m_eff`),
+            fixed by the rows for the whole solve: counted once at the start, where every
+            iteration counted it again (on a GPU, launches of its own that read the rows).
     """
 
     core: NewtonState | PDState
     x_scale: jnp.ndarray
+    n_barrier: jnp.ndarray
 
 
 def _prepared(params: SolverParams, dtype) -> SolverParams:
@@ -141,17 +145,18 @@ def start(
     )
     done = ~(start_ok & inputs_ok)
     x_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(x0s)), jnp.max(jnp.abs(ocp.x0)))
+    n_barrier = m_eff(rows)
     if settings.mode == "paper":
         kappa0 = params.kappa
     else:
         J0 = objective(ocp, u0, x0s)
-        kappa0 = params.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(m_eff(rows), 1.0)
+        kappa0 = params.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(n_barrier, 1.0)
     if settings.mode == "accurate":
         core = pd_start(rows, u0, x0s, nu0, kappa0, done, start_status)
     else:
         inf = jnp.asarray(jnp.inf, dtype)
         core = NewtonState(u0, x0s, nu0, kappa0, jnp.asarray(0), done, start_status, inf)
-    return ocp, SolveState(core, x_scale)
+    return ocp, SolveState(core, x_scale, n_barrier)
 
 
 def finished(settings: SolverSettings, state: SolveState):
@@ -179,11 +184,11 @@ def iterate(
     stop = finished(settings, state)
     if settings.mode == "accurate":  # a step of length zero where stopped
         core = pd_iteration(
-            ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, stop, table
+            ocp, rows, state.n_barrier, state.x_scale, state.core, settings, params, stop, table
         )
         return state._replace(core=core)
     new = newton_iteration(
-        ocp, rows, m_eff(rows), state.x_scale, state.core, settings, params, table
+        ocp, rows, state.n_barrier, state.x_scale, state.core, settings, params, table
     )
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
