@@ -64,9 +64,9 @@ class SolveState(NamedTuple):
         core: the iterate: :class:`~rvdjax.solver.newton.NewtonState` (paper, barrier mode) or
             :class:`~rvdjax.solver.primal_dual.PDState` (accurate mode).
         x_scale: () 1 + the largest state entry at the start (scale of the primal residual).
-        n_barrier: () the number of barrier terms (:func:`~rvdjax.solver.barrier.m_eff`),
-            fixed by the rows for the whole solve: counted once at the start, where every
-            iteration counted it again (on a GPU, launches of its own that read the rows).
+        n_barrier: () the number of barrier terms (:func:`~rvdjax.solver.barrier.m_eff`:
+            one per input row, two per soft state row), fixed by the rows for the whole solve
+            and so counted once, at the start; the iterations read it here.
     """
 
     core: NewtonState | PDState
