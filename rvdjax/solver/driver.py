@@ -205,7 +205,7 @@ def finish(ocp: OCP, settings: SolverSettings, params: SolverParams, state: Solv
     if settings.mode == "accurate":
         # kappa of the returned point: its mean complementarity (the barrier weight of the
         # central-path point it approximates; used by the implicit derivative).
-        kappa = core.gap / jnp.maximum(m_eff(rows), 1.0)
+        kappa = core.gap / jnp.maximum(state.n_barrier, 1.0)
         residual = core.res  # the primal-dual loop's relative dual residual
     else:
         kappa = core.kappa
