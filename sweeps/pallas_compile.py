@@ -17,7 +17,7 @@ and ``apply_refined`` with ``--block-io``, and the row work of an accurate itera
 ``pd_blocks``, ``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always
 with block loads and stores), compared with XLA's form of the same work
 (``primal_dual._newton_blocks``, ``_corrector_rhs`` and ``_step_xla`` under ``vmap``; the
-cost blocks Q, R shared by the batch) on random interior iterates of thesis-vbar's shapes
+cost shared by the batch in ``pd_blocks``) on random interior iterates of thesis-vbar's shapes
 (12 soft rows and 6 input rows a stage). With ``--tabled`` the Riccati kernels read each problem's
 model from a table of three, at the problem's index (as they read thesis-vbar's phase models
 in the batch engine), and XLA's form reads the copies of the models that the table stands
@@ -132,6 +132,7 @@ def _row_inputs(b: int):
     """Batch-first inputs of the row kernels' wrappers in rvdjax.solver.primal_dual: random
     interior iterates of thesis-vbar's shapes (N = 30, 12 soft rows and 6 input rows a stage),
     rows with a fifth of their entries masked, a random step, the predictor's row products."""
+    from rvdjax.ocp import OCP
     from rvdjax.solver.barrier import Rows
     from rvdjax.solver.primal_dual import PDState, _row_steps, _soft_h, _targets
 
@@ -166,8 +167,13 @@ def _row_inputs(b: int):
     aff = jax.vmap(_row_steps)(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h)
     taus = jax.vmap(_targets)(aff, alpha_a, kappa)
     h_c = jax.vmap(_soft_h)(rows, st, sx, taus[1], taus[2])
-    corr = (rows, st, su, sx, step, taus, h_c, one < 0, (Fdu_a, Fdx_a, alpha_a, kappa))
-    blocks = (rows, st, normal(N, NU), normal(N, NX), su, sx)
+    # the stopping test's cost and model: each problem's (XLA's form reads the copies)
+    Q = jnp.broadcast_to(2.0 * jnp.eye(NX), (b, N, NX, NX))
+    R = jnp.broadcast_to(jnp.eye(NU), (b, N, NU, NU))
+    A, B, none = normal(N, NX, NX), normal(N, NX, NU), (None,) * 7
+    cost = OCP(A, B, None, None, Q, R, normal(N, NX), normal(N, NX), normal(N, NU), *none)
+    corr = (cost, rows, st, su, sx, step, taus, h_c, one < 0, (Fdu_a, Fdx_a, alpha_a, kappa))
+    blocks = (rows, st, su, sx)
     return {"pd_rows": pred, "pd_step_rows": corr, "pd_blocks": blocks}
 
 
@@ -175,11 +181,17 @@ def _row_fns(part: str):
     """(kernel, XLA) forms of a row kernel's work, vmapped over batch-first inputs."""
     from rvdjax.solver import primal_dual as pd
 
-    if part == "pd_blocks":  # one Q, R for the batch (closed over: unbatched)
+    if part == "pd_blocks":  # one cost for the batch (closed over: unbatched)
+        from rvdjax.ocp import OCP
+
         Q, R = 2.0 * jnp.eye(NX)[None].repeat(N, 0), jnp.eye(NU)[None].repeat(N, 0)
+        q, r, x_ref = jnp.zeros((N, NX)), jnp.zeros((N, NU)), jnp.ones((N, NX))
+        A, B = jnp.eye(NX)[None].repeat(N, 0), jnp.ones((N, NX, NU))
+        x0, c = jnp.ones(NX), jnp.zeros((N, NX))
+        cost = OCP(A, B, c, x0, Q, R, x_ref, q, r, *(None,) * 7)
 
         def blocks(fn, **kw):
-            return jax.vmap(lambda r, st, bu, bx, su, sx: fn(r, st, Q, R, bu, bx, su, sx, **kw))
+            return jax.vmap(lambda r, st, su, sx: fn(cost, r, st, su, sx, **kw))
 
         return blocks(pd._blocks_in_kernel, interpret=False), blocks(pd._newton_blocks)
 

@@ -193,21 +193,56 @@ def test_the_rows_kernel_forms_the_xla_corrector_rhs():
     check(want, got)
 
 
+def _random_cost(key, N=5, nx=6, nu=3, model=None, cost=None):
+    """The cost and the model of one problem (an OCP with only those fields and the initial
+    state): random SPD blocks Q, R, model A, B, c, linear costs, reference and initial state;
+    ``model`` = (A, B) and ``cost`` = (Q, R) given instead where not None."""
+    from rvdjax.ocp import OCP
+
+    k = iter(jax.random.split(key, 12))
+
+    def normal(*shape):
+        return jax.random.normal(next(k), shape, jnp.float64)
+
+    def spd(n):
+        X = normal(N, n, n)
+        return X @ jnp.swapaxes(X, -1, -2) + n * jnp.eye(n)
+
+    A, B = (normal(N, nx, nx), normal(N, nx, nu)) if model is None else model
+    Q, R = (spd(nx), spd(nu)) if cost is None else cost
+    c, x0, none = normal(N, nx), normal(nx), (None,) * 7
+    return OCP(A, B, c, x0, Q, R, normal(N, nx), normal(N, nx), normal(N, nu), *none)
+
+
 def test_the_step_kernel_takes_the_xla_step():
     """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
     primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
-    iterates, the predictor's row products and a random corrector step, four problems of a
-    batch: the new iterate, the complementarity there, the dual residual's row terms and the
-    stopping test's soft-row terms to 1e-12 relative (the kernel sums the complementarity and
-    the row terms as polynomials in the step length); a step with a NaN (in the multipliers
-    nu, which no row's step reads: the kernel tests the step itself) is refused by both (the
-    iterate kept), and so is a stopped solve's."""
+    iterates, the predictor's row products and a random corrector step, eight problems of a
+    batch: the new iterate, the complementarity there and the stopping test's relative dual
+    residual and objective there to 1e-12 relative (the kernel sums the complementarity as a
+    polynomial in the step length, and the stopping test stage by stage). The dual residual is
+    a maximum over every stage's rows: four problems scale one stage's model (or multipliers)
+    by 1e3 so that the maximum is the state residual of the first stage (A_1^T nu_1, carried
+    one stage in the kernel), of the last but one, of the last (no next stage) and the input
+    residual of the first. A step with a NaN (in the multipliers nu, which no row's step
+    reads: the kernel tests the step itself) is refused by both (the iterate kept), and so is
+    a stopped solve's. A batch that shares its cost and model (the batch engine's) gives the
+    same as XLA too."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver import stagewise as sw
 
-    def case(key, nan, stop):
+    def case(key, nan, stop, emphasis, shared=None):
         rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
-        k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
+        k1, k2, k3 = jax.random.split(jax.random.fold_in(key, 7), 3)
+        ocp = _random_cost(k3) if shared is None else shared
+        big = jnp.where(jnp.arange(4) == emphasis, 1e3, 1.0)
+        # emphasis 2: the last stage's multipliers 1e3 larger, its model 1e3 smaller
+        ocp = ocp._replace(
+            A=ocp.A.at[1].multiply(big[0]).at[-1].multiply(big[1] / big[2]),
+            B=ocp.B.at[0].multiply(big[3]).at[-1].divide(big[2]),
+        )
+        st = st._replace(nu=st.nu.at[-1].multiply(big[2]))
+        step = step._replace(nu=step.nu.at[-1].multiply(big[2]))
         pred = jax.random.normal(k1, step.dx.shape, jnp.float64)
         Fdu_a = sw.mv(rows.Fu, jax.random.normal(k2, step.du.shape, jnp.float64))
         Fdx_a = sw.mv(rows.Fx, pred)
@@ -217,105 +252,118 @@ def test_the_step_kernel_takes_the_xla_step():
         taus = pd._targets(aff, alpha_a, kappa)
         h = pd._soft_h(rows, st, sx, taus[1], taus[2])
         step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
-        args = (rows, st, su, sx, step, taus, h, stop)
+        args = (ocp, rows, st, su, sx, step, taus, h, stop)
         want = pd._step_xla(*args)
         got = pd._step_in_kernel(*args, aff=(Fdu_a, Fdx_a, alpha_a, kappa), interpret=True)
         return st, want, got
 
-    # four problems of one batch: two steps taken, one with a NaN, one stopped
-    nan, stop = np.array([False, False, True, False]), np.array([False, False, False, True])
-    keys = jax.random.split(jax.random.key(0), 4)
-    out = jax.jit(jax.vmap(case))(keys, jnp.asarray(nan), jnp.asarray(stop))
-    for i in range(4):
+    # eight problems of one batch: steps taken, one with a NaN, one stopped, four emphases
+    nan = np.array([False, False, True, False, False, False, False, False])
+    stop = np.array([False, False, False, True, False, False, False, False])
+    emphasis = jnp.asarray([-1, -1, -1, -1, 0, 1, 2, 3])
+    keys = jax.random.split(jax.random.key(0), 8)
+    out = jax.jit(jax.vmap(case))(keys, jnp.asarray(nan), jnp.asarray(stop), emphasis)
+    rel_d = []
+    for i in range(8):
         st, want, got = jax.tree.map(lambda a, i=i: a[i], out)
-        (new_w, gap_w, fu_w, fx_w, fin_w, soft_w) = want
-        (new_g, gap_g, fu_g, fx_g, fin_g, soft_g) = got
+        (new_w, gap_w, fin_w, stop_w) = want
+        (new_g, gap_g, fin_g, stop_g) = got
         assert bool(fin_w) == bool(fin_g) == (not nan[i])
         for w, g in zip(new_w, new_g, strict=True):
             assert _rel(w, g) <= 1e-12
-        for w, g in ((gap_w, gap_g), (fu_w, fu_g), (fx_w, fx_g), *zip(soft_w, soft_g, strict=True)):
-            assert _rel(w, g) <= 1e-12
-        assert float(soft_g[0]) > 0.0 and float(soft_g[1]) > 0.0  # sums that could differ
+        for w, g in ((gap_w, gap_g), *zip(stop_w, stop_g, strict=True)):
+            assert _rel(w, g) <= 1e-12, i
+        assert float(stop_g[0]) > 0.0 and abs(float(stop_g[1])) > 0.0  # sums that could differ
+        rel_d.append(float(stop_w[0]))
         if nan[i] or stop[i]:  # a step of length zero: the iterate kept
             np.testing.assert_array_equal(np.asarray(new_g[3]), np.asarray(st.s))
         else:
             assert _rel(new_g[3], st.s) > 1e-3  # a step taken
+    assert min(rel_d[4:]) > 10.0 * max(rel_d[:4])  # each emphasis sets the maximum
+    # a batch sharing its cost and model: read as a table of one, and q, r, x_ref as scalars
+    shared = _random_cost(jax.random.key(9))
+    run = jax.vmap(lambda key: case(key, False, False, -1, shared)[1:])
+    (call,) = [
+        str([v.aval for v in e.invars])
+        for e in _eqns(jax.make_jaxpr(run)(keys[:3]).jaxpr)
+        if e.primitive.name == "pallas_call"
+    ]
+    assert f"int32[{BLOCK}]" in call and call.count("float64[5,6]") == 2  # index; q, x_ref
+    for want, got in zip(*jax.jit(run)(keys[:3]), strict=True):
+        for w, g in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+            assert _rel(np.asarray(w, float), np.asarray(g, float)) <= 1e-12
 
 
 def test_the_blocks_kernel_forms_the_xla_newton_blocks():
     """The predictor's Newton blocks as one kernel (rows_kernel.pd_blocks, interpreted):
-    Phi_u, Phi_x and the right-hand side against XLA's primal_dual._newton_blocks to 1e-12
-    relative, from random interior iterates with masked rows: one problem; a vmapped batch
-    whose cost blocks are shared (read as a table of one); and a batch reading its input rows,
-    soft rows' mask and penalty and cost blocks from tables of K = 3 at each problem's index
-    (the batch engine's phase tables)."""
+    Phi_u, Phi_x, the right-hand side, the cost's gradient and the dynamics' residual against
+    XLA's primal_dual._newton_blocks to 1e-12 relative, from random interior iterates with masked
+    rows: one problem; a vmapped batch whose cost is shared (the blocks read as a table of
+    one, the linear costs, the reference and the dynamics' offset as scalars); and a batch
+    reading its input rows, soft rows' mask and penalty, cost blocks and model from tables of
+    K = 3 at each problem's index (the batch engine's phase tables)."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver.riccati import ModelTable
 
     N, mx, mu, K = 5, 3, 4, 3
     k = iter(jax.random.split(jax.random.key(40), 8))
 
-    def square(n, *lead):
-        X = jax.random.normal(next(k), (*lead, N, n, n), jnp.float64)
-        return X @ jnp.swapaxes(X, -1, -2) + n * jnp.eye(n)
-
-    def args_of(key, rows=None, Q=None, R=None):
-        rows_, st, base_u, base_x, su, sx, _, _, _ = _random_rows_inputs(key, rows, N, mx, mu)
-        return (rows_, st, Q, R, base_u, base_x, su, sx)
+    def args_of(key, rows=None, cost=None):
+        rows_, st, _, _, su, sx, _, _, _ = _random_rows_inputs(key, rows, N, mx, mu)
+        ocp = _random_cost(jax.random.fold_in(key, 3), N) if cost is None else cost
+        return (ocp, rows_, st, su, sx)
 
     def check(want, got):
         for w, g in zip(want, got, strict=True):
             assert _rel(w, g) <= 1e-12
 
-    Q, R = square(6), square(3)
-    one = args_of(jax.random.key(41), Q=Q, R=R)
-    check(
-        *jax.jit(lambda a: (pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True)))(one)
-    )
-    # a batch sharing Q and R: the kernel reads them as a table of one
-    batch = [args_of(jax.random.key(42 + i), Q=Q, R=R) for i in range(3)]
-    stacked = jax.tree.map(lambda *a: jnp.stack(a), *[(b[:2], b[4:]) for b in batch])
-    both = jax.vmap(
-        lambda a, b: (
-            pd._newton_blocks(*a, Q, R, *b),
-            pd._blocks_in_kernel(*a, Q, R, *b, interpret=True),
-        )
-    )
-    jaxpr = jax.make_jaxpr(both)(*stacked).jaxpr
-    calls = [e for e in _eqns(jaxpr) if e.primitive.name == "pallas_call"]
-    assert len(calls) == 1 and f"int32[{BLOCK}]" in str([v.aval for v in calls[0].invars])
-    want, got = jax.jit(both)(*stacked)
+    def both(a, table=None):
+        return pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True, table=table)
+
+    one = args_of(jax.random.key(41))
+    check(*jax.jit(both)(one))
+    # a batch sharing its cost: the blocks a table of one, q, r, x_ref read as scalars
+    shared = _random_cost(next(k), N)
+    batch = [args_of(jax.random.key(42 + i))[1:] for i in range(3)]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *batch)
+    run = jax.vmap(lambda a: both((shared, *a)))
+    jaxpr = jax.make_jaxpr(run)(stacked).jaxpr
+    calls = [
+        str([v.aval for v in e.invars]) for e in _eqns(jaxpr) if e.primitive.name == "pallas_call"
+    ]
+    assert len(calls) == 1 and f"int32[{BLOCK}]" in calls[0]
+    assert calls[0].count(f"float64[{N},6]") == 3  # q, x_ref and c, without a problem axis
+    want, got = jax.jit(run)(stacked)
     check(want, got)
     # the phase tables: each problem's rows and blocks are entries of the tables
     Fu_t = jax.random.normal(next(k), (K, N, mu, 3), jnp.float64)
     wx_t = (jax.random.uniform(next(k), (K, N, mx)) > 0.3).astype(jnp.float64)
     rho_t = jnp.where(wx_t > 0, 10.0 * jnp.exp(jax.random.normal(next(k), (K, N, mx))), 1.0)
-    Q_t, R_t = square(6, K), square(3, K)
+    models = jax.vmap(lambda key: _random_cost(key, N))(jax.random.split(next(k), K))
     index = jnp.asarray([2, 0, 1])
     cases = []
     for i in range(3):
-        a = args_of(jax.random.key(50 + i))
-        r, at = a[0], int(index[i])
+        ocp, r, *rest = args_of(jax.random.key(50 + i))
+        at = int(index[i])
         rows = r._replace(
             Fu=jnp.where(r.wu[..., None] > 0, Fu_t[at], 0.0), wx=wx_t[at], rho=rho_t[at]
         )
-        cases.append((rows, a[1], Q_t[at], R_t[at], *a[4:]))
+        one = jax.tree.map(lambda a, at=at: a[at], models)
+        cases.append((ocp._replace(A=one.A, B=one.B, Q=one.Q, R=one.R), rows, *rest))
     batch = jax.tree.map(lambda *a: jnp.stack(a), *cases)
-    table = ModelTable(jnp.zeros((K, N, 6, 9)), index, Fu_t, wx_t, rho_t, Q_t, R_t)
+    M_t = jnp.concatenate([models.B, models.A], axis=-1)
+    table = ModelTable(M_t, index, Fu_t, wx_t, rho_t, models.Q, models.R)
     axes = (ModelTable(None, 0, None, None, None, None, None), 0)
-    tabled = jax.vmap(
-        lambda t, a: (pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True, table=t)),
-        in_axes=axes,
-    )
-    want, got = jax.jit(tabled)(table, batch)
+    want, got = jax.jit(jax.vmap(lambda t, a: both(a, t), in_axes=axes))(table, batch)
     check(want, got)
 
 
 def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
-    """With the input rows and the soft rows' mask and penalty given as tables of K = 3 and
-    each problem's index (the batch engine's phase tables; the input rows before the
-    problem's own mask zeroes some of them), both row kernels (interpreted, under vmap)
-    compute, bit for bit, what they compute from each problem's rows."""
+    """With the input rows and the soft rows' mask and penalty (and, for the step's kernel,
+    the cost blocks and the model [B, A]) given as tables of K = 3 and each problem's index
+    (the batch engine's phase tables; the input rows before the problem's own mask zeroes
+    some of them), both row kernels (interpreted, under vmap) compute, bit for bit, what they
+    compute from each problem's rows."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver.riccati import ModelTable
 
@@ -324,8 +372,10 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
     Fu_t = jax.random.normal(next(k), (K, N, mu, 3), jnp.float64)
     wx_t = (jax.random.uniform(next(k), (K, N, mx)) > 0.3).astype(jnp.float64)
     rho_t = jnp.where(wx_t > 0, 10.0 * jnp.exp(jax.random.normal(next(k), (K, N, mx))), 1.0)
+    models = jax.vmap(lambda key: _random_cost(key, N))(jax.random.split(next(k), K))
+    M_t = jnp.concatenate([models.B, models.A], axis=-1)
     index = jnp.asarray([2, 0, 2])
-    cases = []
+    cases, costs = [], []
     for i in range(b):
         args = _random_rows_inputs(jax.random.key(30 + i), N=N, mx=mx, mu=mu)
         r = args[0]
@@ -335,9 +385,14 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
         )
         assert 0 < float(jnp.sum(r.wu)) < r.wu.size  # some input rows zeroed by the mask
         cases.append((rows, *args[1:]))
+        one = jax.tree.map(lambda a, at=at: a[at], models)
+        costs.append(
+            _random_cost(jax.random.key(60 + i), N, model=(one.A, one.B), cost=(one.Q, one.R))
+        )
     batch = jax.tree.map(lambda *a: jnp.stack(a), *cases)
+    cost = jax.tree.map(lambda *a: jnp.stack(a), *costs)
 
-    def both(table, *args):
+    def both(table, cost, *args):
         plain = pd._rows_in_kernel(*args, interpret=True)
         tabled = pd._rows_in_kernel(*args, interpret=True, table=table)
         rows, st, _, _, su, sx, step, h, _ = args
@@ -348,25 +403,25 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
             kappa,
         )
         h_c = pd._soft_h(rows, st, sx, taus[1], taus[2])
-        step_args = (rows, st, su, sx, step, taus, h_c, jnp.asarray(False))
+        step_args = (cost, rows, st, su, sx, step, taus, h_c, jnp.asarray(False))
         aff = (Fdu_a, Fdx_a, alpha_a, kappa)
         steps = [
             pd._step_in_kernel(*step_args, aff=aff, interpret=True, table=t) for t in (None, table)
         ]
         return (plain, *steps[:1]), (tabled, *steps[1:])
 
-    table = ModelTable(jnp.zeros((K, N, 6, 9)), index, Fu_t, wx_t, rho_t)
-    axes = (ModelTable(None, 0, None, None, None), *(0,) * len(batch))
+    table = ModelTable(M_t, index, Fu_t, wx_t, rho_t, models.Q, models.R)
+    axes = (ModelTable(None, 0, None, None, None, None, None), *(0,) * (len(batch) + 1))
     run = jax.vmap(both, in_axes=axes)
     calls = [
         [str(v.aval) for v in e.invars]
-        for e in _eqns(jax.make_jaxpr(run)(table, *batch).jaxpr)
+        for e in _eqns(jax.make_jaxpr(run)(table, cost, *batch).jaxpr)
         if e.primitive.name == "pallas_call"
     ]
     with_index = [c for c in calls if f"int32[{BLOCK}]" in c]
     assert len(calls) == 4 and len(with_index) == 2  # each kernel once with the tables
     assert all(f"float64[{K},{N},{mu * 3}]" in c for c in with_index)
-    plain, tabled = jax.jit(run)(table, *batch)
+    plain, tabled = jax.jit(run)(table, cost, *batch)
     leaves = jax.tree.leaves(plain)
     assert len(leaves) > 10
     for a, t in zip(leaves, jax.tree.leaves(tabled), strict=True):

@@ -100,31 +100,45 @@ def _soft_h(rows, st: PDState, sx, tau_x, tau_s):
     return tau_x / sx + tau_s / st.s - rows.rho
 
 
-def _newton_blocks(rows, st: PDState, Q, R, base_u, base_x, su, sx):
+def _cost_gradient(ocp, u, x):
+    """The cost's gradient at (u, x): 2 R u + r and 2 Q (x - x_ref) + q."""
+    return 2.0 * sw.mv(ocp.R, u) + ocp.r, 2.0 * sw.mv(ocp.Q, x - ocp.x_ref) + ocp.q
+
+
+def _newton_blocks(ocp, rows, st: PDState, su, sx):
     """The predictor's Newton system from ``st``: the Hessian blocks Phi_u, Phi_x (the cost's
     and the rows' barrier terms, :func:`_pd_rhs`'s elimination) and the right-hand side
-    g_u, g_x for zero targets."""
+    g_u, g_x for zero targets; the cost's gradient base_u, base_x at ``st``, which the
+    corrector's right-hand side shares; the dynamics' residual rp at ``st``."""
+    base_u, base_x = _cost_gradient(ocp, st.u, st.x)
+    rp = dyn_residual(ocp, st.u, st.x)
     Du = rows.wu * st.lam / su
     a = st.mu / sx
     c = st.pi / st.s
-    Phi_u = 2.0 * R + sw.congruence(rows.Fu, Du)
-    Phi_x = 2.0 * Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
+    Phi_u = 2.0 * ocp.R + sw.congruence(rows.Fu, Du)
+    Phi_x = 2.0 * ocp.Q + sw.congruence(rows.Fx, rows.wx * a * c / (a + c))
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
     g_u, g_x, _ = _pd_rhs(rows, st, base_u, base_x, su, sx, zero_u, zero_x, zero_x)
-    return Phi_u, Phi_x, g_u, g_x
+    return Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp
 
 
-def _blocks_in_kernel(rows, st: PDState, Q, R, base_u, base_x, su, sx, interpret, table=None):
+def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None):
     """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one sweep that reads Fx once
-    (the input rows' targets are zero: g_u is base_u). ``table``: the model's table, whose
-    input rows, soft rows' mask and penalty and cost blocks the kernel reads where it has
-    them all."""
+    and forms the cost's gradient and the dynamics' residual too (the input rows' targets are
+    zero: g_u is base_u). ``table``: the model's table, whose input rows, soft rows' mask and
+    penalty, cost blocks and model [B, A] the kernel reads where it has them all."""
     del sx  # the kernel forms s - g itself
     tabled = table is not None and table.Fu is not None and table.Q is not None
-    tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.index) if tabled else ()
+    tables = ()
+    if tabled:
+        tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
     fn = rows_kernel.batched("blocks", 0, None, interpret, tabled)
-    Phi_u, Phi_x, g_x = fn(*_kernel_rows(rows, st, su), base_x, Q, R, *tables)
-    return Phi_u, Phi_x, base_u, g_x
+    # [B, A] as the Riccati kernels' rules form it (unused, and not formed, with a table)
+    model = jnp.concatenate([ocp.B, ocp.A], axis=-1)
+    cost = (ocp.Q, ocp.R, model, ocp.q, ocp.r, ocp.x_ref, ocp.c, ocp.x0[None])
+    out = fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables)
+    Phi_u, Phi_x, g_x, base_u, base_x, rp = out
+    return Phi_u, Phi_x, base_u, g_x, base_u, base_x, rp
 
 
 def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
@@ -251,11 +265,10 @@ def _by_kernel(args, kernel: str, xla, in_kernel):
     return xla(*args)
 
 
-def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
+def _step_xla(ocp, rows, st: PDState, su, sx, step, taus, h, stop):
     """The corrector's step taken: (the new u, x, nu, s, lam, mu, pi, su, g; the
-    complementarity there; the dual residual's row terms Fu^T wu lam, Fx^T wx mu there; whether
-    the step was finite; the soft rows' terms of the stopping test there, max |wx (rho - mu -
-    pi)| and sum wx rho max(g, 0))."""
+    complementarity there; whether the step was finite; the stopping test's relative dual
+    residual and objective there, :func:`_stopping_terms`)."""
     step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
     wmask = (rows.wu, rows.wx, rows.wx, rows.wu, rows.wx, rows.wx)
     # The rows' steps are finite where this ratio test is not NaN (Fdx is, where ds and dsx
@@ -268,7 +281,30 @@ def _step_xla(rows, st: PDState, su, sx, step, taus, h, stop):
     sx_n = s_new - g_n
     gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
     Fu_lam, Fx_mu = sw.mtv(rows.Fu, rows.wu * lam), sw.mtv(rows.Fx, rows.wx * mu)
-    return new, gap_n, Fu_lam, Fx_mu, finite, _soft_terms(rows, mu, pi, g_n)
+    r_s, J_s = _soft_terms(rows, mu, pi, g_n)
+    return new, gap_n, finite, _stopping_terms(ocp, rows, u, x, nu, Fu_lam, Fx_mu, r_s, J_s)
+
+
+def _stopping_terms(ocp, rows, u, x, nu, Fu_lam, Fx_mu, r_s, J_s):
+    """The stopping test's (relative dual residual, objective) at (u, x, nu): the dual
+    residual (barrier.dual_residual) of the cost gradient plus the rows' terms Fu^T wu lam,
+    Fx^T wx mu, relative to the gradient's scale, or the soft rows' largest |wx (rho - mu -
+    pi)| = ``r_s`` relative to their largest penalty; the objective (barrier.objective) with
+    the soft rows' penalty sum ``J_s``."""
+    e = x - ocp.x_ref
+    Ru = sw.mv(ocp.R, u)
+    Qe = sw.mv(ocp.Q, e)
+    grad_u = 2.0 * Ru + ocp.r
+    grad_x = 2.0 * Qe + ocp.q
+    r_u, r_x = dual_residual(ocp, grad_u + Fu_lam, grad_x + Fx_mu, nu)
+    d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
+    rel_d = jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
+        r_s / (1.0 + jnp.max(rows.wx * rows.rho)),
+    )
+    # the objective (barrier.objective) from the products above
+    J = jnp.sum(e * Qe) + jnp.sum(u * Ru) + jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u) + J_s
+    return rel_d, J
 
 
 def _soft_terms(rows, mu, pi, g):
@@ -300,14 +336,22 @@ def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
     return finite, alpha, (u, x, nu, s_new, lam, mu, pi, su_n, g_n)
 
 
-def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None):
-    """:func:`_step_xla` by :func:`rows_kernel.pd_step_rows`, which also takes the step
-    (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa, from which it forms the targets
-    ``taus`` and ``h`` again; ``table`` as :func:`_rows_in_kernel`)."""
+def _step_in_kernel(
+    ocp, rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None
+):
+    """:func:`_step_xla` by :func:`rows_kernel.pd_step_rows`, which also takes the step and
+    forms the stopping test's terms (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa,
+    from which it forms the targets ``taus`` and ``h`` again; ``table`` as
+    :func:`_blocks_in_kernel`, whose model [B, A] it reads too)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
-    tables = _row_tables(table)
-    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables))
-    new, U, X, sc, finite = fn(
+    tabled = table is not None and table.Fu is not None and table.Q is not None
+    tables = ()
+    if tabled:
+        tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
+    # [B, A] as the Riccati kernels' rules form it (unused, and not formed, with a table)
+    model = jnp.concatenate([ocp.B, ocp.A], axis=-1)
+    fn = rows_kernel.batched("step", 3, None, interpret, tabled)
+    new, sc, finite = fn(
         *_kernel_rows(rows, st, su),
         step.dx,
         step.du,
@@ -317,16 +361,19 @@ def _step_in_kernel(rows, st: PDState, su, sx, step, taus, h, stop, aff, interpr
         st.u,
         st.x,
         st.nu,
+        ocp.Q,
+        ocp.R,
+        model,
+        ocp.q,
+        ocp.r,
+        ocp.x_ref,
         alpha_a,
         kappa,
         jnp.asarray(stop, kappa.dtype),
         *tables,
     )
-    alpha, gap_n, r_s, J_s = sc
-    # a step not finite leaves the sums at the old point (its dlam, dmu may be NaN)
-    Fu_lam = jnp.where(finite, U[:, 0] + alpha * U[:, 1], U[:, 0])
-    Fx_mu = jnp.where(finite, X[:, 0] + alpha * X[:, 1], X[:, 0])
-    return new, gap_n, Fu_lam, Fx_mu, finite, (r_s, J_s)
+    _, gap_n, rel_d, J = sc
+    return new, gap_n, finite, (rel_d, J)
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
@@ -370,16 +417,13 @@ def pd_iteration(
     method, kernel = settings.method, settings.kernel
     su = st.su
     sx = st.s - st.g
-    # shared by the predictor and the corrector
-    base_u = 2.0 * sw.mv(ocp.R, st.u) + ocp.r
-    base_x = 2.0 * sw.mv(ocp.Q, st.x - ocp.x_ref) + ocp.q
-    rp = dyn_residual(ocp, st.u, st.x)
     # Predictor: the affine-scaling direction (tau = 0), solved with the factorisation.
     zero_u, zero_x = jnp.zeros_like(su), jnp.zeros_like(sx)
     taus = (zero_u, zero_x, zero_x)
     h = _soft_h(rows, st, sx, zero_x, zero_x)
-    Phi_u, Phi_x, g_u, g_x = _by_kernel(
-        (rows, st, ocp.Q, ocp.R, base_u, base_x, su, sx),
+    # base_u, base_x: the cost's gradient, shared by the predictor and the corrector
+    Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp = _by_kernel(
+        (ocp, rows, st, su, sx),
         kernel,
         _newton_blocks,
         functools.partial(_blocks_in_kernel, table=table),
@@ -398,8 +442,8 @@ def pd_iteration(
     # residual depends on how XLA contracts its products (riccati.py): with loops compiled
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
-    args = (rows, st, su, sx, step, taus, h, stop)
-    new, gap_n, Fu_lam, Fx_mu, finite, (r_s, J_s) = _by_kernel(
+    args = (ocp, rows, st, su, sx, step, taus, h, stop)
+    new, gap_n, finite, (rel_d, J) = _by_kernel(
         args,
         kernel,
         _step_xla,
@@ -408,19 +452,6 @@ def pd_iteration(
     u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
 
     # Stopping: gap and dual residual relative to the objective / gradient scale.
-    e = x - ocp.x_ref
-    Ru = sw.mv(ocp.R, u)
-    Qe = sw.mv(ocp.Q, e)
-    grad_u = 2.0 * Ru + ocp.r
-    grad_x = 2.0 * Qe + ocp.q
-    r_u, r_x = dual_residual(ocp, grad_u + Fu_lam, grad_x + Fx_mu, nu)
-    d_scale = 1.0 + jnp.maximum(jnp.max(jnp.abs(grad_u)), jnp.max(jnp.abs(grad_x)))
-    rel_d = jnp.maximum(
-        jnp.maximum(jnp.max(jnp.abs(r_u)), jnp.max(jnp.abs(r_x))) / d_scale,
-        r_s / (1.0 + jnp.max(rows.wx * rows.rho)),
-    )
-    # the objective (barrier.objective) from the products above
-    J = jnp.sum(e * Qe) + jnp.sum(u * Ru) + jnp.sum(ocp.q * x) + jnp.sum(ocp.r * u) + J_s
     scale = 1.0 + jnp.abs(J)
     tol = params.tol
     # The dual residual bounds the objective error through ||r_d|| ||z - z*||: 100x the gap

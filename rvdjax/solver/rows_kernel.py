@@ -4,7 +4,8 @@ Newton solves.
 Before the first solve, the Newton matrix's diagonal blocks Phi_u = 2 R + Fu^T Du Fu,
 Phi_x = 2 Q + Fx^T D Fx and the predictor's right-hand side g_x depend on the rows and their
 multipliers; XLA formed them in three passes, two of which read Fx. :func:`pd_blocks` forms
-them in one sweep.
+them in one sweep, with the cost's gradient 2 R u + r, 2 Q (x - x_ref) + q at the iterate,
+which both right-hand sides share.
 
 Between the predictor's solve and the corrector's, a Mehrotra iteration
 (:func:`rvdjax.solver.primal_dual.pd_iteration`) works on the constraint rows only: the
@@ -18,8 +19,9 @@ interpreted on the CPU for the tests), one problem per lane as in :mod:`rvdjax.s
 in one sweep over the stages that reads each stage's rows once (:func:`pd_rows`).
 
 After the corrector's solve the same holds for its row steps, its step length (the ratio
-test, NaN where a step is not finite), the complementarity at the new point and the dual
-residual's row terms Fu^T wu lam, Fx^T wx mu there, and for the update of the iterate itself
+test, NaN where a step is not finite), the update of the iterate itself, the complementarity
+at the new point and the stopping test there: the cost gradient, the dual residual (with the
+rows' terms Fu^T wu lam, Fx^T wx mu and the model's A^T nu, B^T nu) and the objective
 (:func:`pd_step_rows`).
 
 A sweep reads its arrays from device memory (a tile's rows are megabytes; they do not stay in
@@ -50,6 +52,7 @@ from rvdjax.solver.lanes import (
     _add,
     _Block,
     _compiler_params,
+    _dot,
     _Gathered,
     _load,
     _mtm,
@@ -70,6 +73,28 @@ class SigmaRule:
 
     floor: float
     floor_res: float
+
+
+class _Shared:
+    """A kernel input that the batch shares (no problem axis: ``[stage][entry]``, as one
+    block): its entries load as scalars, which broadcast over the lanes, instead of from a
+    copy for every problem."""
+
+    def __init__(self, ref):
+        self.ref = ref
+
+
+def _scalars(refs):
+    """The lane vectors of (1, 1) inputs, one number a problem each."""
+    return [_load(r, 0, 1)[0] for r in refs]
+
+
+def _load_any(ref, t, n):
+    """Stage t's n entries of a per-problem ref (lane vectors) or of a :class:`_Shared`
+    one (scalars)."""
+    if isinstance(ref, _Shared):
+        return [ref.ref[t, i] for i in range(n)]
+    return _load(ref, t, n)
 
 
 class StageRows:
@@ -185,20 +210,23 @@ def _min_ratio(pairs, alpha, nan_if_not_finite=False):
 
 
 def _rows_kernel(dims, N, rule: SigmaRule, *refs):
-    """One program: the sweep for a tile of problems (module docstring).
+    """One program: the sweeps for a tile of problems (module docstring).
 
-    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, dx, du, base_x, base_u, scalars (gap,
-    res, m_eff); outputs G_u (N, 3, nu), G_x (N, 3, nx), Fdu, Fdx, (alpha_a, kappa).
+    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, dx, du, base_x, base_u, the scalars
+    gap, res, m_eff (1, 1) each; outputs G_u (N, 3, nu), G_x (N, 3, nx), Fdu, Fdx,
+    alpha_a (1, 1), kappa (1, 1), g_u (N, nu), g_x (N, nx).
 
-    The step length and the barrier weight are known only after the sweep, so the sweep forms
+    The step length and the barrier weight are known only after the first sweep, so it forms
     what needs them as polynomials in them: the complementarity after the step,
     c0 + alpha c1 + alpha^2 c2, and the right-hand side, G0 + kappa G1 + alpha G2 (the
-    corrector's targets kappa - alpha dv dy are affine in both; primal_dual._pd_rhs)."""
+    corrector's targets kappa - alpha dv dy are affine in both; primal_dual._pd_rhs). A
+    second sweep evaluates the right-hand side from the parts the first one wrote (on a GPU,
+    two launches of XLA's an iteration less)."""
     mx, mu, nx, nu = dims
     row_refs = refs[:13]
-    bx_r, bu_r, sc_r = refs[13:16]
-    Gu_out, Gx_out, Fdu_out, Fdx_out, sc_out = refs[16:]
-    gap, res, m_eff = _load(sc_r, 0, 3)
+    bx_r, bu_r = refs[13:15]
+    gap, res, m_eff = _scalars(refs[15:18])
+    Gu_out, Gx_out, Fdu_out, Fdx_out, alpha_out, kappa_out, gu_out, gx_out = refs[18:]
 
     def stage(t, carry):
         alpha, c0, c1, c2 = carry
@@ -249,32 +277,47 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
     res = jnp.where(jnp.isfinite(res), res, 0.0)
     sigma = jnp.where(res > rule.floor_res, jnp.maximum(sigma, rule.floor), sigma)
     kappa = sigma * gap / jnp.maximum(m_eff, 1.0)
-    _store(sc_out, 0, [alpha, kappa])
+    _store(alpha_out, 0, [alpha])
+    _store(kappa_out, 0, [kappa])
+
+    def combine(t, carry):  # the right-hand side G0 + kappa G1 + alpha G2
+        for ref, out, n in ((Gu_out, gu_out, nu), (Gx_out, gx_out, nx)):
+            G0, G1, G2 = _load(ref, t, 3, n)
+            _store(out, t, [a + kappa * b + alpha * c for a, b, c in zip(G0, G1, G2, strict=True)])
+        return carry
+
+    jax.lax.fori_loop(0, N, combine, 0)
 
 
 def _step_kernel(dims, N, *refs):
     """One program of :func:`pd_step_rows`: two sweeps for a tile of problems.
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, nu, the
-    predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, scalars (alpha_a, kappa,
-    stop); outputs U (N, 2, nu), X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi,
-    su, g and (alpha, gap, max |r_s|, J_s).
+    predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, the cost blocks Q, R, the
+    model [B, A], the linear costs q, r, the reference x_ref (these three per problem or
+    :class:`_Shared`), the scalars alpha_a, kappa, stop (1, 1) each;
+    outputs U (N, 2, nu), X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g and
+    (alpha, gap, relative dual residual, objective, finite).
 
     The first sweep forms the row products and the ratio test; the step length is known only
-    after it, so it sums the dual residual's row terms F^T w (y + alpha dy) as two vectors a
-    stage and the complementarity as c0 + alpha c1 + alpha^2 c2. The step length is NaN where
-    any entry of the step (du, dx, nu) or of the rows' steps is not finite: the one test of
-    the step that the update needs. The second sweep takes the step (primal_dual._updated):
-    from the row products the first one wrote, it forms the rows' steps again and writes the
-    new iterate, and sums the soft rows' terms of the stopping test at the new point, the
-    largest |wx (rho - mu - pi)| and J_s = sum wx rho max(g, 0). On a GPU that replaced XLA's
-    passes over the row arrays after the kernel, which read them, the steps and the targets
-    again (docs/benchmark.md)."""
+    after it, so it writes the dual residual's row terms F^T w (y + alpha dy) as two vectors a
+    stage (U, X) and sums the complementarity as c0 + alpha c1 + alpha^2 c2. The step length
+    is NaN where any entry of the step (du, dx, nu) or of the rows' steps is not finite: the
+    one test of the step that the update needs. The second sweep takes the step
+    (primal_dual._updated): from the row products the first one wrote, it forms the rows'
+    steps again and writes the new iterate, and forms the stopping test there
+    (primal_dual._stopping_terms): the cost gradient, the dual residual with the row terms
+    U0 + alpha U1, X0 + alpha X1, the soft rows' largest |wx (rho - mu - pi)| and the
+    objective. The state rows' residual r_x,t = ... - A_{t+1}^T nu_{t+1} needs the next
+    stage's multipliers: the sweep carries it one stage and ends it there. On a GPU that
+    replaced XLA's passes over the rows, the steps, the iterate and the model after the kernel
+    (docs/benchmark.md)."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
-    dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r, sc_r = refs[11:20]
-    U_out, X_out, Fdu_out, Fdx_out, *new_out, sc_out = refs[20:]
-    alpha_a, kappa, stop = _load(sc_r, 0, 3)
+    dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r = refs[11:19]
+    Q_r, R_r, M_r, q_r, r_r, xref_r = refs[19:25]
+    alpha_a, kappa, stop = _scalars(refs[25:28])
+    U_out, X_out, Fdu_out, Fdx_out, *new_out, sc_out = refs[28:]
 
     def corrector(rows, t, Fdu, Fdx):
         aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
@@ -314,8 +357,12 @@ def _step_kernel(dims, N, *refs):
         keep = finite if w is None else finite & (w > 0)  # padding rows stay put
         return v + alpha * jnp.where(keep, dv, 0.0)
 
+    def row_terms(ref, t, n):  # U0 + alpha U1 (the old point's where the step is not finite)
+        y, dy = _load(ref, t, 2, n)
+        return [jnp.where(finite, a + alpha * b, a) for a, b in zip(y, dy, strict=True)]
+
     def update(t, carry):
-        rs, js = carry
+        rs, js, wr, ru, rx, gm, J, p_prev = carry
         rows = StageRows(dims, row_refs, t)
         r = corrector(rows, t, _load(Fdu_out, t, mu), _load(Fdx_out, t, mx))
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
@@ -334,57 +381,104 @@ def _step_kernel(dims, N, *refs):
         ]
         for ref, v in zip(new_out, new, strict=True):
             _store(ref, t, v)
-        _, _, _, _, _, mu_n, pi_n, _, g_n = new
+        u_n, x_n, nu_n, _, _, mu_n, pi_n, _, g_n = new
         for w, rho, m, p, g in zip(rows.wx, rows.rho, mu_n, pi_n, g_n, strict=True):
             rs = jnp.maximum(rs, jnp.abs(w * (rho - m - p)))
             js = js + w * rho * jnp.maximum(g, 0.0)
-        return rs, js
+            wr = jnp.maximum(wr, w * rho)
+        # the stopping test (primal_dual._stopping_terms) at the new point
+        e = [a - b for a, b in zip(x_n, _load_any(xref_r, t, nx), strict=True)]
+        Ru, Qe = _mv(_load(R_r, t, nu, nu), u_n), _mv(_load(Q_r, t, nx, nx), e)
+        q, r_lin = _load_any(q_r, t, nx), _load_any(r_r, t, nu)
+        M = _load(M_r, t, nx, nu + nx)
+        grad_u = [2.0 * a + b for a, b in zip(Ru, r_lin, strict=True)]
+        grad_x = [2.0 * a + b for a, b in zip(Qe, q, strict=True)]
+        Bt_nu = _mtv([row[:nu] for row in M], nu_n)
+        for g, f, b in zip(grad_u, row_terms(U_out, t, nu), Bt_nu, strict=True):
+            ru = jnp.maximum(ru, jnp.abs((g + f) - b))
+        # r_x of the previous stage: its part p_{t-1} less A_t^T nu_t (none before stage 0)
+        At_nu = _mtv([row[nu:] for row in M], nu_n)
+        for p, a in zip(p_prev, At_nu, strict=True):
+            rx = jnp.where(t > 0, jnp.maximum(rx, jnp.abs(p - a)), rx)
+        p_t = [(g + f) + n for g, f, n in zip(grad_x, row_terms(X_out, t, nx), nu_n, strict=True)]
+        for g in (*grad_u, *grad_x):
+            gm = jnp.maximum(gm, jnp.abs(g))
+        for a, b in ((e, Qe), (u_n, Ru), (q, x_n), (r_lin, u_n)):
+            J = J + _dot(a, b)
+        return rs, js, wr, ru, rx, gm, J, p_t
 
-    rs, js = jax.lax.fori_loop(0, N, update, (zero, zero))
-    _store(sc_out, 0, [alpha, gap, rs, js, finite.astype(alpha.dtype)])
+    carry = (zero,) * 7 + ([zero] * nx,)
+    rs, js, wr, ru, rx, gm, J, p_last = jax.lax.fori_loop(0, N, update, carry)
+    for p in p_last:  # the last stage's r_x: no next stage
+        rx = jnp.maximum(rx, jnp.abs(p))
+    rel_d = jnp.maximum(jnp.maximum(ru, rx) / (1.0 + gm), rs / (1.0 + wr))
+    _store(sc_out, 0, [alpha, gap, rel_d, J + js, finite.astype(alpha.dtype)])
 
 
 def _blocks_kernel(dims, N, *refs):
     """One program of :func:`pd_blocks`: the sweep for a tile of problems.
 
-    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, base_x, the cost blocks Q, R; outputs
-    Phi_u (N, nu nu), Phi_x (N, nx nx), g_x (N, nx)."""
+    refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the iterate's u, x, the cost blocks Q,
+    R, the model [B, A], the linear costs q, r, the reference x_ref and the dynamics' offset c
+    (these four per problem or :class:`_Shared`), the initial state x0 (1, nx); outputs
+    Phi_u (N, nu nu), Phi_x (N, nx nx), g_x (N, nx), the cost's gradient base_u (N, nu),
+    base_x (N, nx) and the dynamics' residual rp (N, nx). The residual at stage t needs the
+    previous stage's state: the sweep carries it."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
-    bx_r, Q_r, R_r = refs[11:14]
-    Pu_out, Px_out, gx_out = refs[14:]
+    u_r, x_r, Q_r, R_r, M_r, q_r, r_r, xref_r, c_r, x0_r = refs[11:21]
+    Pu_out, Px_out, gx_out, bu_out, bx_out, rp_out = refs[21:]
 
     def blocks(W, F, d):  # 2 W + F^T diag(d) F, as primal_dual._newton_blocks
         scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
         return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
 
-    def stage(t, carry):
+    def stage(t, x_prev):
         rows = StageRows(dims, row_refs, t)
+        Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
-        Phi_u = blocks(_load(R_r, t, nu, nu), rows.Fu, rows.Du)
-        Phi_x = blocks(_load(Q_r, t, nx, nx), rows.Fx, d)
+        Phi_u = blocks(R, rows.Fu, rows.Du)
+        Phi_x = blocks(Q, rows.Fx, d)
+        # the cost's gradient (primal_dual._cost_gradient)
+        x, u = _load(x_r, t, nx), _load(u_r, t, nu)
+        e = [a - b for a, b in zip(x, _load_any(xref_r, t, nx), strict=True)]
+        Ru = _mv(R, u)
+        base_u = [2.0 * a + b for a, b in zip(Ru, _load_any(r_r, t, nu), strict=True)]
+        base_x = [2.0 * a + b for a, b in zip(_mv(Q, e), _load_any(q_r, t, nx), strict=True)]
         # the predictor's soft rows: tau = 0, h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
         h = rows.h([0.0] * mx, [0.0] * mx)
         v = [
             w * (0.0 / x - a * hi / (a + c))
             for w, x, a, hi, c in zip(rows.wx, rows.sx, rows.a, h, rows.c, strict=True)
         ]
-        g_x = [b + f for b, f in zip(_load(bx_r, t, nx), _mtv(rows.Fx, v), strict=True)]
+        g_x = [b + f for b, f in zip(base_x, _mtv(rows.Fx, v), strict=True)]
         _store(Pu_out, t, Phi_u)
         _store(Px_out, t, Phi_x)
         _store(gx_out, t, g_x)
-        return carry
+        _store(bu_out, t, base_u)
+        _store(bx_out, t, base_x)
+        # the dynamics' residual x_t - A_t x_{t-1} - B_t u_t - c_t (barrier.dyn_residual)
+        M = _load(M_r, t, nx, nu + nx)
+        Ax, Bu = _mv([row[nu:] for row in M], x_prev), _mv([row[:nu] for row in M], u)
+        rp = [
+            ((xi - a) - b) - ci
+            for xi, a, b, ci in zip(x, Ax, Bu, _load_any(c_r, t, nx), strict=True)
+        ]
+        _store(rp_out, t, rp)
+        return x
 
-    jax.lax.fori_loop(0, N, stage, 0)
+    jax.lax.fori_loop(0, N, stage, _load(x0_r, 0, nx))
 
 
-def _launch(body, name, ins, outs, interpret, tables=None, aliases=None):
+def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=()):
     """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
     stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b).
     ``tables``: (index (b,), {position: table (K, N, ...)}): the inputs at those positions
     are read from the tables at each problem's index instead (their ``ins`` are not used).
     ``aliases``: {input position: output position} written in the input's buffer (the kernel
-    reads each stage of such an input before it writes that stage of the output)."""
+    reads each stage of such an input before it writes that stage of the output).
+    ``shared``: positions of inputs (N, ...) without the problem axis, shared by the batch
+    (:class:`_Shared`)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]
@@ -395,6 +489,8 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None):
     ins = [
         by_pos[i].reshape(*by_pos[i].shape[:2], -1)
         if i in by_pos
+        else a.reshape(a.shape[0], -1)
+        if i in shared
         else _pad(a.reshape(a.shape[0], -1, b), b_pad)
         for i, a in enumerate(ins)
     ]
@@ -406,18 +502,22 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None):
             return pl.BlockSpec(tuple(shape), lambda i: (0,) * n)
         return pl.BlockSpec((*shape[:-1], L), lambda i: (0,) * (n - 1) + (i,))
 
-    specs = [spec(a.shape, i not in by_pos) for i, a in enumerate(ins)]
+    specs = [spec(a.shape, i not in by_pos and i not in shared) for i, a in enumerate(ins)]
     if index is not None:  # the tile's indices, the last input
         ins, specs = [*ins, _pad(index.astype(jnp.int32), b_pad)], [*specs, spec((b_pad,))]
 
     def kernel(*refs):
-        if index is None:
-            return body(*(_Block(r) for r in refs))
-        n = len(ins) - 1
-        lane_index = refs[n][...]
+        lane_index = None
+        if index is not None:  # the last input: the tile's indices
+            n = len(ins) - 1
+            lane_index, refs = refs[n][...], refs[:n] + refs[n + 1 :]
         refs = [
-            _Gathered(r, lane_index, True) if i in by_pos else _Block(r)
-            for i, r in enumerate(refs[:n] + refs[n + 1 :])
+            _Gathered(r, lane_index, True)
+            if i in by_pos
+            else _Shared(r)
+            if i in shared
+            else _Block(r)
+            for i, r in enumerate(refs)
         ]
         return body(*refs)
 
@@ -444,8 +544,8 @@ def pd_rows(
     rows' slack s, values g = Fx x - fx, multipliers mu, pi, mask wx and penalty rho
     (N, mx, b), the input rows' slack su = fu - Fu u, multiplier lam and mask wu (N, mu, b));
     the predictor's step dx (N, nx, b), du (N, nu, b); the cost gradients base_x (N, nx, b),
-    base_u (N, nu, b); scalars (3, b): the complementarity gap, the relative dual residual
-    and the number of barrier terms; ``rule`` the :class:`SigmaRule`.
+    base_u (N, nu, b); scalars: three (b,) arrays, the complementarity gap, the relative
+    dual residual and the number of barrier terms; ``rule`` the :class:`SigmaRule`.
 
     Returns:
         g_u (N, nu, b), g_x (N, nx, b) the corrector's right-hand side, Fdu (N, mu, b) and
@@ -459,110 +559,145 @@ def pd_rows(
     N, mx, nx, b = rows[0].shape
     mu, nu = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, nu)
-    G_u, G_x, Fdu, Fdx, sc = _launch(
+    # alpha_a and kappa as outputs of their own: the step's kernel reads them as they are
+    _, _, Fdu, Fdx, alpha, kappa, g_u, g_x = _launch(
         functools.partial(_rows_kernel, dims, N, rule),
         "rvdjax_pd_rows",
-        [*rows, dx, du, base_x, base_u, scalars[None]],
-        [(N, 3 * nu), (N, 3 * nx), (N, mu), (N, mx), (1, 2)],
+        [*rows, dx, du, base_x, base_u, *(a[None, None] for a in scalars)],
+        [(N, 3 * nu), (N, 3 * nx), (N, mu), (N, mx), (1, 1), (1, 1), (N, nu), (N, nx)],
         interpret,
-        _tables(tables),
+        _tables("rows", tables),
     )
-    alpha, kappa = sc[0, 0], sc[0, 1]
-    G_u, G_x = G_u.reshape(N, 3, nu, b), G_x.reshape(N, 3, nx, b)
-    g_u = G_u[:, 0] + kappa * G_u[:, 1] + alpha * G_u[:, 2]
-    g_x = G_x[:, 0] + kappa * G_x[:, 1] + alpha * G_x[:, 2]
-    return g_u, g_x, Fdu, Fdx, alpha, kappa
+    return g_u, g_x, Fdu, Fdx, alpha[0, 0], kappa[0, 0]
 
 
-#: The kernels' inputs that tables can stand for: the rows' Fu, wx, rho, and
-#: :func:`pd_blocks`'s Q and R.
-_TABLE_POSITIONS = (1, 6, 7, 12, 13)
+#: The inputs that tables can stand for, by kernel, in the order :func:`batched` takes the
+#: tables: the rows' Fu, wx, rho, and the cost blocks Q, R and the model [B, A] of
+#: :func:`pd_blocks` and :func:`pd_step_rows`.
+_TABLE_POSITIONS = {
+    "rows": (1, 6, 7),
+    "blocks": (1, 6, 7, 13, 14, 15),
+    "step": (1, 6, 7, 19, 20, 21),
+}
+
+#: The inputs read as a table of one (index 0) when a batch shares them (unbatched under
+#: ``vmap``) and no tables are given: not a copy for every problem.
+_SHAREABLE = {"rows": (), "blocks": (13, 14, 15), "step": (19, 20, 21)}
+
+#: The inputs read as :class:`_Shared` when a batch shares them, with tables or without:
+#: the linear costs q, r, the reference x_ref and the dynamics' offset c (the batch engine's
+#: zero linear costs and offsets).
+_SHARED = {"rows": (), "blocks": (16, 17, 18, 19), "step": (22, 23, 24)}
 
 
-def _tables(tables):
-    """_launch's tables from (index, Fu, wx, rho[, Q, R]), those given (not None)."""
+def _tables(kind, tables):
+    """_launch's tables from (index, Fu, wx, rho[, ...]) in :data:`_TABLE_POSITIONS`'s order,
+    those given (not None)."""
     if tables is None:
         return None
     index, *ts = tables
-    return index, {p: t for p, t in zip(_TABLE_POSITIONS, ts, strict=False) if t is not None}
+    positions = _TABLE_POSITIONS[kind]
+    return index, {p: t for p, t in zip(positions, ts, strict=False) if t is not None}
 
 
 def pd_step_rows(
-    rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, scalars, interpret: bool = False, tables=None
+    rows,
+    dx,
+    du,
+    nu_new,
+    Fdx_a,
+    Fdu_a,
+    u,
+    x,
+    nu,
+    cost,
+    scalars,
+    interpret: bool = False,
+    tables=None,
 ):
     """The corrector's step taken, for a batch: its row products, its step length (zero where
     the step or a row's step is not finite, or the solve is stopped), the new iterate, the
-    complementarity there, the dual residual's row terms as functions of the step length and
-    the soft rows' terms of the stopping test.
+    complementarity there and the stopping test's relative dual residual and objective there.
 
     Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the corrector's step
     dx (N, nx, b), du (N, nu, b) and new multipliers nu_new (N, nx, b); the predictor's row
     products Fdx_a (N, mx, b), Fdu_a (N, mu, b); the iterate's u (N, nu, b), x (N, nx, b) and
-    nu (N, nx, b); scalars (3, b): the predictor's step length alpha_a, the corrector's
-    barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's steps) and
-    whether the solve is stopped (1) or not (0).
+    nu (N, nx, b); ``cost`` = (Q (N, nx, nx, b), R (N, nu, nu, b), the model [B, A]
+    (N, nx, nu + nx, b), q (N, nx, b), r (N, nu, b), x_ref (N, nx, b)): the cost and the
+    model (:class:`rvdjax.ocp.OCP`'s), q, r and x_ref without the problem axis where the
+    batch shares them; scalars: three (b,) arrays, the predictor's step length alpha_a, the
+    corrector's barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's
+    steps) and whether the solve is stopped (1) or not (0).
 
     Returns:
         new: the new u, x, nu, s, lam, mu, pi, su, g (as the inputs);
-        U (N, 2, nu, b) with Fu^T (wu lam) and Fu^T (wu dlam), X (N, 2, nx, b) with
-        Fx^T (wx mu) and Fx^T (wx dmu), so that the row terms at the new point are
-        U0 + alpha U1, X0 + alpha X1;
         sc (4, b): the step length taken alpha (0.99 of the way to the boundary, at most 1;
         NaN in no case: whether the step was finite is ``finite``), the complementarity at the
-        new point, max |wx (rho - mu - pi)| and sum wx rho max(g, 0) there;
+        new point, the relative dual residual and the objective there
+        (primal_dual._stopping_terms);
         finite (b,) bool: whether every entry of the step and of the rows' steps is finite.
 
-    ``tables`` as :func:`pd_rows`.
+    ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]), each table (K, N, ...) or
+    None: the kernel reads those given from the tables at each problem's index.
     """
     N, mx, nx, b = rows[0].shape
     mu, n_u = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, n_u)
-    U, X, _, _, *new, sc = _launch(
+    shared = tuple(22 + i for i, a in enumerate(cost[3:]) if a.ndim == 2)
+    _, _, _, _, *new, sc = _launch(
         functools.partial(_step_kernel, dims, N),
         "rvdjax_pd_step_rows",
-        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, scalars[None]],
+        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, *cost, *(a[None, None] for a in scalars)],
         [(N, 2 * n_u), (N, 2 * nx), (N, mu), (N, mx)]
         + [(N, n_u), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
         + [(1, 5)],
         interpret,
-        _tables(tables),
+        _tables("step", tables),
         # the new iterate in the old one's buffers: otherwise XLA copies each new array into
         # the solver loop's carry (counted for an H100: 8 copies an iteration, 35 KB a
         # thesis-vbar slot read and written)
         {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
+        shared,
     )
     sc = sc[0]
-    return tuple(new), U.reshape(N, 2, n_u, b), X.reshape(N, 2, nx, b), sc[:4], sc[4] > 0
+    return tuple(new), sc[:4], sc[4] > 0
 
 
-def pd_blocks(rows, base_x, Q, R, interpret: bool = False, tables=None):
-    """The predictor's Newton blocks, for a batch: the Hessian blocks Phi_u = 2 R + Fu^T Du Fu
-    and Phi_x = 2 Q + Fx^T diag(wx a c / (a + c)) Fx, and the state part of the right-hand
-    side g_x = base_x + Fx^T (wx a rho / (a + c)) (the input part is base_u itself: the
-    input rows' targets are zero), from the rows in one sweep that reads Fx once (XLA: in
-    three passes, two of them reading Fx; primal_dual.pd_iteration).
+def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
+    """The predictor's Newton system, for a batch: the Hessian blocks Phi_u = 2 R + Fu^T Du Fu
+    and Phi_x = 2 Q + Fx^T diag(wx a c / (a + c)) Fx, the cost's gradient base_u = 2 R u + r,
+    base_x = 2 Q (x - x_ref) + q, the state part of the right-hand side
+    g_x = base_x + Fx^T (wx a rho / (a + c)) (the input part is base_u itself: the input rows'
+    targets are zero) and the dynamics' residual rp = x_t - A_t x_{t-1} - B_t u_t - c_t, from
+    the rows in one sweep that reads Fx once (XLA: in three passes, two of them reading Fx;
+    primal_dual.pd_iteration).
 
-    Args (batch last, b problems): ``rows`` as :func:`pd_rows`; base_x (N, nx, b) the cost
-    gradient; Q (N, nx, nx, b), R (N, nu, nu, b) the cost blocks.
+    Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the iterate's u (N, nu, b),
+    x (N, nx, b); ``cost`` = (Q (N, nx, nx, b), R (N, nu, nu, b), the model [B, A]
+    (N, nx, nu + nx, b), q (N, nx, b), r (N, nu, b), x_ref (N, nx, b), c (N, nx, b)), the
+    last four without the problem axis where the batch shares them; x0 (1, nx, b).
 
     Returns:
-        Phi_u (N, nu, nu, b), Phi_x (N, nx, nx, b), g_x (N, nx, b).
+        Phi_u (N, nu, nu, b), Phi_x (N, nx, nx, b), g_x (N, nx, b), base_u (N, nu, b),
+        base_x (N, nx, b), rp (N, nx, b).
 
-    ``tables``: None, or (index (b,), Fu, wx, rho, Q, R) with each table (K, N, ...) or None:
-    the kernel reads those given from the tables at each problem's index.
+    ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]) with each table (K, N, ...)
+    or None: the kernel reads those given from the tables at each problem's index.
     """
     N, mx, nx, b = rows[0].shape
-    mu, nu = rows[10].shape[1], R.shape[1]
+    mu, nu = rows[10].shape[1], u.shape[1]
     dims = (mx, mu, nx, nu)
-    Pu, Px, g_x = _launch(
+    shared = tuple(16 + i for i, a in enumerate(cost[3:]) if a.ndim == 2)
+    Pu, Px, g_x, base_u, base_x, rp = _launch(
         functools.partial(_blocks_kernel, dims, N),
         "rvdjax_pd_blocks",
-        [*rows, base_x, Q, R],
-        [(N, nu * nu), (N, nx * nx), (N, nx)],
+        [*rows, u, x, *cost, x0],
+        [(N, nu * nu), (N, nx * nx), (N, nx), (N, nu), (N, nx), (N, nx)],
         interpret,
-        _tables(tables),
+        _tables("blocks", tables),
+        shared=shared,
     )
-    return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x
+    return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x, base_u, base_x, rp
 
 
 @functools.cache
@@ -571,22 +706,23 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
     ("blocks") for one problem (arrays without the batch axis; a batch of one), and under
     ``vmap`` for the batch (``jax.custom_batching.custom_vmap``); unbatched inputs are
     broadcast. The arguments are the 11 row arrays, the kernel's other arrays, then
-    ``n_scalars`` scalars a problem, then (``tabled``) the tables Fu, wx, rho (and Q, R for
-    "blocks") and the problem's index, which the kernel reads instead of those arrays where
-    the tables are shared and the index batched (:class:`rvdjax.solver.riccati.ModelTable`).
-    Without tables, :func:`pd_blocks` reads cost blocks Q, R shared by the batch as a table
-    of one, not as a copy for every problem."""
-    n_tables = (6 if kind == "blocks" else 4) if tabled else 0
+    ``n_scalars`` scalars a problem, then (``tabled``) the tables of
+    :data:`_TABLE_POSITIONS` (Fu, wx, rho; and Q, R for "blocks"; Q, R, A, B for "step") and
+    the problem's index, which the kernel reads instead of those arrays where the tables are
+    shared and the index batched (:class:`rvdjax.solver.riccati.ModelTable`). Without tables,
+    the kernels read the cost blocks and the model of :data:`_SHAREABLE` that a batch shares
+    as a table of one, not as a copy for every problem."""
+    n_tables = len(_TABLE_POSITIONS[kind]) + 1 if tabled else 0
 
     def run(args, tables=None):
         rows, rest = args[:11], args[11 : len(args) - n_scalars]
-        scalars = jnp.stack(args[len(args) - n_scalars :]) if n_scalars else None
+        scalars = args[len(args) - n_scalars :]
         if kind == "blocks":
-            out = pd_blocks(rows, *rest, interpret, tables)
+            out = pd_blocks(rows, *rest[:2], rest[2:-1], rest[-1], interpret, tables)
         elif kind == "rows":
             out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
         else:
-            out = pd_step_rows(rows, *rest, scalars, interpret, tables)
+            out = pd_step_rows(rows, *rest[:8], rest[8:], scalars, interpret, tables)
         return jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), out)
 
     @jax.custom_batching.custom_vmap
@@ -601,12 +737,17 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
         if tabled and not any(in_batched[n:-1]) and in_batched[-1]:
             *ts, index = args[n:]
             tables = (index, *ts)
-        elif kind == "blocks" and not any(in_batched[12:14]):
+        elif any(not in_batched[p] for p in _SHAREABLE[kind]):
             one = jnp.zeros((axis_size,), jnp.int32)
-            tables = (one, None, None, None, args[12][None], args[13][None])
+            tables = (one,) + tuple(
+                None if p not in _SHAREABLE[kind] or in_batched[p] else args[p][None]
+                for p in _TABLE_POSITIONS[kind]
+            )
         full = [
-            jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
-            for a, bt in zip(args[:n], in_batched[:n], strict=True)
+            a
+            if not bt and i in _SHARED[kind]
+            else jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
+            for i, (a, bt) in enumerate(zip(args[:n], in_batched[:n], strict=True))
         ]
         out = run(full, tables)
         return out, jax.tree.map(lambda _: True, out)
