@@ -124,19 +124,25 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
     passes an optimisation barrier with the iterate in each iteration, so that the model it
     rebuilds (:func:`~rvdjax.loop.engine.slots.model_of`: thesis-vbar's from the phase) is
     not hoisted out of the loop and stored, but computed in each fusion that reads it: a tenth
-    fewer bytes a thesis-vbar tick (docs/benchmark.md). On the CPU the hoisted model stays
-    (as fast there)."""
+    fewer bytes a thesis-vbar tick (docs/benchmark.md). The kernels' model tables, the
+    parameters' alone, are built once before the iterations. On the CPU the hoisted model
+    stays (as fast there)."""
     loop = ctx.loop
     settings = loop.config.settings
 
     def iterations(slot):
         params, sp = ctx.params_of(slot)
+        table0 = ctx.problem_of(slot, params)[1]
 
         def body(_, st):
             g, st = cuda_or_default(
                 (slot.guidance, st), cuda=lax.optimization_barrier, default=lambda gs: gs
             )
             ocp, table = ctx.problem_of(slot._replace(guidance=g), params)
+            if table is not None:
+                # the tables (the parameters' alone) built once a tick, not at each
+                # iteration: six launches an iteration on a GPU (docs/benchmark.md)
+                table = table0._replace(index=table.index)
             return iterate(ocp, settings, sp, st, table)
 
         return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
