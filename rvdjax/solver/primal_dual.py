@@ -122,19 +122,24 @@ def _newton_blocks(ocp, rows, st: PDState, su, sx):
     return Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp
 
 
+def _kernel_model(ocp, table):
+    """The model [B, A] of the blocks' and the step's kernels (as the Riccati kernels' rules
+    form it; unused, and not formed, where the kernels read the tables) and their tables
+    (Fu, wx, rho, Q, R, [B, A], index) where ``table`` has them all, else ()."""
+    model = jnp.concatenate([ocp.B, ocp.A], axis=-1)
+    if table is None or table.Fu is None or table.Q is None:
+        return model, ()
+    return model, (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
+
+
 def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None):
     """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one sweep that reads Fx once
     and forms the cost's gradient and the dynamics' residual too (the input rows' targets are
     zero: g_u is base_u). ``table``: the model's table, whose input rows, soft rows' mask and
     penalty, cost blocks and model [B, A] the kernel reads where it has them all."""
     del sx  # the kernel forms s - g itself
-    tabled = table is not None and table.Fu is not None and table.Q is not None
-    tables = ()
-    if tabled:
-        tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
-    fn = rows_kernel.batched("blocks", 0, None, interpret, tabled)
-    # [B, A] as the Riccati kernels' rules form it (unused, and not formed, with a table)
-    model = jnp.concatenate([ocp.B, ocp.A], axis=-1)
+    model, tables = _kernel_model(ocp, table)
+    fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables))
     cost = (ocp.Q, ocp.R, model, ocp.q, ocp.r, ocp.x_ref, ocp.c, ocp.x0[None])
     out = fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables)
     Phi_u, Phi_x, g_x, base_u, base_x, rp = out
@@ -344,13 +349,8 @@ def _step_in_kernel(
     from which it forms the targets ``taus`` and ``h`` again; ``table`` as
     :func:`_blocks_in_kernel`, whose model [B, A] it reads too)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
-    tabled = table is not None and table.Fu is not None and table.Q is not None
-    tables = ()
-    if tabled:
-        tables = (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
-    # [B, A] as the Riccati kernels' rules form it (unused, and not formed, with a table)
-    model = jnp.concatenate([ocp.B, ocp.A], axis=-1)
-    fn = rows_kernel.batched("step", 3, None, interpret, tabled)
+    model, tables = _kernel_model(ocp, table)
+    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables))
     new, sc, finite = fn(
         *_kernel_rows(rows, st, su),
         step.dx,

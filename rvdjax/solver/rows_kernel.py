@@ -477,11 +477,12 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
     are read from the tables at each problem's index instead (their ``ins`` are not used).
     ``aliases``: {input position: output position} written in the input's buffer (the kernel
     reads each stage of such an input before it writes that stage of the output).
-    ``shared``: positions of inputs (N, ...) without the problem axis, shared by the batch
-    (:class:`_Shared`)."""
+    ``shared``: positions of inputs that may come without the problem axis, shared by the
+    batch (:class:`_Shared`): those given with one dimension less than the problem's (N, e)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]
+    shared = {i for i in shared if ins[i].ndim == 2}
     cfg = dataclasses.replace(lanes.default_config(), interpret=interpret)
     L = cfg.block
     b_pad = -(-b // L) * L
@@ -643,7 +644,6 @@ def pd_step_rows(
     N, mx, nx, b = rows[0].shape
     mu, n_u = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, n_u)
-    shared = tuple(22 + i for i, a in enumerate(cost[3:]) if a.ndim == 2)
     _, _, _, _, *new, sc = _launch(
         functools.partial(_step_kernel, dims, N),
         "rvdjax_pd_step_rows",
@@ -657,7 +657,7 @@ def pd_step_rows(
         # the solver loop's carry (counted for an H100: 8 copies an iteration, 35 KB a
         # thesis-vbar slot read and written)
         {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
-        shared,
+        _SHARED["step"],
     )
     sc = sc[0]
     return tuple(new), sc[:4], sc[4] > 0
@@ -687,7 +687,6 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
     N, mx, nx, b = rows[0].shape
     mu, nu = rows[10].shape[1], u.shape[1]
     dims = (mx, mu, nx, nu)
-    shared = tuple(16 + i for i, a in enumerate(cost[3:]) if a.ndim == 2)
     Pu, Px, g_x, base_u, base_x, rp = _launch(
         functools.partial(_blocks_kernel, dims, N),
         "rvdjax_pd_blocks",
@@ -695,7 +694,7 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
         [(N, nu * nu), (N, nx * nx), (N, nx), (N, nu), (N, nx), (N, nx)],
         interpret,
         _tables("blocks", tables),
-        shared=shared,
+        shared=_SHARED["blocks"],
     )
     return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x, base_u, base_x, rp
 

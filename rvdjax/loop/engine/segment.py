@@ -132,7 +132,7 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
 
     def iterations(slot):
         params, sp = ctx.params_of(slot)
-        table0 = ctx.problem_of(slot, params)[1]
+        table0 = table_of(model_of(loop, params, slot.guidance))
 
         def body(_, st):
             g, st = cuda_or_default(
