@@ -509,7 +509,7 @@ def main(argv=None) -> int:
         default="xla,pallas",
         help="Newton-step forms: auto, xla, unrolled, pallas (block I/O, then entry-wise, at"
         " the largest batch), pallas-block-io, pallas-block-factor, pallas-block-fused,"
-        " pallas-block-rows (at every batch)",
+        " pallas-block-rows, pallas-rows (at every batch)",
     )
     ap.add_argument("--sizes", default=None, help="batch sizes, comma-separated (1,16384,65536)")
     ap.add_argument("--unrolls", default="", help="stages a loop trip for extra unrolled rows")

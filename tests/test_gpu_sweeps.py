@@ -430,3 +430,44 @@ def test_gpu_benchmark_refuses_bad_input_in_one_line(argv, message, tmp_path, ca
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and message in out[0]
     assert not (tmp_path / "out").exists()  # refused before anything is written
+
+
+_PTXAS = """ptxas info    : 0 bytes gmem
+ptxas info    : Compiling entry function 'rvdjax_pd_step_rows' for 'sm_90a'
+ptxas info    : Function properties for rvdjax_pd_step_rows
+    6144 bytes stack frame, 22560 bytes spill stores, 32640 bytes spill loads
+ptxas info    : Used 32 registers, used 1 barriers, 6144 bytes cumulative stack size
+ptxas info    : Compile time = 1534.448 ms
+ptxas info    : Compiling entry function 'rvdjax_pd_rows' for 'sm_90a'
+ptxas info    : Function properties for rvdjax_pd_rows
+    72 bytes stack frame, 88 bytes spill stores, 92 bytes spill loads
+ptxas info    : Used 255 registers, used 1 barriers, 72 bytes cumulative stack size
+"""
+
+
+def test_registers_report_reads_ptxas_and_the_occupancy_follows(tmp_path):
+    """sweeps/gpu_registers.py: ptxas' report parsed kernel by kernel, and the programs a
+    Hopper multiprocessor holds from the registers (65 536 a multiprocessor, allocated 256 a
+    warp: 255 registers and 4 warps a program give 2 programs, as NVIDIA's occupancy
+    calculator does; 168 give 3; 32 are held to 16 by the 64-warp limit; one-warp programs to
+    32 by the program limit)."""
+    gr = _import("gpu_registers")
+    got = gr.parse_ptxas(_PTXAS)
+    step = dict(registers=32, stack=6144, spill_stores=22560, spill_loads=32640)
+    rows_ = dict(registers=255, stack=72, spill_stores=88, spill_loads=92)
+    assert got == {"rvdjax_pd_step_rows": step, "rvdjax_pd_rows": rows_}
+    assert [gr.programs_per_sm(r, 128) for r in (255, 168, 128, 32)] == [2, 3, 4, 16]
+    assert gr.programs_per_sm(64, 32) == 32
+    # 4 096 problems in programs of 128: 32 programs over 132 multiprocessors
+    assert gr.warps_at(4096, 128, 128, 2) == pytest.approx(4 * 32 / 132)
+    assert gr.warps_at(65536, 128, 128, 2) == 8  # 512 programs: 2 a multiprocessor at once
+    rows = [dict(kernel="k", registers=255, stack=72, spill_stores=88, spill_loads=92,
+                 barriers=3, shared=8, programs_per_sm=2,
+                 warps_per_sm={4096: 0.97, 32768: 7.76})]  # fmt: skip
+    table = gr.format_table(rows, [4096, 32768]).splitlines()
+    assert table[2] == "| k | 255 | 72 | 88 / 92 | 3 | 8 | 2 | 1.0 | 7.8 |"
+    ptx = tmp_path / "k.ptx"
+    ptx.write_text(".reqntid 64, 1, 1\n\tbar.sync \t0;\n\tst.shared.b64 [%r1], %rd2;\n"
+                   "\tld.shared.v2.b64 {%rd3, %rd4}, [%r5];\n\tbar.sync \t0;\n")  # fmt: skip
+    assert gr.ptx_counts(str(ptx)) == dict(barriers=2, shared=2)
+    assert gr.threads_of(str(ptx)) == 64

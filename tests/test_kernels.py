@@ -85,7 +85,8 @@ def _random(name, n):
                 "pallas-block-fused",
             )
         ),
-        "pallas-block-rows",
+        pytest.param("pallas-block-rows", marks=pytest.mark.slow),
+        "pallas-rows",
         "unrolled",
     ],
 )
@@ -154,7 +155,15 @@ def _random_rows_inputs(key, rows=None, N=5, mx=3, mu=4, nx=6, nu=3):
     return (rows, st, normal(N, nu), normal(N, nx), su, sx, step, h, m_eff)
 
 
-def test_the_rows_kernel_forms_the_xla_corrector_rhs():
+# The row kernels read and write a stage entry by entry (the default on a GPU) or as blocks
+# (``"pallas-block-rows"``, in the slow run): the same arithmetic, other loads and stores.
+ROW_IO = pytest.mark.parametrize(
+    "block_io", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["entries", "blocks"]
+)
+
+
+@ROW_IO
+def test_the_rows_kernel_forms_the_xla_corrector_rhs(block_io):
     """The accurate mode's row work between its two solves as one kernel
     (rvdjax.solver.rows_kernel, interpreted), against XLA's form (primal_dual._corrector_rhs)
     on random interior iterates with masked rows: one problem and a vmapped batch whose rows
@@ -166,7 +175,7 @@ def test_the_rows_kernel_forms_the_xla_corrector_rhs():
 
     def both(args):
         want = pd._corrector_rhs(*args)
-        got = pd._rows_in_kernel(*args, interpret=True)
+        got = pd._rows_in_kernel(*args, interpret=True, block_io=block_io)
         return want, got
 
     def check(want, got):
@@ -214,7 +223,8 @@ def _random_cost(key, N=5, nx=6, nu=3, model=None, cost=None):
     return OCP(A, B, c, x0, Q, R, normal(N, nx), normal(N, nx), normal(N, nu), *none)
 
 
-def test_the_step_kernel_takes_the_xla_step():
+@ROW_IO
+def test_the_step_kernel_takes_the_xla_step(block_io):
     """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
     primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
     iterates, the predictor's row products and a random corrector step, eight problems of a
@@ -254,7 +264,8 @@ def test_the_step_kernel_takes_the_xla_step():
         step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
         args = (ocp, rows, st, su, sx, step, taus, h, stop)
         want = pd._step_xla(*args)
-        got = pd._step_in_kernel(*args, aff=(Fdu_a, Fdx_a, alpha_a, kappa), interpret=True)
+        rows_a = (Fdu_a, Fdx_a, alpha_a, kappa)
+        got = pd._step_in_kernel(*args, aff=rows_a, interpret=True, block_io=block_io)
         return st, want, got
 
     # eight problems of one batch: steps taken, one with a NaN, one stopped, four emphases
@@ -294,7 +305,8 @@ def test_the_step_kernel_takes_the_xla_step():
             assert _rel(np.asarray(w, float), np.asarray(g, float)) <= 1e-12
 
 
-def test_the_blocks_kernel_forms_the_xla_newton_blocks():
+@ROW_IO
+def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
     """The predictor's Newton blocks as one kernel (rows_kernel.pd_blocks, interpreted):
     Phi_u, Phi_x, the right-hand side, the cost's gradient and the dynamics' residual against
     XLA's primal_dual._newton_blocks to 1e-12 relative, from random interior iterates with masked
@@ -318,7 +330,8 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks():
             assert _rel(w, g) <= 1e-12
 
     def both(a, table=None):
-        return pd._newton_blocks(*a), pd._blocks_in_kernel(*a, interpret=True, table=table)
+        got = pd._blocks_in_kernel(*a, interpret=True, table=table, block_io=block_io)
+        return pd._newton_blocks(*a), got
 
     one = args_of(jax.random.key(41))
     check(*jax.jit(both)(one))
@@ -358,7 +371,8 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks():
     check(want, got)
 
 
-def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
+@ROW_IO
+def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for(block_io):
     """With the input rows and the soft rows' mask and penalty (and, for the step's kernel,
     the cost blocks and the model [B, A]) given as tables of K = 3 and each problem's index
     (the batch engine's phase tables; the input rows before the problem's own mask zeroes
@@ -393,8 +407,8 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
     cost = jax.tree.map(lambda *a: jnp.stack(a), *costs)
 
     def both(table, cost, *args):
-        plain = pd._rows_in_kernel(*args, interpret=True)
-        tabled = pd._rows_in_kernel(*args, interpret=True, table=table)
+        plain = pd._rows_in_kernel(*args, interpret=True, block_io=block_io)
+        tabled = pd._rows_in_kernel(*args, interpret=True, table=table, block_io=block_io)
         rows, st, _, _, su, sx, step, h, _ = args
         Fdu_a, Fdx_a, alpha_a, kappa = plain[2:]
         taus = pd._targets(
@@ -406,7 +420,8 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for():
         step_args = (cost, rows, st, su, sx, step, taus, h_c, jnp.asarray(False))
         aff = (Fdu_a, Fdx_a, alpha_a, kappa)
         steps = [
-            pd._step_in_kernel(*step_args, aff=aff, interpret=True, table=t) for t in (None, table)
+            pd._step_in_kernel(*step_args, aff=aff, interpret=True, table=t, block_io=block_io)
+            for t in (None, table)
         ]
         return (plain, *steps[:1]), (tabled, *steps[1:])
 
@@ -502,7 +517,8 @@ def test_the_kernels_read_a_model_table_as_the_copies_it_stands_for(form):
     the Riccati kernels (interpreted) compute, bit for bit, what they compute from the [B, A]
     copy each problem would otherwise carry, with block loads (and their refinement) and
     entry by entry; the solver's form for a CUDA GPU passes them the table and not the
-    copies."""
+    copies (the factorisation's flattened for its block loads, the refined solve's as it is,
+    read entry by entry)."""
     from rvdjax.solver import riccati
 
     rng = np.random.default_rng(3)
@@ -544,8 +560,10 @@ def test_the_kernels_read_a_model_table_as_the_copies_it_stands_for(form):
         for e in _eqns(jaxpr.jaxpr)
         if e.primitive.name == "pallas_call" and "riccati" in str(e.params["name"])
     ]
-    want = [f"float64[{K},{N},{nx * (nu + nx)}]", f"int32[{-(-b // BLOCK) * BLOCK}]"]
-    assert len(models) == 4 and all(m == want for m in models), models  # CPU's and CUDA's
+    lanes_ = f"int32[{-(-b // BLOCK) * BLOCK}]"
+    flat = [f"float64[{K},{N},{nx * (nu + nx)}]", lanes_]  # the factorisation's block loads
+    entries = [f"float64[{K},{N},{nx},{nu + nx}]", lanes_]  # the refined solve's, by entry
+    assert models == [flat, flat, entries, entries], models  # CPU's and CUDA's of each
 
 
 def _eqns(jaxpr):
@@ -570,15 +588,17 @@ def _triton_calls(text):
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
         # "pallas-block-fused": the factorisation with the predictor's step, and the
-        # corrector's step with its refinement; in "pallas-block-rows", the default on a
-        # GPU, the row work before, between and after them three more); loops: the solve
-        # alone (the start's drift of the warm-start inputs is unrolled on a GPU) (the opt-in
-        # forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
+        # corrector's step with its refinement; in "pallas-rows", the default on a GPU, and
+        # "pallas-block-rows", the row work before, between and after them three more);
+        # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on a
+        # GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s
+        # each)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
         pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
+        pytest.param(SolverSettings(), 5, 1, "pallas-block-rows", marks=pytest.mark.slow),
         (SolverSettings(), 5, 1, "auto"),
         # paper: factorisation + step; loops: the solve, the line search (the count of
         # launches and loops is the mode's, whichever kernels run them)
@@ -592,7 +612,9 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     Triton kernels on a CUDA GPU are those of ``AUTO_ON_CUDA``, launch for launch) hold the
     Riccati sweeps as ``kernels`` Triton kernels and no loop over stages beyond the solve
     loop and (paper mode) the line search: the start's drift is unrolled; ``kernel="xla"``
-    keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops."""
+    keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops (these
+    three checks in paper mode only: the choice is the same in either mode, and the accurate
+    mode's lowering is the slowest)."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
@@ -601,7 +623,7 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     for text in (batched, single):
         assert text.count("__gpu$xla.gpu.triton") == kernels
         assert text.count("stablehlo.while") == loops
-    if variant != "auto":
+    if variant != "auto" or settings.mode != "paper":
         return
     chosen = dataclasses.replace(settings, kernel=AUTO_ON_CUDA)
     chosen = _cuda_text(jax.vmap(lambda o: solve(o, chosen)), ocps)
@@ -664,7 +686,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is "pallas-block-rows" on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-rows" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -674,7 +696,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-block-rows"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-rows"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
@@ -682,7 +704,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
 
 @pytest.mark.slow  # interpreted kernels in a closed loop: ~60 s
 def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
-    """The batch engine with the default GPU form of the Newton step ("pallas-block-rows":
+    """The batch engine with the default GPU form of the Newton step ("pallas-rows":
     the Newton blocks, the factorisation with the predictor's step, the row work between the
     solves, the corrector's step with its refinement and its update; interpreted) flies
     thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's loops:

@@ -200,8 +200,9 @@ def _refined(kernel, axes=None):
 @pytest.mark.parametrize("shared", [False, True])
 def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
     """``kkt_solve_refined``: a step and one step of iterative refinement. With the kernel
-    that forms the refinement's residual inside its sweeps ("pallas-block-fused",
-    interpreted: two tiles of 8 lanes, the last padded; and one problem alone), the model
+    that forms the refinement's residual inside its sweeps ("pallas-rows", the default on a
+    GPU, entry by entry, interpreted: two tiles of 8 lanes, the last padded; and one problem
+    alone), the model
     per problem or shared by the batch, it gives XLA's two solves with the residual between
     them to 1e-12, and the dense solve to 1e-9, from a factorisation whose first step is
     1e-7 off."""
@@ -222,9 +223,9 @@ def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
     axes = K.KKT(model, model, 0, 0, K.RiccatiFactor(model, 0, 0, 0, 0))
     rhs = data[4:]
     with lanes.configured(block=8):
-        got = _refined("pallas-block-fused", axes)(kkt, *rhs)
+        got = _refined("pallas-rows", axes)(kkt, *rhs)
         first = jax.tree.map(lambda a, x: a if x is None else a[x], kkt, axes)
-        alone = _refined("pallas-block-fused")(first, *(r[0] for r in rhs))
+        alone = _refined("pallas-rows")(first, *(r[0] for r in rhs))
     want = _refined("xla", axes)(kkt, *rhs)
     plain = jax.vmap(
         functools.partial(K.kkt_solve, method="riccati", kernel="xla"), (axes, 0, 0, 0)
@@ -251,7 +252,7 @@ def test_the_refined_step_differentiates_as_its_dot_form():
         return jnp.sum(s.du**2) + jnp.sum(s.dx * s.nu)
 
     h = 1e-5
-    for kernel in ("xla", "pallas-block-fused", "unrolled"):
+    for kernel in ("xla", "pallas-rows", "unrolled"):
         g = float(jax.grad(loss)(1.3, kernel))
         fd = (float(loss(1.3 + h, kernel)) - float(loss(1.3 - h, kernel))) / (2 * h)
         assert g == pytest.approx(fd, rel=1e-6), kernel

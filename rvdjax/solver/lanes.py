@@ -24,11 +24,12 @@ right-hand side). They compute the recursion of :mod:`rvdjax.solver.riccati` in 
 order (the Joseph form, the refined gain K), so their results agree with the XLA form to
 rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
 ``SolverSettings(kernel="pallas")`` (or ``"pallas-block-io"``, ``"pallas-block-factor"``,
-``"pallas-fused"``, ``"pallas-block-fused"``, ``"pallas-block-rows"``: :class:`KernelConfig`),
-and ``kernel="auto"`` runs ``"pallas-block-rows"`` when a program is compiled for a CUDA GPU:
-an accurate-mode iteration is then the factorisation with the predictor's step, the row work
-between the solves (:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its
-refinement, and its row work. The other forms call :func:`factor` then
+``"pallas-fused"``, ``"pallas-block-fused"``, ``"pallas-block-rows"``, ``"pallas-rows"``:
+:class:`KernelConfig`), and ``kernel="auto"`` runs ``"pallas-rows"`` when a program is
+compiled for a CUDA GPU: an accurate-mode iteration is then the Newton blocks, the
+factorisation with the predictor's step (block loads and stores), the row work between the
+solves (:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its refinement and its
+row work (entry by entry). The other forms call :func:`factor` then
 :func:`apply` (and :func:`apply` again for the refinement): on one H200 (jax 0.11.2, CUDA 13,
 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and :func:`apply` in about
 3 s, where the entry-wise :func:`factor_solve` had not finished in 165 s on an H100; with
@@ -87,11 +88,14 @@ class KernelConfig:
             Triton's compile time is its coalescing pass, which costs about (loads and
             stores) x (kernel size)^2 (``sweeps/triton_compile_profile.py``); this cuts the
             loads and stores from hundreds to a few.
-        solve_block_io: with ``block_io``, the solves (:func:`apply`) load and store blocks
-            too; without it (the solver: ``kernel="pallas-block-factor"``) only the
-            factorisation does, and the solves read the factorisation, the model and the
-            right-hand sides entry by entry, straight from their arrays (a solve's kernel is
-            small enough to compile in seconds either way).
+        solve_block_io: with ``block_io``, the solves (:func:`apply`, :func:`apply_refined`)
+            load and store blocks too; without it (the solver: ``kernel="pallas-block-factor"``
+            and ``"pallas-rows"``) only the factorisation does, and the solves read the
+            factorisation, the model and the right-hand sides entry by entry, straight from
+            their arrays (a solve's kernel is small enough to compile in seconds either way).
+            A block's split into lane vectors and join back pass through shared memory, with a
+            barrier each: assembled by ptxas for an H100, the block form of the refined solve
+            holds 585 barriers, the entry-wise form none (``sweeps/gpu_registers.py``).
         padded_blocks: with ``block_io``, the block arrays hold each stage's entries padded to a
             power of two (one load or store a stage, but a padded copy of every input and a
             slice of every output outside the kernel), instead of the entries as they are,
@@ -312,6 +316,15 @@ class _Gathered:
         self.chunks = _chunks(ref.shape[2]) if block else None
 
 
+class _Entries:
+    """A ``[stage][entry][problem]`` ref, entries flattened, read and written entry by entry
+    (the row kernels without block I/O): no shared memory and no barrier, where a
+    :class:`_Block`'s split and join pass through both."""
+
+    def __init__(self, ref):
+        self.ref, self.dtype = ref, ref.dtype
+
+
 def _block_entries(ref, t):
     """The lane vectors of stage t's entries, read chunk by chunk (a :class:`_Block`, or a
     :class:`_Gathered` with block loads, whose chunks are (lanes, size))."""
@@ -330,8 +343,14 @@ def _block_entries(ref, t):
 def _load(ref, t, *shape):
     """The (shape) entries of stage t of a [stage][entry...][problem] ref (or of the lanes'
     models in a :class:`_Gathered` table)."""
+    flat = None
     if isinstance(ref, _Block) or (isinstance(ref, _Gathered) and ref.chunks is not None):
         flat = _block_entries(ref, t)
+    elif isinstance(ref, _Entries):
+        flat = [ref.ref[t, k] for k in range(math.prod(shape))]
+    elif isinstance(ref, _Gathered) and ref.ref.ndim == 3:  # a flattened table, by entry
+        flat = [ref.ref[ref.index, t, k] for k in range(math.prod(shape))]
+    if flat is not None:
         if len(shape) == 1:
             return flat[: shape[0]]
         return [flat[i * shape[1] : (i + 1) * shape[1]] for i in range(shape[0])]
@@ -361,6 +380,12 @@ def _model_refs(refs, model: str, block_io: bool, padded: bool):
 
 
 def _store(ref, t, X):
+    if isinstance(ref, _Entries):
+        flat = [v for row in X for v in row] if isinstance(X[0], list) else list(X)
+        like = next(v for v in flat if v is not None)
+        for k, v in enumerate(flat):
+            ref.ref[t, k] = jnp.zeros_like(like) if v is None else v
+        return
     if isinstance(ref, _Block):
         flat = [v for row in X for v in row] if isinstance(X[0], list) else list(X)
         like = next(v for v in flat if v is not None)
@@ -613,7 +638,7 @@ def _call(
         M_table, M = M, M[0]
     N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
     b = mats[-1].shape[-1]
-    block_io = cfg.block_io and (factorise or refine or cfg.solve_block_io)
+    block_io = cfg.block_io and (factorise or cfg.solve_block_io)
     lanes = cfg.block
     b_pad = -(-b // lanes) * lanes
     model_batched = M.ndim == 4

@@ -29,7 +29,7 @@ from rvdjax.solver.barrier import (
     x_violation,
 )
 from rvdjax.solver.kkt import kkt_factor_solve, kkt_solve_refined
-from rvdjax.solver.riccati import AUTO_ON_CUDA, ROWS_IN_KERNEL, cuda_or_default
+from rvdjax.solver.riccati import AUTO_ON_CUDA, ROWS_BLOCK_IO, ROWS_IN_KERNEL, cuda_or_default
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -132,14 +132,15 @@ def _kernel_model(ocp, table):
     return model, (table.Fu, table.x_mask, table.rho, table.Q, table.R, table.M, table.index)
 
 
-def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None):
+def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None, block_io=True):
     """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one sweep that reads Fx once
     and forms the cost's gradient and the dynamics' residual too (the input rows' targets are
     zero: g_u is base_u). ``table``: the model's table, whose input rows, soft rows' mask and
-    penalty, cost blocks and model [B, A] the kernel reads where it has them all."""
+    penalty, cost blocks and model [B, A] the kernel reads where it has them all;
+    ``block_io``: :func:`rvdjax.solver.rows_kernel.batched`'s)."""
     del sx  # the kernel forms s - g itself
     model, tables = _kernel_model(ocp, table)
-    fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables))
+    fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables), block_io)
     cost = (ocp.Q, ocp.R, model, ocp.q, ocp.r, ocp.x_ref, ocp.c, ocp.x0[None])
     out = fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables)
     Phi_u, Phi_x, g_x, base_u, base_x, rp = out
@@ -233,13 +234,13 @@ def _row_tables(table) -> tuple:
 
 
 def _rows_in_kernel(
-    rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret, table=None
+    rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff, interpret, table=None, block_io=True
 ):
     """:func:`_corrector_rhs` by :mod:`rvdjax.solver.rows_kernel` (which reads the input rows
     and the soft rows' mask and penalty from ``table``'s, where it has them)."""
     rule = rows_kernel.SigmaRule(SIGMA_FLOOR, SIGMA_FLOOR_RES)
     tables = _row_tables(table)
-    fn = rows_kernel.batched("rows", 3, rule, interpret, bool(tables))
+    fn = rows_kernel.batched("rows", 3, rule, interpret, bool(tables), block_io)
     m_eff = jnp.asarray(m_eff, st.gap.dtype)
     return fn(
         *_kernel_rows(rows, st, su),
@@ -259,6 +260,9 @@ def _by_kernel(args, kernel: str, xla, in_kernel):
     the GPU kernels of :data:`ROWS_IN_KERNEL` (compiled on a CUDA GPU, interpreted elsewhere,
     as riccati._by_platform chooses; ``kernel="auto"``: compiled on a CUDA GPU, XLA's form
     elsewhere)."""
+    on_cuda = AUTO_ON_CUDA if kernel == "auto" else kernel
+    # the row kernels' loads and stores: a stage's blocks in the block form's name
+    in_kernel = functools.partial(in_kernel, block_io=on_cuda in ROWS_BLOCK_IO)
     compiled = functools.partial(in_kernel, interpret=False)
     if kernel == "auto":
         if AUTO_ON_CUDA not in ROWS_IN_KERNEL:
@@ -342,7 +346,7 @@ def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
 
 
 def _step_in_kernel(
-    ocp, rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None
+    ocp, rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None, block_io=True
 ):
     """:func:`_step_xla` by :func:`rows_kernel.pd_step_rows`, which also takes the step and
     forms the stopping test's terms (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa,
@@ -350,7 +354,7 @@ def _step_in_kernel(
     :func:`_blocks_in_kernel`, whose model [B, A] it reads too)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
     model, tables = _kernel_model(ocp, table)
-    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables))
+    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables), block_io)
     new, sc, finite = fn(
         *_kernel_rows(rows, st, su),
         step.dx,

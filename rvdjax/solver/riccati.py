@@ -336,8 +336,14 @@ def _lane_ops(impl):
         lanes.default_config(),
         interpret=interpret,
         block_io=kernel
-        in ("pallas-block-io", "pallas-block-factor", "pallas-block-fused", "pallas-block-rows"),
-        solve_block_io=kernel != "pallas-block-factor",
+        in (
+            "pallas-block-io",
+            "pallas-block-factor",
+            "pallas-block-fused",
+            "pallas-block-rows",
+            "pallas-rows",
+        ),
+        solve_block_io=kernel not in ("pallas-block-factor", "pallas-rows"),
         fused=kernel in REFINED_IN_KERNEL,
     )
     factor, apply, apply_refined = (
@@ -432,7 +438,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-block-rows"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-rows"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -512,19 +518,23 @@ def _by_platform(kernel: str, xla, pallas, *args):
     factorisation only, "pallas-fused" with the factorisation and first step in one kernel
     (and a step with its refinement in another), "pallas-block-fused" the same with block
     loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`), "pallas-block-rows" that and
-    the accurate mode's row work as two more kernels, one between the solves and one after
-    them (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`); "unrolled"
+    the accurate mode's row work as three more kernels, before the solves, between them and
+    after them (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`),
+    "pallas-rows" the same with the solves and the row work entry by entry; "unrolled"
     runs the kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs
     :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops elsewhere, chosen when the program is
     lowered for its device.
 
-    Why "auto" picks "pallas-block-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
+    Why "auto" picks "pallas-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
     form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
     kernel's sweeps, the fused kernels move 12 % fewer bytes an accurate iteration than it
     (65 536 fastmpc-3d QPs) and the rows kernels 11-12 % fewer a tick of the batch engine
-    than the fused kernels alone, where the bytes set the pace (docs/benchmark.md; not yet
-    timed on a GPU). On the CPU XLA's loops are the fastest form (the kernels are only interpreted
-    there). The measurements are in docs/solver.md."""
+    than the fused kernels alone, where the bytes set the pace; with the rows and the solves
+    entry by entry rather than in blocks, the same bytes pass through no shared memory and no
+    barrier, and no kernel of thesis-vbar's engine falls to 32 registers and kilobytes of
+    spills (ptxas for sm_90a; docs/benchmark.md; none of these timed on a GPU yet). On the
+    CPU XLA's loops are the fastest form (the kernels are only interpreted there). The
+    measurements are in docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
     if kernel == "auto":
@@ -640,8 +650,8 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto", table=None) -> Ricc
             Phi_x positive semidefinite).
         kernel: "auto" (:data:`AUTO_ON_CUDA` on a CUDA GPU, else XLA's loops), "xla"
             (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor",
-            "pallas-fused", "pallas-block-fused" or "pallas-block-rows" (the kernels of
-            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
+            "pallas-fused", "pallas-block-fused", "pallas-block-rows" or "pallas-rows" (the
+            kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
             "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
         table: a :class:`ModelTable` whose entry is [B, A], or None: under ``vmap`` with the
             table shared and its index batched, the kernels read the model from it.
@@ -683,10 +693,12 @@ riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
 
 # the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
 # residual formed by XLA and one more solve (rvdjax.solver.kkt.kkt_solve_refined)
-REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused", "pallas-block-rows")
-# the forms whose accurate-mode iteration also runs its row work as kernels, between the two
-# solves and after them (rvdjax.solver.rows_kernel)
-ROWS_IN_KERNEL = ("pallas-block-rows",)
+REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused", "pallas-block-rows", "pallas-rows")
+# the forms whose accurate-mode iteration also runs its row work as kernels, before the first
+# solve, between the two and after them (rvdjax.solver.rows_kernel), and of those the one
+# whose row kernels load and store a stage's blocks (the other reads them entry by entry)
+ROWS_IN_KERNEL = ("pallas-block-rows", "pallas-rows")
+ROWS_BLOCK_IO = ("pallas-block-rows",)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(6,))

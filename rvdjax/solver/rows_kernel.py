@@ -36,7 +36,12 @@ into the old one's buffers. Otherwise the kernels compute the expressions of
 :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see
-:func:`pd_rows`.
+:func:`pd_rows`. The kernels read and write them entry by entry (``kernel="pallas-rows"``, the
+default on a CUDA GPU) or a stage's block at a time (``"pallas-block-rows"``): the same
+arithmetic. A block is split into lane vectors and joined back through shared memory with a
+barrier each: assembled by ptxas for an H100, the three kernels of thesis-vbar's engine held
+about 1 200 barriers that way and none entry by entry, and the step's kernel fell to 32
+registers with 22 KB of spill stores (``sweeps/gpu_registers.py``, docs/benchmark.md).
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ from rvdjax.solver.lanes import (
     _Block,
     _compiler_params,
     _dot,
+    _Entries,
     _Gathered,
     _load,
     _mtm,
@@ -423,7 +429,8 @@ def _blocks_kernel(dims, N, *refs):
     (these four per problem or :class:`_Shared`), the initial state x0 (1, nx); outputs
     Phi_u (N, nu nu), Phi_x (N, nx nx), g_x (N, nx), the cost's gradient base_u (N, nu),
     base_x (N, nx) and the dynamics' residual rp (N, nx). The residual at stage t needs the
-    previous stage's state: the sweep carries it."""
+    previous stage's state: a second sweep forms it, carrying the state (it reads u, x and the
+    model again, 3 KB a thesis-vbar problem)."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     u_r, x_r, Q_r, R_r, M_r, q_r, r_r, xref_r, c_r, x0_r = refs[11:21]
@@ -433,7 +440,7 @@ def _blocks_kernel(dims, N, *refs):
         scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
         return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
 
-    def stage(t, x_prev):
+    def stage(t, carry):
         rows = StageRows(dims, row_refs, t)
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
@@ -457,7 +464,14 @@ def _blocks_kernel(dims, N, *refs):
         _store(gx_out, t, g_x)
         _store(bu_out, t, base_u)
         _store(bx_out, t, base_x)
-        # the dynamics' residual x_t - A_t x_{t-1} - B_t u_t - c_t (barrier.dyn_residual)
+        return carry
+
+    def residual(t, x_prev):
+        # the dynamics' residual x_t - A_t x_{t-1} - B_t u_t - c_t (barrier.dyn_residual) in a
+        # sweep of its own, which carries the previous state: in the rows' sweep the model's
+        # entries beside the rows' made ptxas give the kernel 32 registers and 12 KB of spill
+        # stores (thesis-vbar's engine, sm_90a; sweeps/gpu_registers.py)
+        x, u = _load(x_r, t, nx), _load(u_r, t, nu)
         M = _load(M_r, t, nx, nu + nx)
         Ax, Bu = _mv([row[nu:] for row in M], x_prev), _mv([row[:nu] for row in M], u)
         rp = [
@@ -467,10 +481,11 @@ def _blocks_kernel(dims, N, *refs):
         _store(rp_out, t, rp)
         return x
 
-    jax.lax.fori_loop(0, N, stage, _load(x0_r, 0, nx))
+    jax.lax.fori_loop(0, N, stage, 0)
+    jax.lax.fori_loop(0, N, residual, _load(x0_r, 0, nx))
 
 
-def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=()):
+def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=(), block_io=True):
     """A kernel over tiles of problems: ``ins`` batch-last (N, ..., b) arrays, flattened a
     stage; ``outs`` the (N, entries) of each output; returns them (N, entries, b).
     ``tables``: (index (b,), {position: table (K, N, ...)}): the inputs at those positions
@@ -478,7 +493,10 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
     ``aliases``: {input position: output position} written in the input's buffer (the kernel
     reads each stage of such an input before it writes that stage of the output).
     ``shared``: positions of inputs that may come without the problem axis, shared by the
-    batch (:class:`_Shared`): those given with one dimension less than the problem's (N, e)."""
+    batch (:class:`_Shared`): those given with one dimension less than the problem's (N, e).
+    ``block_io``: the per-problem arrays and the tables read and written a stage's block at
+    a time (:class:`rvdjax.solver.lanes._Block`), else entry by entry
+    (:class:`rvdjax.solver.lanes._Entries`)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]
@@ -513,11 +531,13 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
             n = len(ins) - 1
             lane_index, refs = refs[n][...], refs[:n] + refs[n + 1 :]
         refs = [
-            _Gathered(r, lane_index, True)
+            _Gathered(r, lane_index, block_io)
             if i in by_pos
             else _Shared(r)
             if i in shared
             else _Block(r)
+            if block_io
+            else _Entries(r)
             for i, r in enumerate(refs)
         ]
         return body(*refs)
@@ -537,7 +557,16 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
 
 
 def pd_rows(
-    rows, dx, du, base_x, base_u, scalars, rule: SigmaRule, interpret: bool = False, tables=None
+    rows,
+    dx,
+    du,
+    base_x,
+    base_u,
+    scalars,
+    rule: SigmaRule,
+    interpret: bool = False,
+    tables=None,
+    block_io: bool = True,
 ):
     """The corrector's right-hand side from the predictor's step, for a batch.
 
@@ -555,7 +584,7 @@ def pd_rows(
 
     ``tables``: None, or (index (b,), Fu (K, N, mu, nu), wx (K, N, mx), rho (K, N, mx)):
     the kernel reads Fu (then zeroed where wu is off), wx and rho from the tables at each
-    problem's index instead of from ``rows``.
+    problem's index instead of from ``rows``. ``block_io``: as :func:`_launch`.
     """
     N, mx, nx, b = rows[0].shape
     mu, nu = rows[10].shape[1], du.shape[1]
@@ -568,6 +597,7 @@ def pd_rows(
         [(N, 3 * nu), (N, 3 * nx), (N, mu), (N, mx), (1, 1), (1, 1), (N, nu), (N, nx)],
         interpret,
         _tables("rows", tables),
+        block_io=block_io,
     )
     return g_u, g_x, Fdu, Fdx, alpha[0, 0], kappa[0, 0]
 
@@ -615,6 +645,7 @@ def pd_step_rows(
     scalars,
     interpret: bool = False,
     tables=None,
+    block_io: bool = True,
 ):
     """The corrector's step taken, for a batch: its row products, its step length (zero where
     the step or a row's step is not finite, or the solve is stopped), the new iterate, the
@@ -640,6 +671,7 @@ def pd_step_rows(
 
     ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]), each table (K, N, ...) or
     None: the kernel reads those given from the tables at each problem's index.
+    ``block_io``: as :func:`_launch`.
     """
     N, mx, nx, b = rows[0].shape
     mu, n_u = rows[10].shape[1], du.shape[1]
@@ -658,12 +690,13 @@ def pd_step_rows(
         # thesis-vbar slot read and written)
         {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
         _SHARED["step"],
+        block_io,
     )
     sc = sc[0]
     return tuple(new), sc[:4], sc[4] > 0
 
 
-def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
+def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None, block_io: bool = True):
     """The predictor's Newton system, for a batch: the Hessian blocks Phi_u = 2 R + Fu^T Du Fu
     and Phi_x = 2 Q + Fx^T diag(wx a c / (a + c)) Fx, the cost's gradient base_u = 2 R u + r,
     base_x = 2 Q (x - x_ref) + q, the state part of the right-hand side
@@ -683,6 +716,7 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
 
     ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]) with each table (K, N, ...)
     or None: the kernel reads those given from the tables at each problem's index.
+    ``block_io``: as :func:`_launch`.
     """
     N, mx, nx, b = rows[0].shape
     mu, nu = rows[10].shape[1], u.shape[1]
@@ -695,12 +729,20 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None):
         interpret,
         _tables("blocks", tables),
         shared=_SHARED["blocks"],
+        block_io=block_io,
     )
     return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x, base_u, base_x, rp
 
 
 @functools.cache
-def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, tabled=False):
+def batched(
+    kind: str,
+    n_scalars: int,
+    rule: SigmaRule | None,
+    interpret: bool,
+    tabled: bool = False,
+    block_io: bool = True,
+):
     """:func:`pd_rows` (``kind`` "rows"), :func:`pd_step_rows` ("step") or :func:`pd_blocks`
     ("blocks") for one problem (arrays without the batch axis; a batch of one), and under
     ``vmap`` for the batch (``jax.custom_batching.custom_vmap``); unbatched inputs are
@@ -710,18 +752,18 @@ def batched(kind: str, n_scalars: int, rule: SigmaRule | None, interpret: bool, 
     the problem's index, which the kernel reads instead of those arrays where the tables are
     shared and the index batched (:class:`rvdjax.solver.riccati.ModelTable`). Without tables,
     the kernels read the cost blocks and the model of :data:`_SHAREABLE` that a batch shares
-    as a table of one, not as a copy for every problem."""
+    as a table of one, not as a copy for every problem. ``block_io``: as :func:`_launch`."""
     n_tables = len(_TABLE_POSITIONS[kind]) + 1 if tabled else 0
 
     def run(args, tables=None):
         rows, rest = args[:11], args[11 : len(args) - n_scalars]
         scalars = args[len(args) - n_scalars :]
         if kind == "blocks":
-            out = pd_blocks(rows, *rest[:2], rest[2:-1], rest[-1], interpret, tables)
+            out = pd_blocks(rows, *rest[:2], rest[2:-1], rest[-1], interpret, tables, block_io)
         elif kind == "rows":
-            out = pd_rows(rows, *rest, scalars, rule, interpret, tables)
+            out = pd_rows(rows, *rest, scalars, rule, interpret, tables, block_io)
         else:
-            out = pd_step_rows(rows, *rest[:8], rest[8:], scalars, interpret, tables)
+            out = pd_step_rows(rows, *rest[:8], rest[8:], scalars, interpret, tables, block_io)
         return jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), out)
 
     @jax.custom_batching.custom_vmap

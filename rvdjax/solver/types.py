@@ -31,6 +31,7 @@ KERNELS = (
     "pallas-fused",
     "pallas-block-fused",
     "pallas-block-rows",
+    "pallas-rows",
     "unrolled",
 )
 
@@ -88,7 +89,7 @@ class SolverSettings:
             with the OCP's own Q, R; one extra Riccati solve). docs/reproduction.md gives the
             measurements behind the default.
         kernel: how the Riccati sweeps of the Newton step run. "auto" (default):
-            "pallas-block-rows" on a CUDA GPU, XLA's loops elsewhere, chosen by the device the
+            "pallas-rows" on a CUDA GPU, XLA's loops elsewhere, chosen by the device the
             program is compiled for; "xla": XLA's loops everywhere; "pallas": GPU kernels
             (:mod:`rvdjax.solver.lanes`), compiled for a CUDA GPU and interpreted elsewhere
             (the tests check them there), loading and storing entry by entry;
@@ -100,7 +101,9 @@ class SolverSettings:
             that, and the accurate mode's row work as two more kernels: between its two solves
             (the predictor's step length, Mehrotra's sigma, the corrector's right-hand side)
             and after them (the corrector's step length, the complementarity and the dual
-            residual's row terms) (:mod:`rvdjax.solver.rows_kernel`); "unrolled": the
+            residual's row terms) (:mod:`rvdjax.solver.rows_kernel`); "pallas-rows": the same
+            kernels with the solves and the row work loading and storing entry by entry (the
+            factorisation in blocks: no shared memory, no barriers); "unrolled": the
             kernels' entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`). They
             give the same iterates to rounding. The measurements behind "auto" are in
             docs/solver.md.
