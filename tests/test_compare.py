@@ -55,7 +55,10 @@ def test_same_problem_same_answer(rows):
     assert get_scenario("fastmpc-3d").published["effort_l1_N_s"]["Fast MPC"] == 33.98e3
 
 
-@pytest.mark.parametrize("name", ["poseidyn-lqmpc", "rotating-target-a"])
+# poseidyn-lqmpc in the slow run: one scenario's loop with the Clarabel backend is the check
+@pytest.mark.parametrize(
+    "name", [pytest.param("poseidyn-lqmpc", marks=pytest.mark.slow), "rotating-target-a"]
+)
 def test_clarabel_backend_flies_the_same_loop(name):
     """SolverSettings(backend="clarabel") puts Clarabel inside any jitted closed loop (host
     callback); rvdjax's accurate mode flies the same trajectory (measured <= 5e-6 m)."""

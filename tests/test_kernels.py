@@ -87,7 +87,7 @@ def _random(name, n):
         ),
         pytest.param("pallas-block-rows", marks=pytest.mark.slow),
         "pallas-rows",
-        "unrolled",
+        pytest.param("unrolled", marks=pytest.mark.slow),  # opt-in; its gradients checked below
     ],
 )
 @pytest.mark.parametrize(

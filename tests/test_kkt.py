@@ -75,11 +75,11 @@ def _compiled(kernel):
     )
 
 
-FORMS = {k: _compiled(k) for k in ("xla", "pallas-block-factor")}
+FORMS = {k: _compiled(k) for k in ("xla", "pallas-rows")}
 
 
 @pytest.mark.parametrize(
-    "kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas-block-factor", 11)]
+    "kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas-rows", 11)]
 )
 def test_every_form_solves_the_kkt_system(kernel, batch):
     """Unbatched, a small batch (XLA: batch last) and a large one (XLA: batch first, above

@@ -64,11 +64,13 @@ def _tuner(family: str, mode: str, remat: bool = False) -> Tuner:
     )
 
 
-# paper mode per family: `pytest -m slow` (each compiles a 3000-iteration converged solve)
+# paper mode per family: `pytest -m slow` (each compiles a 3000-iteration converged solve);
+# so too the rendezvous family's accurate mode (its closed loop's gradient is checked against
+# central differences in test_rendezvous, the tuner's machinery by the other three families)
 @pytest.fixture(
     scope="module",
     params=[
-        pytest.param((f, m), marks=[pytest.mark.slow] if m == "paper" else [])
+        pytest.param((f, m), marks=[pytest.mark.slow] if m == "paper" or f == "rendezvous" else [])
         for f in CASES
         for m in MODES
     ],

@@ -133,11 +133,11 @@ def _kernel_model(ocp, table):
 
 
 def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None, block_io=True):
-    """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one sweep that reads Fx once
-    and forms the cost's gradient and the dynamics' residual too (the input rows' targets are
-    zero: g_u is base_u). ``table``: the model's table, whose input rows, soft rows' mask and
-    penalty, cost blocks and model [B, A] the kernel reads where it has them all;
-    ``block_io``: :func:`rvdjax.solver.rows_kernel.batched`'s)."""
+    """:func:`_newton_blocks` by :func:`rows_kernel.pd_blocks`, one kernel that reads Fx once
+    and forms the cost's gradient too, and the dynamics' residual in a second sweep (the
+    input rows' targets are zero: g_u is base_u). ``table``: the model's table, whose input
+    rows, soft rows' mask and penalty, cost blocks and model [B, A] the kernel reads where it
+    has them all; ``block_io``: as :func:`rvdjax.solver.rows_kernel.batched`."""
     del sx  # the kernel forms s - g itself
     model, tables = _kernel_model(ocp, table)
     fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables), block_io)

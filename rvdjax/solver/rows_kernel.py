@@ -703,7 +703,7 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None, block_
     g_x = base_x + Fx^T (wx a rho / (a + c)) (the input part is base_u itself: the input rows'
     targets are zero) and the dynamics' residual rp = x_t - A_t x_{t-1} - B_t u_t - c_t, from
     the rows in one sweep that reads Fx once (XLA: in three passes, two of them reading Fx;
-    primal_dual.pd_iteration).
+    primal_dual.pd_iteration), the residual in a second sweep of the same kernel.
 
     Args (batch last, b problems): ``rows`` as :func:`pd_rows`; the iterate's u (N, nu, b),
     x (N, nx, b); ``cost`` = (Q (N, nx, nx, b), R (N, nu, nu, b), the model [B, A]
