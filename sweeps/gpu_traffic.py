@@ -265,8 +265,9 @@ def kernel_sweeps(jaxpr) -> dict[str, tuple[int, int]]:
                     if start is None
                     else range(start, start + i.size)
                 )
-            else:
-                ax = [static(i) if static(i) is not None else "?"]
+            else:  # a traced index: the entry it takes, one per index variable (a loop over
+                # rows reads row i's entries i n + j as n variables, n entries a trip)
+                ax = [static(i) if static(i) is not None else ("?", i)]
             keys = {k + (v,) for k in keys for v in ax}
         return keys
 

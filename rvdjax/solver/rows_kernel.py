@@ -36,12 +36,14 @@ into the old one's buffers. Otherwise the kernels compute the expressions of
 :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see
-:func:`pd_rows`. The kernels read and write them entry by entry (``kernel="pallas-rows"``, the
-default on a CUDA GPU) or a stage's block at a time (``"pallas-block-rows"``): the same
-arithmetic. A block is split into lane vectors and joined back through shared memory with a
-barrier each: assembled by ptxas for an H100, the three kernels of thesis-vbar's engine held
-about 1 200 barriers that way and none entry by entry, and the step's kernel fell to 32
-registers with 22 KB of spill stores (``sweeps/gpu_registers.py``, docs/benchmark.md).
+:func:`pd_rows`. The kernels read and write them entry by entry, the soft rows one at a time
+in a loop inside each stage (``kernel="pallas-rows"``, the default on a CUDA GPU), or a
+stage's block at a time, every row at once (``"pallas-block-rows"``): the same arithmetic. A
+block is split into lane vectors and joined back through shared memory with a barrier each:
+assembled by ptxas for an H100, the three kernels of thesis-vbar's engine held about 1 200
+barriers that way, and the step's kernel fell to 32 registers with 22 KB of spill stores; a
+stage's 12 rows unrolled entry by entry still spilled 2-8 KB a kernel. One row at a time, the
+three hold no barrier and spill nothing (``sweeps/gpu_registers.py``, docs/benchmark.md).
 """
 
 from __future__ import annotations
@@ -111,13 +113,25 @@ class StageRows:
     problem's mask neutralises them, so the rows whose mask wu is off are zeroed here, as
     ``barrier.rows_of`` zeroes them."""
 
-    def __init__(self, dims, refs, t):
+    def __init__(self, dims, refs, t, part=None):
+        """``part``: None (every row), "inputs" (the input rows alone) or a soft row's index
+        (traced; that row alone, from refs read entry by entry)."""
         mx, mu, nx, nu = dims
         (Fx_r, Fu_r, s_r, g_r, mu_r, pi_r, wx_r, rho_r, su_r, lam_r, wu_r) = refs[:11]
-        self.Fx, self.Fu = _load(Fx_r, t, mx, nx), _load(Fu_r, t, mu, nu)
-        self.s, self.g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
-        self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
-        self.su, self.lam, self.wu = (_load(r, t, mu) for r in (su_r, lam_r, wu_r))
+        self.Fx, self.s, self.g, self.mu, self.pi, self.wx, self.rho = ([],) * 7
+        self.Fu, self.su, self.lam, self.wu = ([],) * 4
+        if part is None:
+            self.Fx = _load(Fx_r, t, mx, nx)
+            self.s, self.g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
+            self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
+        elif not isinstance(part, str):
+            self.Fx = [_row_entries(Fx_r, t, part, nx)]
+            self.s, self.g, self.mu, self.pi, self.wx, self.rho = (
+                _row_entries(r, t, part, 1) for r in (s_r, g_r, mu_r, pi_r, wx_r, rho_r)
+            )
+        if part is None or part == "inputs":
+            self.Fu = _load(Fu_r, t, mu, nu)
+            self.su, self.lam, self.wu = (_load(r, t, mu) for r in (su_r, lam_r, wu_r))
         if isinstance(Fu_r, _Gathered):
             self.Fu = [
                 [jnp.where(w > 0, v, 0.0) for v in row]
@@ -134,6 +148,15 @@ class StageRows:
             tx / x + ts / s - r
             for tx, x, ts, s, r in zip(tau_x, self.sx, tau_s, self.s, self.rho, strict=True)
         ]
+
+
+def _row_entries(ref, t, i, n):
+    """Entries i n ... i n + n - 1 of stage t (row i of n entries, ``i`` traced) of a ref read
+    entry by entry (:class:`rvdjax.solver.lanes._Entries`) or of a flattened table read at
+    each lane's index (:class:`rvdjax.solver.lanes._Gathered` without blocks)."""
+    if isinstance(ref, _Entries):
+        return [ref.ref[t, i * n + j] for j in range(n)]
+    return [ref.ref[ref.index, t, i * n + j] for j in range(n)]
 
 
 class Steps:
@@ -215,6 +238,39 @@ def _min_ratio(pairs, alpha, nan_if_not_finite=False):
     return alpha
 
 
+def _input_terms(rows: StageRows, r: Steps):
+    """The input rows' parts of the corrector's right-hand side (primal_dual._pd_rhs):
+    w tau_u / su = kappa u1 + alpha u2, u1 = w / su, u2 = -w P_u / su, P_u = dsu dlam."""
+    u1 = [w / v for w, v in zip(rows.wu, rows.su, strict=True)]
+    u2 = [-(w * (a * b)) / v for w, a, b, v in zip(rows.wu, r.dsu, r.dlam, rows.su, strict=True)]
+    return u1, u2
+
+
+def _soft_terms(rows: StageRows, r: Steps):
+    """The soft rows' parts x0 + kappa x1 + alpha x2 of w (tau_x / sx - q h),
+    q = a / (a + c), h = tau_x / sx + tau_s / s - rho (primal_dual._pd_rhs)."""
+    x0, x1, x2 = [], [], []
+    for w, sx, s, a, c, rho, dsx, dmu, ds, dpi in zip(
+        rows.wx,
+        rows.sx,
+        rows.s,
+        rows.a,
+        rows.c,
+        rows.rho,
+        r.dsx,
+        r.dmu,
+        r.ds,
+        r.dpi,
+        strict=True,
+    ):
+        q = a / (a + c)
+        px, ps = (dsx * dmu) / sx, (ds * dpi) / s
+        x0.append(w * (q * rho))
+        x1.append(w * (1.0 / sx - q * (1.0 / sx + 1.0 / s)))
+        x2.append(-(w * (px - q * (px + ps))))
+    return x0, x1, x2
+
+
 def _rows_kernel(dims, N, rule: SigmaRule, *refs):
     """One program: the sweeps for a tile of problems (module docstring).
 
@@ -241,31 +297,8 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
         r = _affine(dims, rows, _mv(rows.Fu, du), _mv(rows.Fx, dx))
         alpha = _min_ratio(r.pairs(rows), alpha)
         c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
-        # input rows: w tau_u / su = kappa w / su - alpha w P_u / su, P_u = dsu dlam
-        u1 = [w / v for w, v in zip(rows.wu, rows.su, strict=True)]
-        u2 = [
-            -(w * (a * b)) / v for w, a, b, v in zip(rows.wu, r.dsu, r.dlam, rows.su, strict=True)
-        ]
-        # soft rows: w (tau_x / sx - q h), q = a / (a + c), h = tau_x / sx + tau_s / s - rho
-        x0, x1, x2 = [], [], []
-        for w, sx, s, a, c, rho, dsx, dmu, ds, dpi in zip(
-            rows.wx,
-            rows.sx,
-            rows.s,
-            rows.a,
-            rows.c,
-            rows.rho,
-            r.dsx,
-            r.dmu,
-            r.ds,
-            r.dpi,
-            strict=True,
-        ):
-            q = a / (a + c)
-            px, ps = (dsx * dmu) / sx, (ds * dpi) / s
-            x0.append(w * (q * rho))
-            x1.append(w * (1.0 / sx - q * (1.0 / sx + 1.0 / s)))
-            x2.append(-(w * (px - q * (px + ps))))
+        u1, u2 = _input_terms(rows, r)
+        x0, x1, x2 = _soft_terms(rows, r)
         G_u = [_load(bu_r, t, nu), _mtv(rows.Fu, u1), _mtv(rows.Fu, u2)]
         G_x = [[b + v for b, v in zip(_load(bx_r, t, nx), _mtv(rows.Fx, x0), strict=True)]]
         G_x += [_mtv(rows.Fx, x1), _mtv(rows.Fx, x2)]
@@ -274,6 +307,43 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
         _store(Fdu_out, t, r.Fdu)
         _store(Fdx_out, t, r.Fdx)
         return alpha, c0, c1, c2
+
+    def stage_by_row(t, carry):
+        """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
+        entry), as the step's kernel does (:func:`_step_kernel`)."""
+        alpha, c0, c1, c2 = carry
+        dx, du = _load(row_refs[11], t, nx), _load(row_refs[12], t, nu)
+        inputs = StageRows(dims, row_refs, t, "inputs")
+        r = _affine((0, mu, nx, nu), inputs, _mv(inputs.Fu, du), [])
+        alpha = _min_ratio(r.pairs(inputs), alpha)
+        c0, c1, c2 = _sum_products(r.products(inputs), c0, c1, c2)
+        u1, u2 = _input_terms(inputs, r)
+        _store(Gu_out, t, [_load(bu_r, t, nu), _mtv(inputs.Fu, u1), _mtv(inputs.Fu, u2)])
+        _store(Fdu_out, t, r.Fdu)
+
+        def soft(i, acc):
+            alpha, c0, c1, c2, *G = acc
+            row = StageRows(dims, row_refs, t, i)
+            r = _affine((1, 0, nx, nu), row, [], _mv(row.Fx, dx))
+            alpha = _min_ratio(r.pairs(row), alpha)
+            c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            G = [
+                [a + b for a, b in zip(g, _mtv(row.Fx, x), strict=True)]
+                for g, x in zip(G, _soft_terms(row, r), strict=True)
+            ]
+            Fdx_out.ref[t, i] = r.Fdx[0]
+            return alpha, c0, c1, c2, *G
+
+        zeros = [jnp.zeros_like(gap)] * nx
+        alpha, c0, c1, c2, *G = jax.lax.fori_loop(
+            0, mx, soft, (alpha, c0, c1, c2, zeros, zeros, zeros)
+        )
+        G[0] = [b + v for b, v in zip(_load(bx_r, t, nx), G[0], strict=True)]
+        _store(Gx_out, t, G)
+        return alpha, c0, c1, c2
+
+    if isinstance(row_refs[0], _Entries):
+        stage = stage_by_row  # noqa: F811
 
     zero = 0.0 * gap
     alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
@@ -329,6 +399,9 @@ def _step_kernel(dims, N, *refs):
         aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
         return _corrector(dims, rows, aff, Fdu, Fdx, alpha_a, kappa)
 
+    def weighted(w, v):
+        return [a * b for a, b in zip(w, v, strict=True)]
+
     def stage(t, carry):
         alpha, c0, c1, c2 = carry
         rows = StageRows(dims, row_refs, t)
@@ -338,10 +411,6 @@ def _step_kernel(dims, N, *refs):
         for v in (*dx, *du, *_load(nun_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
             alpha = alpha + 0.0 * v
         c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
-
-        def weighted(w, v):
-            return [a * b for a, b in zip(w, v, strict=True)]
-
         U = [_mtv(rows.Fu, weighted(rows.wu, rows.lam)), _mtv(rows.Fu, weighted(rows.wu, r.dlam))]
         X = [_mtv(rows.Fx, weighted(rows.wx, rows.mu)), _mtv(rows.Fx, weighted(rows.wx, r.dmu))]
         _store(Fdu_out, t, r.Fdu)
@@ -349,6 +418,51 @@ def _step_kernel(dims, N, *refs):
         _store(U_out, t, U)
         _store(X_out, t, X)
         return alpha, c0, c1, c2
+
+    def stage_by_row(t, carry):
+        """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
+        entry): a stage's rows, steps and products are never live at once. All of them at
+        once, unrolled, leave ptxas at the edge of its register allocation: thesis-vbar's
+        12 rows a stage gave 255 registers and 5.6 KB of spill stores, and the same sweep
+        without the update's fell to 32 registers and 12.8 KB (sm_90a). The sums over the
+        rows run in the same order (X as _mtv's), the complementarity's interleaved by row."""
+        alpha, c0, c1, c2 = carry
+        dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
+        for v in (*dx, *du, *_load(nun_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
+            alpha = alpha + 0.0 * v
+        inputs = StageRows(dims, row_refs, t, "inputs")
+        d_in, d_row = (0, mu, nx, nu), (1, 0, nx, nu)
+        aff = _affine(d_in, inputs, _load(Fdua_r, t, mu), [])
+        r = _corrector(d_in, inputs, aff, _mv(inputs.Fu, du), [], alpha_a, kappa)
+        alpha = _min_ratio(r.pairs(inputs), alpha, nan_if_not_finite=True)
+        c0, c1, c2 = _sum_products(r.products(inputs), c0, c1, c2)
+        U = [
+            _mtv(inputs.Fu, weighted(inputs.wu, inputs.lam)),
+            _mtv(inputs.Fu, weighted(inputs.wu, r.dlam)),
+        ]
+        _store(Fdu_out, t, r.Fdu)
+        _store(U_out, t, U)
+
+        def soft(i, acc):
+            alpha, c0, c1, c2, X0, X1 = acc
+            row = StageRows(dims, row_refs, t, i)
+            aff = _affine(d_row, row, [], _row_entries(Fdxa_r, t, i, 1))
+            r = _corrector(d_row, row, aff, [], _mv(row.Fx, dx), alpha_a, kappa)
+            alpha = _min_ratio(r.pairs(row), alpha, nan_if_not_finite=True)
+            c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            X0 = [a + b for a, b in zip(X0, _mtv(row.Fx, weighted(row.wx, row.mu)), strict=True)]
+            X1 = [a + b for a, b in zip(X1, _mtv(row.Fx, weighted(row.wx, r.dmu)), strict=True)]
+            Fdx_out.ref[t, i] = r.Fdx[0]
+            return alpha, c0, c1, c2, X0, X1
+
+        zeros = [jnp.zeros_like(alpha_a)] * nx
+        acc = jax.lax.fori_loop(0, mx, soft, (alpha, c0, c1, c2, zeros, zeros))
+        alpha, c0, c1, c2, X0, X1 = acc
+        _store(X_out, t, [X0, X1])
+        return alpha, c0, c1, c2
+
+    if isinstance(row_refs[0], _Entries):
+        stage = stage_by_row  # noqa: F811
 
     zero = 0.0 * kappa
     alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
@@ -392,7 +506,14 @@ def _step_kernel(dims, N, *refs):
             rs = jnp.maximum(rs, jnp.abs(w * (rho - m - p)))
             js = js + w * rho * jnp.maximum(g, 0.0)
             wr = jnp.maximum(wr, w * rho)
-        # the stopping test (primal_dual._stopping_terms) at the new point
+        ru, rx, gm, J, p_t = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
+        return rs, js, wr, ru, rx, gm, J, p_t
+
+    def stopping(t, u_n, x_n, nu_n, carry):
+        """The stopping test (primal_dual._stopping_terms) at the new point u_n, x_n, nu_n
+        of stage t: the dual residual's maxima, the gradient's, the objective and the state
+        residual's part carried to the next stage."""
+        ru, rx, gm, J, p_prev = carry
         e = [a - b for a, b in zip(x_n, _load_any(xref_r, t, nx), strict=True)]
         Ru, Qe = _mv(_load(R_r, t, nu, nu), u_n), _mv(_load(Q_r, t, nx, nx), e)
         q, r_lin = _load_any(q_r, t, nx), _load_any(r_r, t, nu)
@@ -411,8 +532,51 @@ def _step_kernel(dims, N, *refs):
             gm = jnp.maximum(gm, jnp.abs(g))
         for a, b in ((e, Qe), (u_n, Ru), (q, x_n), (r_lin, u_n)):
             J = J + _dot(a, b)
+        return ru, rx, gm, J, p_t
+
+    def update_by_row(t, carry):
+        """:func:`update` with the soft rows one at a time in a loop (as :func:`stage_by_row`;
+        the same operations, and the penalty sum in the same order)."""
+        rs, js, wr, ru, rx, gm, J, p_prev = carry
+        dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
+        nu_old = _load(nu_r, t, nx)
+        dnu = [a - b for a, b in zip(_load(nun_r, t, nx), nu_old, strict=True)]
+        u_n = [upd(v, d) for v, d in zip(_load(u_r, t, nu), du, strict=True)]
+        x_n = [upd(v, d) for v, d in zip(_load(x_r, t, nx), dx, strict=True)]
+        nu_n = [upd(v, d) for v, d in zip(nu_old, dnu, strict=True)]
+        inputs = StageRows(dims, row_refs, t, "inputs")
+        d_in, d_row = (0, mu, nx, nu), (1, 0, nx, nu)
+        aff = _affine(d_in, inputs, _load(Fdua_r, t, mu), [])
+        r = _corrector(d_in, inputs, aff, _load(Fdu_out, t, mu), [], alpha_a, kappa)
+        lam_n = [upd(v, d, w) for v, d, w in zip(inputs.lam, r.dlam, inputs.wu, strict=True)]
+        su_n = [upd(v, d) for v, d in zip(inputs.su, r.dsu, strict=True)]
+        u_o, x_o, nu_o, s_o, lam_o, mu_o, pi_o, su_o, g_o = new_out
+        for ref, v in ((u_o, u_n), (x_o, x_n), (nu_o, nu_n), (lam_o, lam_n), (su_o, su_n)):
+            _store(ref, t, v)
+
+        def soft(i, acc):
+            rs, js, wr = acc
+            row = StageRows(dims, row_refs, t, i)
+            aff = _affine(d_row, row, [], _row_entries(Fdxa_r, t, i, 1))
+            Fdx = _row_entries(Fdx_out, t, i, 1)
+            r = _corrector(d_row, row, aff, [], Fdx, alpha_a, kappa)
+            (w,), (rho,) = row.wx, row.rho
+            s_n, mu_n, pi_n = (upd(v[0], d[0], w) for v, d in ((row.s, r.ds), (row.mu, r.dmu),
+                                                               (row.pi, r.dpi)))  # fmt: skip
+            g_n = upd(row.g[0], Fdx[0])
+            for ref, v in ((s_o, s_n), (mu_o, mu_n), (pi_o, pi_n), (g_o, g_n)):
+                ref.ref[t, i] = v
+            rs = jnp.maximum(rs, jnp.abs(w * (rho - mu_n - pi_n)))
+            js = js + w * rho * jnp.maximum(g_n, 0.0)
+            wr = jnp.maximum(wr, w * rho)
+            return rs, js, wr
+
+        rs, js, wr = jax.lax.fori_loop(0, mx, soft, (rs, js, wr))
+        ru, rx, gm, J, p_t = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
         return rs, js, wr, ru, rx, gm, J, p_t
 
+    if isinstance(row_refs[0], _Entries):
+        update = update_by_row  # noqa: F811
     carry = (zero,) * 7 + ([zero] * nx,)
     rs, js, wr, ru, rx, gm, J, p_last = jax.lax.fori_loop(0, N, update, carry)
     for p in p_last:  # the last stage's r_x: no next stage
@@ -440,24 +604,30 @@ def _blocks_kernel(dims, N, *refs):
         scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
         return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
 
-    def stage(t, carry):
-        rows = StageRows(dims, row_refs, t)
-        Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
+    def soft_parts(rows):  # the soft rows' weights: d of Phi_x, v of g_x = base_x + Fx^T v
         d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
-        Phi_u = blocks(R, rows.Fu, rows.Du)
-        Phi_x = blocks(Q, rows.Fx, d)
-        # the cost's gradient (primal_dual._cost_gradient)
-        x, u = _load(x_r, t, nx), _load(u_r, t, nu)
-        e = [a - b for a, b in zip(x, _load_any(xref_r, t, nx), strict=True)]
-        Ru = _mv(R, u)
-        base_u = [2.0 * a + b for a, b in zip(Ru, _load_any(r_r, t, nu), strict=True)]
-        base_x = [2.0 * a + b for a, b in zip(_mv(Q, e), _load_any(q_r, t, nx), strict=True)]
         # the predictor's soft rows: tau = 0, h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
-        h = rows.h([0.0] * mx, [0.0] * mx)
+        h = rows.h([0.0] * len(rows.s), [0.0] * len(rows.s))
         v = [
             w * (0.0 / x - a * hi / (a + c))
             for w, x, a, hi, c in zip(rows.wx, rows.sx, rows.a, h, rows.c, strict=True)
         ]
+        return d, v
+
+    def cost(t, Q, R):  # the cost's gradient (primal_dual._cost_gradient)
+        x, u = _load(x_r, t, nx), _load(u_r, t, nu)
+        e = [a - b for a, b in zip(x, _load_any(xref_r, t, nx), strict=True)]
+        base_u = [2.0 * a + b for a, b in zip(_mv(R, u), _load_any(r_r, t, nu), strict=True)]
+        base_x = [2.0 * a + b for a, b in zip(_mv(Q, e), _load_any(q_r, t, nx), strict=True)]
+        return base_u, base_x
+
+    def stage(t, carry):
+        rows = StageRows(dims, row_refs, t)
+        Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
+        d, v = soft_parts(rows)
+        Phi_u = blocks(R, rows.Fu, rows.Du)
+        Phi_x = blocks(Q, rows.Fx, d)
+        base_u, base_x = cost(t, Q, R)
         g_x = [b + f for b, f in zip(base_x, _mtv(rows.Fx, v), strict=True)]
         _store(Pu_out, t, Phi_u)
         _store(Px_out, t, Phi_x)
@@ -465,6 +635,38 @@ def _blocks_kernel(dims, N, *refs):
         _store(bu_out, t, base_u)
         _store(bx_out, t, base_x)
         return carry
+
+    def stage_by_row(t, carry):
+        """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
+        entry), as the step's kernel does (:func:`_step_kernel`): F^T diag(d) F and F^T v
+        summed row by row in the order of :func:`rvdjax.solver.lanes._mtm`."""
+        inputs = StageRows(dims, row_refs, t, "inputs")
+        Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
+        _store(Pu_out, t, blocks(R, inputs.Fu, inputs.Du))
+        base_u, base_x = cost(t, Q, R)
+        _store(bu_out, t, base_u)
+        _store(bx_out, t, base_x)
+
+        def soft(i, acc):
+            P, g = acc
+            row = StageRows(dims, row_refs, t, i)
+            (d,), (v,) = soft_parts(row)
+            (F,) = row.Fx
+            P = [
+                [p + f * (d * h) for p, h in zip(P_j, F, strict=True)]
+                for P_j, f in zip(P, F, strict=True)
+            ]
+            g = [a + f * v for a, f in zip(g, F, strict=True)]
+            return P, g
+
+        zero = jnp.zeros_like(Q[0][0])
+        P, g = jax.lax.fori_loop(0, mx, soft, ([[zero] * nx] * nx, [zero] * nx))
+        _store(Px_out, t, _add([[2.0 * w for w in row] for row in Q], P))
+        _store(gx_out, t, [b + f for b, f in zip(base_x, g, strict=True)])
+        return carry
+
+    if isinstance(row_refs[0], _Entries):
+        stage = stage_by_row  # noqa: F811
 
     def residual(t, x_prev):
         # the dynamics' residual x_t - A_t x_{t-1} - B_t u_t - c_t (barrier.dyn_residual) in a
