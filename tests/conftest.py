@@ -68,44 +68,54 @@ def clarabel_solve():
     return _clarabel_solve
 
 
-# Seconds each test file took in a full run (2 xdist workers, 2-core machine, before the
-# 10-minute work): ``--dist loadfile`` hands whole files to the workers in collection order
-# (``--no-loadscope-reorder`` in pyproject: xdist's default order is by number of tests, which
-# put the slowest file, with few tests, last). The slowest files go first (longest processing
-# time first), files not listed (new ones) after them, the quick ones last to fill the gaps.
+# Seconds each test file took in a full run (2 xdist workers, 2-core machine, 2026-11-29,
+# `pytest --durations=0` summed by file): ``--dist loadfile`` hands whole files to the workers
+# in collection order (``--no-loadscope-reorder`` in pyproject: xdist's default order is by
+# number of tests, which put the slowest file, with few tests, last). The slowest files go
+# first (longest processing time first), files not listed (new ones) after them, the quick
+# ones last to fill the gaps.
 FILE_COST_S = {
-    "test_tune_gradients.py": 500,
-    "test_paper_mode.py": 180,
-    "test_study.py": 170,
-    "test_notebooks.py": 165,
-    "test_compare.py": 155,
-    "test_rendezvous.py": 125,
-    "test_tune.py": 110,
-    "test_cli.py": 105,
-    "test_thrusters.py": 100,
-    "test_engine.py": 100,
-    "test_docking.py": 85,
-    "test_solver.py": 80,
-    "test_verify.py": 95,
-    "test_navigation.py": 60,
-    "test_phases.py": 60,
-    "test_idvd.py": 45,
-    "test_disturbances.py": 35,
-    "test_scenario_files.py": 30,
-    "test_scenarios.py": 30,
-    "test_gradients.py": 30,
-    "test_allocation.py": 20,
-    "test_propagate.py": 15,
-    "test_xla_options.py": 12,
-    "test_kkt.py": 12,
-    "test_poseidyn.py": 12,
-    "test_constraints.py": 8,
-    "test_dynamics.py": 8,
-    "test_peers.py": 8,
-    "test_qp.py": 5,
-    "test_problems.py": 5,
+    "test_notebooks.py": 187,
+    "test_kernels.py": 120,
+    "test_study.py": 85,
+    "test_engine.py": 78,
+    "test_phases.py": 76,
+    "test_solver.py": 70,
+    "test_tune_gradients.py": 61,
+    "test_thrusters.py": 53,
+    "test_kkt.py": 55,
+    "test_paper_mode.py": 49,
+    "test_cli.py": 45,
+    "test_compare.py": 33,
+    "test_verify.py": 32,
+    "test_docking.py": 28,
+    "test_rendezvous.py": 28,
+    "test_gradients.py": 24,
+    "test_constraints.py": 21,
+    "test_provenance.py": 20,
+    "test_scenario_files.py": 16,
+    "test_tune.py": 14,
+    "test_allocation.py": 11,
+    "test_dual.py": 11,
+    "test_flight.py": 11,
+    "test_navigation.py": 10,
+    "test_xla_options.py": 9,
+    "test_dynamics.py": 9,
+    "test_scenarios.py": 8,
+    "test_idvd.py": 7,
+    "test_poseidyn.py": 7,
+    "test_gpu_sweeps.py": 6,
+    "test_propagate.py": 6,
+    "test_problems.py": 6,
+    "test_new_family.py": 4,
+    "test_peers.py": 4,
+    "test_disturbances.py": 4,
+    "test_derivative_counts.py": 3,
+    "test_schema.py": 1,
+    "test_gpu_profile.py": 1,
+    "test_qp.py": 1,
 }
-UNLISTED_FILE_COST_S = 40
+UNLISTED_FILE_COST_S = 10
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -452,6 +452,7 @@ def test_a_thruster_stuck_off_never_fires(rotating_flights):
 # ------------------------------------------------------------------------ command line
 
 
+@pytest.mark.slow  # the thrusters' closed loop is checked above; this is the command's output
 def test_run_with_thrusters_prints_both_plants(capsys, tmp_path):
     from rvdjax.cli import main
 
