@@ -75,16 +75,17 @@ def _compiled(kernel):
     )
 
 
-FORMS = {k: _compiled(k) for k in ("xla", "pallas-rows")}
+FORMS = {k: _compiled(k) for k in ("xla", "pallas-block-factor")}
 
 
 @pytest.mark.parametrize(
-    "kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas-rows", 11)]
+    "kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas-block-factor", 11)]
 )
 def test_every_form_solves_the_kkt_system(kernel, batch):
     """Unbatched, a small batch (XLA: batch last) and a large one (XLA: batch first, above
-    BATCH_LAST_MAX; the GPU kernels as a CUDA GPU runs them by default, interpreted: more
-    than one tile of lanes, the last padded) against the dense NumPy solve, for the fused
+    BATCH_LAST_MAX; the GPU kernels, interpreted, the factorisation in blocks and the solves
+    entry by entry as the default GPU form runs them: more than one tile of lanes, the last
+    padded) against the dense NumPy solve, for the fused
     factorisation + step and for a step with a stored factorisation; a model shared by the batch
     gives the same steps as the model repeated per problem."""
     SOLVE, SOLVE_BATCH, SOLVE_SHARED = FORMS[kernel]
