@@ -202,9 +202,16 @@ def main(argv=None) -> int:
     ap.add_argument("--shared-model", action="store_true", help="qp: one model for every QP")
     ap.add_argument("--out", default="results/gpu-registers", help="directory for the rows")
     args = ap.parse_args(argv)
-    sizes = _ints(args.slots if args.part == "engine" else args.batch, "slots or --batch", 1)
+    engine = args.part == "engine"
+    sizes = _ints(args.slots if engine else args.batch, "slots" if engine else "batch", 1)
     if isinstance(sizes, str):
         print(sizes)
+        return 2
+    from rvdjax.scenarios import SCENARIOS
+
+    if engine and args.scenario not in SCENARIOS:
+        print(f"gpu_registers: --scenario must be a named scenario (rvdjax list), got "
+              f"{args.scenario!r}")  # fmt: skip
         return 2
     from rvdjax.solver.types import KERNELS
 

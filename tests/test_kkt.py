@@ -253,7 +253,7 @@ def test_the_refined_step_differentiates_as_its_dot_form():
         return jnp.sum(s.du**2) + jnp.sum(s.dx * s.nu)
 
     h = 1e-5
-    for kernel in ("xla", "pallas-rows", "unrolled"):
+    for kernel in ("xla", "pallas-rows"):  # "unrolled": test_kernels' gradient check
         g = float(jax.grad(loss)(1.3, kernel))
         fd = (float(loss(1.3 + h, kernel)) - float(loss(1.3 - h, kernel))) / (2 * h)
         assert g == pytest.approx(fd, rel=1e-6), kernel

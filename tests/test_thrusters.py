@@ -540,6 +540,7 @@ def test_thruster_options_fail_before_any_work(args, word, capsys, tmp_path, mon
     assert sum(compiles) < 1.0, f"{len(compiles)} compiles ({sum(compiles):.1f} s) before the error"
 
 
+@pytest.mark.slow  # a study end to end (19 s): faults are checked by test_fire_applies_faults...
 def test_study_with_a_failed_thruster_replays(tmp_path, capsys):
     """A Monte Carlo study with thrusters and a stuck-off thruster: its table carries the
     thruster figures, and a run replayed alone gives the same figures."""

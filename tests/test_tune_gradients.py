@@ -65,12 +65,16 @@ def _tuner(family: str, mode: str, remat: bool = False) -> Tuner:
 
 
 # paper mode per family: `pytest -m slow` (each compiles a 3000-iteration converged solve);
-# so too the rendezvous family's accurate mode (its closed loop's gradient is checked against
-# central differences in test_rendezvous, the tuner's machinery by the other three families)
+# so too the accurate mode of the rendezvous family (its closed loop's gradient is checked
+# against central differences in test_rendezvous) and of the planar-docking family: the
+# tuner's machinery is checked by the other two in the default run
+SLOW = ("rendezvous", "planar-docking")
+
+
 @pytest.fixture(
     scope="module",
     params=[
-        pytest.param((f, m), marks=[pytest.mark.slow] if m == "paper" or f == "rendezvous" else [])
+        pytest.param((f, m), marks=[pytest.mark.slow] if m == "paper" or f in SLOW else [])
         for f in CASES
         for m in MODES
     ],
