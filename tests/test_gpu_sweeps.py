@@ -422,10 +422,15 @@ def test_shared_model_rows_solve_the_same_qps():
         (["qp", "--unrolls", "-2"], "--unrolls must be integers >= 1"),
         (["qp", "--budget-s", "0"], "--budget-s must be > 0"),
         (["qp", "--kernels", "cuda"], "--kernels: unknown cuda"),
+        # sweeps/gpu_registers.py
+        (["engine", "--slots", "4096,0"], "gpu_registers: --slots must be"),
+        (["qp", "--batch", "x"], "gpu_registers: --batch must be"),
+        (["engine", "--scenario", "bogus"], "gpu_registers: --scenario must be"),
+        (["qp", "--kernels", "bogus"], "gpu_registers: --kernels must be"),
     ],
 )
 def test_gpu_benchmark_refuses_bad_input_in_one_line(argv, message, tmp_path, capsys):
-    gb = _import("gpu_benchmark")
+    gb = _import("gpu_registers" if message.startswith("gpu_registers") else "gpu_benchmark")
     assert gb.main([*argv, "--out", str(tmp_path / "out")]) == 2
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and message in out[0]
@@ -471,20 +476,3 @@ def test_registers_report_reads_ptxas_and_the_occupancy_follows(tmp_path):
                    "\tld.shared.v2.b64 {%rd3, %rd4}, [%r5];\n\tbar.sync \t0;\n")  # fmt: skip
     assert gr.ptx_counts(str(ptx)) == dict(barriers=2, shared=2)
     assert gr.threads_of(str(ptx)) == 64
-
-
-@pytest.mark.parametrize(
-    "argv, message",
-    [
-        (["engine", "--slots", "4096,0"], "gpu_registers: --slots must be"),
-        (["qp", "--batch", "x"], "gpu_registers: --batch must be"),
-        (["engine", "--scenario", "bogus"], "gpu_registers: --scenario must be"),
-        (["qp", "--kernels", "bogus"], "gpu_registers: --kernels must be"),
-    ],
-)
-def test_registers_bad_input_is_one_line_and_status_2(argv, message, capsys, tmp_path):
-    gr = _import("gpu_registers")
-    assert gr.main(argv + ["--out", str(tmp_path / "out")]) == 2
-    out = capsys.readouterr().out
-    assert out.startswith(message) and out.count("\n") == 1
-    assert not (tmp_path / "out").exists()  # nothing written, nothing compiled
