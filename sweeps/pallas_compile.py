@@ -80,26 +80,35 @@ def _fns(part: str, cfg, tabled: bool = False):
     )
 
 
+def _unpacked(out):
+    """lanes.factor_solve's (factorisation, step) with the factorisation's matrices whole."""
+    f, s = out
+    return lanes.unpack(*f), s
+
+
 def _plain_fns(part: str, cfg):
     """(kernel, XLA) forms, each f(M, Pu, Px, gu, gx, r); the kernel's also takes a table's
     ``index`` (M is then the table) and ``copy``, the copies of the problems' models."""
     if part == "factor":
         return (
-            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.factor(
-                M, Pu, Px, cfg=cfg, index=index
+            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.unpack(
+                *lanes.factor(M, Pu, Px, cfg=cfg, index=index)
             ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor(M, Pu, Px),
         )
     if part == "factor_solve":
         return (
-            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.factor_solve(
-                M, Pu, Px, gu, gx, r, cfg=cfg, index=index
+            lambda M, Pu, Px, gu, gx, r, index=None, copy=None: _unpacked(
+                lanes.factor_solve(M, Pu, Px, gu, gx, r, cfg=cfg, index=index)
             ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor_solve(M, Pu, Px, gu, gx, r),
         )
 
     def stored(M, Pu, Px, copy=None):  # the apply kernels take a factorisation made before
         return unrolled.factor(M if copy is None else copy, Pu, Px)
+
+    def packed(M, Pu, Px, copy=None):  # ... in the kernels' storage (lanes.pack)
+        return lanes.pack(*stored(M, Pu, Px, copy))
 
     if part == "apply_refined":
 
@@ -115,14 +124,14 @@ def _plain_fns(part: str, cfg):
 
         return (
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.apply_refined(
-                M, *stored(M, Pu, Px, copy), Pu, Px, gu, gx, r, cfg=cfg, index=index
+                M, *packed(M, Pu, Px, copy), Pu, Px, gu, gx, r, cfg=cfg, index=index
             ),
             xla_refined,
         )
 
     return (
         lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.apply(
-            M, *stored(M, Pu, Px, copy), gu, gx, r, cfg=cfg, index=index
+            M, *packed(M, Pu, Px, copy), gu, gx, r, cfg=cfg, index=index
         ),
         lambda M, Pu, Px, gu, gx, r: unrolled.apply(M, *stored(M, Pu, Px), gu, gx, r),
     )

@@ -160,6 +160,32 @@ def test_block_chunks_cover_every_entry():
         assert set().union(*(range(o, o + s) for o, s in chunks)) == set(range(e))
 
 
+def test_factor_storage_keeps_the_lower_triangles():
+    """The kernels store L and P as their lower triangles, row by row (lanes.pack): the
+    entries land where the kernels' loads look for them (P[2][1] is entry 4 of 21), and
+    unpack gives back a symmetric P and a lower L exactly. That the kernels' solves with the
+    packed factorisation are XLA's to 1e-12 and to the bit is test_kernels.py's."""
+    rng = np.random.default_rng(5)
+    N, nx, nu, b = 2, 6, 3, 4
+    X = rng.standard_normal((N, nx, nx, b))
+    P = jnp.asarray(X + np.swapaxes(X, 1, 2))
+    L = jnp.asarray(np.tril(rng.standard_normal((N, b, nu, nu))).transpose(0, 2, 3, 1))
+    K_, BPA = (jnp.asarray(rng.standard_normal((N, nu, nx, b))) for _ in range(2))
+    packed = lanes.pack(L, K_, BPA, P)
+    assert packed[0].shape == (N, 6, b) and packed[3].shape == (N, 21, b)
+    np.testing.assert_array_equal(np.asarray(packed[3][:, 4]), np.asarray(P[:, 2, 1]))
+    np.testing.assert_array_equal(np.asarray(packed[0][:, 5]), np.asarray(L[:, 2, 2]))
+    for got, want in zip(lanes.unpack(*packed), (L, K_, BPA, P), strict=True):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    # the kernels' reads of a stage (here from the arrays themselves)
+    P_t, L_t = lanes._load_sym(packed[3], 1, nx), lanes._load_lower(packed[0], 1, nu)
+    np.testing.assert_array_equal(np.stack([np.stack(r) for r in P_t]), np.asarray(P[1]))
+    assert all(L_t[i][j] is None for i in range(nu) for j in range(i + 1, nu))
+    for i in range(nu):
+        for j in range(i + 1):
+            np.testing.assert_array_equal(np.asarray(L_t[i][j]), np.asarray(L[1, i, j]))
+
+
 @pytest.mark.slow  # interpreted kernels, 15 s
 def test_block_kernels_read_and_write_the_arrays_as_they_are():
     """The block kernels on the arrays as they are give the numbers of the form that pads every

@@ -14,7 +14,8 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
   (nested lists of ``(BLOCK,)`` vectors, no ``dot``: float64 MMA needs blocks of 16 and more);
   the cost-to-go P and the affine term p live in registers across the stage loop;
 * the gains K, BPA, P (and the backward sweep's k, p) are written once per stage and read
-  back by the forward sweep.
+  back by the forward sweep; P (symmetric) and the Cholesky factor L are stored as their
+  lower triangles (:func:`pack`), 21 and 6 entries a stage instead of 36 and 9.
 
 Four kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
@@ -62,6 +63,11 @@ __all__ = [
     "factor_solve",
     "apply",
     "apply_refined",
+    "pack",
+    "unpack",
+    "tri_size",
+    "tri_pack",
+    "tri_unpack",
 ]
 
 
@@ -418,6 +424,74 @@ def _untri(flat, n):
     return P
 
 
+def _lower(L):
+    """The lower triangle of a :func:`chol` factor as a flat tuple, row by row."""
+    return tuple(L[i][j] for i in range(len(L)) for j in range(i + 1))
+
+
+def _load_sym(ref, t, n):
+    """Stage t of a symmetric matrix stored as its lower triangle (:func:`_tri`)."""
+    return _untri(_load(ref, t, tri_size(n)), n)
+
+
+def _load_lower(ref, t, n):
+    """Stage t of a lower factor stored as its lower triangle (:func:`_lower`); the upper
+    triangle None, as :func:`chol` leaves it."""
+    flat = iter(_load(ref, t, tri_size(n)))
+    return [[next(flat) if j <= i else None for j in range(n)] for i in range(n)]
+
+
+def tri_size(n: int) -> int:
+    """Entries of an n x n symmetric (or triangular) matrix's lower triangle."""
+    return n * (n + 1) // 2
+
+
+def pack(L, K, BPA, P):
+    """The kernels' storage of a factorisation from (L, K, BPA, P), batch last (L (N, nu,
+    nu, b), P (N, nx, nx, b)): L's and P's lower triangles, row by row ((N, tri(nu), b),
+    (N, tri(nx), b); :func:`tri_pack`), K and BPA as they are. P is symmetric and L's upper
+    triangle zero, so nothing is lost; the solves read 21 entries of P a stage instead of 36
+    (of an accurate iteration's reads of the factorisation, P's upper triangle was a fifth:
+    docs/solver.md)."""
+    return tri_pack(L, 1), K, BPA, tri_pack(P, 1)
+
+
+def unpack(L, K, BPA, P):
+    """(L, K, BPA, P) as full matrices, batch last, from :func:`pack`'s storage (L's upper
+    triangle 0, P mirrored)."""
+    return tri_unpack(L, 1, False), K, BPA, tri_unpack(P, 1, True)
+
+
+def _tri_pairs(n):
+    return [(i, j) for i in range(n) for j in range(i + 1)]
+
+
+def tri_pack(X, axis: int = -2):
+    """The lower triangle, row by row, of the n x n matrices whose axes are ``axis`` and the
+    next: one axis of n (n + 1) / 2 entries in their place."""
+    axis = axis % X.ndim
+    flat = jnp.stack([X[(slice(None),) * axis + (i, j)] for i, j in _tri_pairs(X.shape[axis])])
+    return jnp.moveaxis(flat, 0, axis)
+
+
+def tri_unpack(flat, axis: int, symmetric: bool):
+    """The matrices of :func:`tri_pack`'s triangles at ``axis``: mirrored (``symmetric``) or
+    with a zero upper triangle."""
+    axis = axis % flat.ndim
+    n = (math.isqrt(8 * flat.shape[axis] + 1) - 1) // 2
+    at = {ij: k for k, ij in enumerate(_tri_pairs(n))}
+    entries = jnp.moveaxis(flat, axis, 0)
+    zero = jnp.zeros_like(entries[0])
+
+    def entry(i, j):
+        if (i, j) in at:
+            return entries[at[(i, j)]]
+        return entries[at[(j, i)]] if symmetric else zero
+
+    rows = jnp.stack([jnp.stack([entry(i, j) for j in range(n)]) for i in range(n)])
+    return jnp.moveaxis(rows, (0, 1), (axis, axis + 1))
+
+
 def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
@@ -460,14 +534,14 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, *ref
             Phx = _load(Phx_ref, prev, nx, nx)
             Phx_prev = [[jnp.where(on, v, 0.0) for v in row] for row in Phx]
             P_new, L, K, BPA = _factor_stage(P, M, Phu, Phx_prev)
-            _store(P_ref, t, P)
-            _store(L_ref, t, L)
+            _store(P_ref, t, list(carry[0]))
+            _store(L_ref, t, list(_lower(L)))
             _store(K_ref, t, K)
             _store(BPA_ref, t, BPA)
             new = (_tri(P_new),)
         else:
-            P = _load(P_ref, t, nx, nx)
-            L = _load(L_ref, t, nu, nu)
+            P = _load_sym(P_ref, t, nx)
+            L = _load_lower(L_ref, t, nu)
             BPA = _load(BPA_ref, t, nu, nx)
             new = ()
         if with_rhs:
@@ -509,7 +583,7 @@ def _forward_sweep(dims, zero, M_ref, K_ref, P_ref, k_ref, r_ref, p_ref, out, ad
             _load(K_ref, t, nu, nx),
             _load(k_ref, t, nu),
             _load(r_ref, t, nx),
-            _load(P_ref, t, nx, nx),
+            _load_sym(P_ref, t, nx),
             _load(p_ref, t, nx),
         )
         for ref, v in zip(out, (du, dx_next, nu_t), strict=True):
@@ -546,9 +620,9 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
             p_new, k = _backward_rhs(
                 list(p),
                 M,
-                _load(L_ref, t, nu, nu),
+                _load_lower(L_ref, t, nu),
                 _load(BPA_ref, t, nu, nx),
-                _load(P_ref, t, nx, nx),
+                _load_sym(P_ref, t, nx),
                 gu,
                 r,
                 gx_prev,
@@ -655,8 +729,8 @@ def _call(
         return pl.BlockSpec((*shape[:-1], lanes), lambda i: (0,) * (n - 1) + (i,))
 
     out_shapes = []
-    if factorise:
-        out_shapes += [(N, nu, nu), (N, nu, nx), (N, nu, nx), (N, nx, nx)]
+    if factorise:  # L and P as their lower triangles (pack)
+        out_shapes += [(N, tri_size(nu)), (N, nu, nx), (N, nu, nx), (N, tri_size(nx))]
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
     if refine:  # the correction's k, p and dynamics residual between its sweeps
@@ -718,7 +792,8 @@ def _flat(a, padded: bool = False):
 
 
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
-    """Backward Riccati factorisation: (L, K, BPA, P), each ``[stage][entry][problem]``.
+    """Backward Riccati factorisation: (L, K, BPA, P), each ``[stage][entry][problem]``, L
+    and P as their lower triangles (:func:`pack`; :func:`unpack` gives the matrices).
 
     Args:
         M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared), or with
@@ -739,17 +814,18 @@ def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig
 
 
 def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
-    """The step (du, dx, nu) of one right-hand side with a stored factorisation (``M`` and
-    ``index`` as :func:`factor`)."""
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation (L, K, BPA,
+    P as :func:`factor` returns them, packed; ``M`` and ``index`` as :func:`factor`)."""
     return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp], index=index))
 
 
 def apply_refined(
     M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
 ):
-    """The step (du, dx, nu) of one right-hand side with a stored factorisation, plus one step
-    of iterative refinement (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the
-    residual needs the Hessian blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too
-    (``M`` and ``index`` as :func:`factor`)."""
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation (packed, as
+    :func:`factor` returns it), plus one step of iterative refinement
+    (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the residual needs the Hessian
+    blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too (``M`` and ``index`` as
+    :func:`factor`)."""
     mats = [L, K, BPA, P, Phi_u, Phi_x]
     return tuple(_call(cfg, False, True, M, mats, [g_u, g_x, rp], True, index=index))

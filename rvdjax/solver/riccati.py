@@ -71,6 +71,13 @@ class RiccatiFactor(NamedTuple):
         K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t.
         BPA: (N, nu, nx) B_t^T P_{t+1} A_t.
         P: (N, nx, nx) cost-to-go Hessian P_{t+1} of x_{t+1}.
+        Lp: (N, nu (nu + 1) / 2) L's lower triangle and ``Pp`` (N, nx (nx + 1) / 2) P's, as
+            the GPU kernels store them (:func:`rvdjax.solver.lanes.pack`), or None (both or
+            neither): present with the kernels' forms (and "auto" where a program may run
+            on a CUDA GPU), so that a factorisation goes from the factorisation's kernel to
+            the solves' in that storage. XLA does not fold the copy of the triangles into
+            the matrices and back between two kernels; L and P, for every other use, are
+            dead code there.
     """
 
     M: jnp.ndarray
@@ -78,6 +85,8 @@ class RiccatiFactor(NamedTuple):
     K: jnp.ndarray
     BPA: jnp.ndarray
     P: jnp.ndarray
+    Lp: Any = None
+    Pp: Any = None
 
 
 class ModelTable(NamedTuple):
@@ -297,7 +306,7 @@ def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     )
     m_batched = bool(bA or bB)
     M = _to_first(f.M) if m_batched else f.M[..., 0]
-    out = RiccatiFactor(M, *(_to_first(a) for a in f[1:]))
+    out = RiccatiFactor(M, *(_to_first(a) for a in f[1:5]))
     return out, RiccatiFactor(m_batched, True, True, True, True)
 
 
@@ -308,7 +317,7 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     # every operand but M carries the batch
     f = RiccatiFactor(
         _to_last(f.M, fb.M),
-        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)),
+        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:5], fb[1:5], strict=True)),
     )
     g_u, g_x, rp = (_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br)))
     out = _apply(f, g_u, g_x, rp, _ELEMENTWISE)
@@ -388,18 +397,41 @@ def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs, t
     mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     factor, factor_solve, _, _ = _lane_ops(impl)
     at = {} if index is None else {"index": index}
+    if impl != "unrolled":
+        flags = _packed_flags(flags)
     if not rhs:
-        f = factor(lane_M, *mats, **at)
-        return RiccatiFactor(M, *(_to_first(a) for a in f)), flags
+        return _lane_factor(impl, M, factor(lane_M, *mats, **at)), flags
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in zip(rhs, in_batched[4:], strict=True)]
     f, s = factor_solve(lane_M, *mats, *vecs, **at)
-    out = (RiccatiFactor(M, *(_to_first(a) for a in f)), NewtonStep(*(_to_first(a) for a in s)))
+    out = (_lane_factor(impl, M, f), NewtonStep(*(_to_first(a) for a in s)))
     return out, (flags, NewtonStep(True, True, True))
+
+
+def _lane_factor(impl, M, f) -> RiccatiFactor:
+    """The factor, batch first, of a batch-last factorisation: the kernels' (L and P packed,
+    :func:`rvdjax.solver.lanes.pack`: both forms kept) or the unrolled loops'."""
+    if impl == "unrolled":
+        return RiccatiFactor(M, *(_to_first(a) for a in f))
+    whole = lanes.unpack(*f)
+    return RiccatiFactor(M, *(_to_first(a) for a in (*whole, f[0], f[3])))
+
+
+def _lane_factor_mats(impl, axis_size, f: RiccatiFactor, fb: RiccatiFactor):
+    """The batch-last (L, K, BPA, P) a solve's kernel reads (packed, from the factor's
+    storage for the kernels or from L and P), or the unrolled loops' (whole)."""
+    fields = list(zip(f[1:5], fb[1:5], strict=True))
+    if impl != "unrolled":
+        if f.Lp is None:
+            fields[0] = (lanes.tri_pack(f.L), fb.L)
+            fields[3] = (lanes.tri_pack(f.P), fb.P)
+        else:
+            fields[0], fields[3] = (f.Lp, fb.Lp), (f.Pp, fb.Pp)
+    return [_to_last(_full(axis_size, a, b)) for a, b in fields]
 
 
 def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp, table=None):
     fb, bu, bx, br = in_batched
-    mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
+    mats = _lane_factor_mats(impl, axis_size, f, fb)
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
     lane_M, index = _lane_model(impl, f.M, fb.M, table)
     at = {} if index is None else {"index": index}
@@ -413,7 +445,7 @@ def _pallas_apply_refined_rule(
     if impl == "unrolled":  # no kernel of its own: the two solves and the residual
         return _xla_apply_refined_rule(axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp)
     fb, bPu, bPx, bu, bx, br = in_batched
-    mats = [_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:], fb[1:], strict=True)]
+    mats = _lane_factor_mats(impl, axis_size, f, fb)
     mats += [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
     lane_M, index = _lane_model(impl, f.M, fb.M, table)
@@ -457,6 +489,27 @@ def _factor_flags(in_batched) -> RiccatiFactor:
     and the kernels then read it once per tile instead of a copy per problem)."""
     bA, bB = in_batched[:2]
     return RiccatiFactor(bool(bA or bB), True, True, True, True)
+
+
+def _packed_flags(flags: RiccatiFactor) -> RiccatiFactor:
+    return flags._replace(Lp=True, Pp=True)
+
+
+def _packs(kernel: str) -> bool:
+    """Whether the factor of ``kernel`` carries the kernels' storage of L and P (Lp, Pp):
+    with the kernels, and with "auto" where a program may run on a CUDA GPU (both of
+    :func:`cuda_or_default`'s branches give one structure)."""
+    return kernel.startswith("pallas") or (kernel == "auto" and traces_cuda())
+
+
+def _with_packed(op: str, out):
+    """``out`` of ``op`` with its factor's Lp and Pp formed from L and P (batch first or
+    unbatched: the matrices are the last two axes)."""
+    if op == "factor_solve":
+        return _with_packed("factor", out[0]), out[1]
+    if op != "factor" or out.Lp is not None:
+        return out
+    return out._replace(Lp=lanes.tri_pack(out.L), Pp=lanes.tri_pack(out.P))
 
 
 _CUDA_TRACE = [None]  # None: from this process's backends; True: forced (tracing_for_cuda)
@@ -577,11 +630,16 @@ def _batched(op: str, kernel: str, tabled: bool = False):
     xla_fn, xla_rule, pallas_rule = _OPS[op]
 
     def flags(in_batched):
+        fb = _factor_flags(in_batched)
+        fb = _packed_flags(fb) if _packs(kernel) else fb
         if op == "factor":
-            return _factor_flags(in_batched)
+            return fb
         if op in ("apply", "apply_refined"):
             return NewtonStep(True, True, True)
-        return _factor_flags(in_batched), NewtonStep(True, True, True)
+        return fb, NewtonStep(True, True, True)
+
+    def packed(out):  # XLA's forms give the factor the kernels' storage where they do
+        return _with_packed(op, out) if _packs(kernel) else out
 
     def one(impl, *args):
         batched = jax.tree.map(lambda _: True, args)
@@ -592,7 +650,7 @@ def _batched(op: str, kernel: str, tabled: bool = False):
     def fn(*args):
         if tabled:
             args = args[:-1]
-        return _by_platform(kernel, xla_fn, one, *args)
+        return _by_platform(kernel, lambda *a: packed(xla_fn(*a)), one, *args)
 
     @fn.def_vmap
     def rule(axis_size, in_batched, *args):
@@ -604,7 +662,7 @@ def _batched(op: str, kernel: str, tabled: bool = False):
                 table = None
         out = _by_platform(
             kernel,
-            lambda *a: xla_rule(axis_size, in_batched, *a)[0],
+            lambda *a: packed(xla_rule(axis_size, in_batched, *a)[0]),
             lambda i, *a: pallas_rule(i, axis_size, in_batched, *a, table=table)[0],
             *args,
         )
@@ -613,13 +671,19 @@ def _batched(op: str, kernel: str, tabled: bool = False):
     return fn
 
 
-def _dot_derivative(fn):
+def _dot_derivative(fn, op: str = ""):
     """A custom_jvp rule: the derivative of ``fn``'s dot form (``kernel`` is not
-    differentiated, and a :class:`ModelTable`, the last primal, only repeats A and B)."""
+    differentiated, and a :class:`ModelTable`, the last primal, only repeats A and B), the
+    factor of ``op`` with the kernels' storage where ``kernel``'s has it."""
 
     def jvp(kernel, primals, tangents):
         primals, tangents = primals[:-1], tangents[:-1]
-        return jax.jvp(lambda *a: fn(*a, _DOT), primals, tangents)
+
+        def dot(*a):
+            out = fn(*a, _DOT)
+            return _with_packed(op, out) if _packs(kernel) else out
+
+        return jax.jvp(dot, primals, tangents)
 
     return jvp
 
@@ -660,7 +724,7 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto", table=None) -> Ricc
     return _run("factor", kernel, (A, B, Phi_u, Phi_x), table)
 
 
-riccati_factor.defjvp(_dot_derivative(_factor))
+riccati_factor.defjvp(_dot_derivative(_factor, "factor"))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4,))
@@ -688,7 +752,7 @@ def riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto",
     return _run("factor_solve", kernel, (A, B, Phi_u, Phi_x, g_u, g_x, rp), table)
 
 
-riccati_factor_solve.defjvp(_dot_derivative(_factor_solve))
+riccati_factor_solve.defjvp(_dot_derivative(_factor_solve, "factor_solve"))
 
 
 # the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
