@@ -24,7 +24,10 @@ from rvdjax.solver import lanes, unrolled
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import dual_residual
 from rvdjax.solver.stagewise import shift as _shift
-from rvdjax.solver.types import KERNELS  # the Newton step's forms, checked by SolverSettings
+from rvdjax.solver.types import (  # the Newton step's forms, checked by SolverSettings
+    KERNELS,
+    PALLAS_FORMS,
+)
 
 __all__ = [
     "ModelTable",
@@ -341,19 +344,13 @@ def _lane_ops(impl):
     if impl == "unrolled":
         return unrolled.factor, unrolled.factor_solve, unrolled.apply, None
     kernel, interpret = impl
+    form = PALLAS_FORMS[kernel]
     cfg = dataclasses.replace(
         lanes.default_config(),
         interpret=interpret,
-        block_io=kernel
-        in (
-            "pallas-block-io",
-            "pallas-block-factor",
-            "pallas-block-fused",
-            "pallas-block-rows",
-            "pallas-rows",
-        ),
-        solve_block_io=kernel not in ("pallas-block-factor", "pallas-rows"),
-        fused=kernel in REFINED_IN_KERNEL,
+        block_io=form.block_io,
+        solve_block_io=form.solve_block_io,
+        fused=form.fused,
     )
     factor, apply, apply_refined = (
         functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply, lanes.apply_refined)
@@ -566,17 +563,11 @@ def cuda_or_default(*args, cuda, default):
 
 def _by_platform(kernel: str, xla, pallas, *args):
     """``xla(*args)`` or ``pallas(impl, *args)``: "xla" runs XLA's loops on every platform;
-    "pallas" runs the kernels, compiled on a CUDA GPU and interpreted elsewhere (the tests),
-    "pallas-block-io" with block loads and stores, "pallas-block-factor" with them in the
-    factorisation only, "pallas-fused" with the factorisation and first step in one kernel
-    (and a step with its refinement in another), "pallas-block-fused" the same with block
-    loads and stores (:class:`rvdjax.solver.lanes.KernelConfig`), "pallas-block-rows" that and
-    the accurate mode's row work as three more kernels, before the solves, between them and
-    after them (:mod:`rvdjax.solver.rows_kernel`, run by :mod:`rvdjax.solver.primal_dual`),
-    "pallas-rows" the same with the solves and the row work entry by entry; "unrolled"
-    runs the kernels' algebra as XLA loops (:mod:`.unrolled`); "auto" runs
-    :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops elsewhere, chosen when the program is
-    lowered for its device.
+    a "pallas*" form runs the kernels (what each form runs:
+    :data:`rvdjax.solver.types.PALLAS_FORMS`), compiled on a CUDA GPU and interpreted
+    elsewhere (the tests); "unrolled" runs the kernels' algebra as XLA loops
+    (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops
+    elsewhere, chosen when the program is lowered for its device.
 
     Why "auto" picks "pallas-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
     form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
@@ -757,12 +748,12 @@ riccati_factor_solve.defjvp(_dot_derivative(_factor_solve, "factor_solve"))
 
 # the forms whose kernels also refine a step (riccati_apply_refined); the others refine with a
 # residual formed by XLA and one more solve (rvdjax.solver.kkt.kkt_solve_refined)
-REFINED_IN_KERNEL = ("pallas-fused", "pallas-block-fused", "pallas-block-rows", "pallas-rows")
+REFINED_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.fused)
 # the forms whose accurate-mode iteration also runs its row work as kernels, before the first
 # solve, between the two and after them (rvdjax.solver.rows_kernel), and of those the one
 # whose row kernels load and store a stage's blocks (the other reads them entry by entry)
-ROWS_IN_KERNEL = ("pallas-block-rows", "pallas-rows")
-ROWS_BLOCK_IO = ("pallas-block-rows",)
+ROWS_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.rows)
+ROWS_BLOCK_IO = tuple(k for k, form in PALLAS_FORMS.items() if form.rows_block_io)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(6,))

@@ -21,19 +21,45 @@ MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
-# the Newton step's forms (rvdjax.solver.riccati, which takes them from here)
-KERNELS = (
-    "auto",
-    "xla",
-    "pallas",
-    "pallas-block-io",
-    "pallas-block-factor",
-    "pallas-fused",
-    "pallas-block-fused",
-    "pallas-block-rows",
-    "pallas-rows",
-    "unrolled",
-)
+
+
+class KernelForm(NamedTuple):
+    """What a Pallas form of the Newton step runs (``SolverSettings.kernel``; the kernels:
+    :mod:`rvdjax.solver.lanes` and :mod:`rvdjax.solver.rows_kernel`).
+
+    Attributes:
+        block_io: the factorisation's kernel loads and stores a stage's blocks at once
+            (:class:`rvdjax.solver.lanes.KernelConfig`), instead of entry by entry.
+        solve_block_io: with ``block_io``, the solves' kernels do too.
+        fused: the factorisation and the first step are one kernel, and a step and its
+            refinement another (:func:`rvdjax.solver.lanes.factor_solve`,
+            :func:`~rvdjax.solver.lanes.apply_refined`).
+        rows: the accurate mode's row work runs as three kernels too, before, between and
+            after the solves (:mod:`rvdjax.solver.rows_kernel`).
+        rows_block_io: those load and store blocks, instead of entry by entry with the soft
+            rows in a loop.
+    """
+
+    block_io: bool = False
+    solve_block_io: bool = True
+    fused: bool = False
+    rows: bool = False
+    rows_block_io: bool = False
+
+
+# the Newton step's Pallas forms, in the order they were built (docs/solver.md measures them)
+PALLAS_FORMS = {
+    "pallas": KernelForm(),
+    "pallas-block-io": KernelForm(block_io=True),
+    "pallas-block-factor": KernelForm(block_io=True, solve_block_io=False),
+    "pallas-fused": KernelForm(fused=True),
+    "pallas-block-fused": KernelForm(block_io=True, fused=True),
+    "pallas-block-rows": KernelForm(block_io=True, fused=True, rows=True, rows_block_io=True),
+    "pallas-rows": KernelForm(block_io=True, solve_block_io=False, fused=True, rows=True),
+}
+# every form of the Newton step (rvdjax.solver.riccati, which takes them from here): "auto",
+# XLA's loops, the Pallas kernels and their algebra as XLA loops
+KERNELS = ("auto", "xla", *PALLAS_FORMS, "unrolled")
 
 
 class Status:
