@@ -87,6 +87,7 @@ def _random(name, n):
         ),
         pytest.param("pallas-block-rows", marks=pytest.mark.slow),
         "pallas-rows",
+        pytest.param("pallas-entries", marks=pytest.mark.slow),
         pytest.param("unrolled", marks=pytest.mark.slow),  # opt-in; its gradients checked below
     ],
 )

@@ -56,6 +56,9 @@ PALLAS_FORMS = {
     "pallas-block-fused": KernelForm(block_io=True, fused=True),
     "pallas-block-rows": KernelForm(block_io=True, fused=True, rows=True, rows_block_io=True),
     "pallas-rows": KernelForm(block_io=True, solve_block_io=False, fused=True, rows=True),
+    # "pallas-rows" with the factorisation entry by entry too: no barrier left in thesis-vbar's
+    # engine, more spills in the QPs' factorisation (docs/benchmark.md)
+    "pallas-entries": KernelForm(fused=True, rows=True),
 }
 # every form of the Newton step (rvdjax.solver.riccati, which takes them from here): "auto",
 # XLA's loops, the Pallas kernels and their algebra as XLA loops
