@@ -86,8 +86,8 @@ def _random(name, n):
             )
         ),
         pytest.param("pallas-block-rows", marks=pytest.mark.slow),
-        "pallas-rows",
-        pytest.param("pallas-entries", marks=pytest.mark.slow),
+        pytest.param("pallas-rows", marks=pytest.mark.slow),
+        "pallas-entries",
         pytest.param("unrolled", marks=pytest.mark.slow),  # opt-in; its gradients checked below
     ],
 )
@@ -589,8 +589,9 @@ def _triton_calls(text):
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
         # "pallas-block-fused": the factorisation with the predictor's step, and the
-        # corrector's step with its refinement; in "pallas-rows", the default on a GPU, and
-        # "pallas-block-rows", the row work before, between and after them three more);
+        # corrector's step with its refinement; in "pallas-entries", the default on a GPU,
+        # "pallas-rows" and "pallas-block-rows", the row work before, between and after them
+        # three more);
         # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on a
         # GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s
         # each)
@@ -691,7 +692,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is "pallas-rows" on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-entries" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -701,7 +702,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-rows"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-entries"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
@@ -709,7 +710,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
 
 @pytest.mark.slow  # interpreted kernels in a closed loop: ~60 s
 def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
-    """The batch engine with the default GPU form of the Newton step ("pallas-rows":
+    """The batch engine with the default GPU form of the Newton step ("pallas-entries":
     the Newton blocks, the factorisation with the predictor's step, the row work between the
     solves, the corrector's step with its refinement and its update; interpreted) flies
     thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's loops:

@@ -227,8 +227,8 @@ def _refined(kernel, axes=None):
 @pytest.mark.parametrize("shared", [False, True])
 def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
     """``kkt_solve_refined``: a step and one step of iterative refinement. With the kernel
-    that forms the refinement's residual inside its sweeps ("pallas-rows", the default on a
-    GPU, entry by entry, interpreted: two tiles of 8 lanes, the last padded; and one problem
+    that forms the refinement's residual inside its sweeps ("pallas-rows", as the default on a
+    GPU runs it, entry by entry, interpreted: two tiles of 8 lanes, the last padded; and one problem
     alone), the model
     per problem or shared by the batch, it gives XLA's two solves with the residual between
     them to 1e-12, and the dense solve to 1e-9, from a factorisation whose first step is

@@ -26,11 +26,11 @@ order (the Joseph form, the refined gain K), so their results agree with the XLA
 rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
 ``SolverSettings(kernel="pallas")`` (or another of the forms of
 :data:`rvdjax.solver.types.PALLAS_FORMS`, through :class:`KernelConfig`), and
-``kernel="auto"`` runs ``"pallas-rows"`` when a program is compiled for a CUDA GPU: an
+``kernel="auto"`` runs ``"pallas-entries"`` when a program is compiled for a CUDA GPU: an
 accurate-mode iteration is then the Newton blocks, the factorisation with the predictor's
-step (block loads and stores), the row work between the solves
-(:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its refinement and its row work
-(entry by entry). The other forms call :func:`factor` then
+step (the model [B, A] read in blocks), the row work between the solves
+(:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its refinement and its row work,
+every other operand entry by entry. The other forms call :func:`factor` then
 :func:`apply` (and :func:`apply` again for the refinement): on one H200 (jax 0.11.2, CUDA 13,
 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and :func:`apply` in about
 3 s, where the entry-wise :func:`factor_solve` had not finished in 165 s on an H100; with
@@ -95,13 +95,14 @@ class KernelConfig:
             stores) x (kernel size)^2 (``sweeps/triton_compile_profile.py``); this cuts the
             loads and stores from hundreds to a few.
         solve_block_io: with ``block_io``, the solves (:func:`apply`, :func:`apply_refined`)
-            load and store blocks too; without it (the solver: ``kernel="pallas-block-factor"``
-            and ``"pallas-rows"``) only the factorisation does, and the solves read the
-            factorisation, the model and the right-hand sides entry by entry, straight from
-            their arrays (a solve's kernel is small enough to compile in seconds either way).
-            A block's split into lane vectors and join back pass through shared memory, with a
-            barrier each: assembled by ptxas for an H100, the block form of the refined solve
-            holds 585 barriers, the entry-wise form none (``sweeps/gpu_registers.py``).
+            load and store blocks too; without it (the solver: ``kernel="pallas-block-factor"``,
+            ``"pallas-rows"`` and ``"pallas-entries"``) only the factorisation does, and the
+            solves read the factorisation, the model and the right-hand sides entry by entry,
+            straight from their arrays (a solve's kernel is small enough to compile in seconds
+            either way). A block's split into lane vectors and join back pass through shared
+            memory, with a barrier each: assembled by ptxas for an H100, the block form of the
+            refined solve holds 585 barriers, the entry-wise form none
+            (``sweeps/gpu_registers.py``).
         padded_blocks: with ``block_io``, the block arrays hold each stage's entries padded to a
             power of two (one load or store a stage, but a padded copy of every input and a
             slice of every output outside the kernel), instead of the entries as they are,
@@ -110,9 +111,16 @@ class KernelConfig:
             H100 its pads and slices moved 123 of an accurate iteration's 765 KB a problem
             (``sweeps/gpu_traffic.py``, docs/benchmark.md). It stays for comparison
             (``sweeps/gpu_benchmark.py --padded-blocks``).
+        model_blocks_only: with ``block_io``, the factorisation reads only the model [B, A] in
+            blocks and every other operand, and its outputs, entry by entry (the solver:
+            ``kernel="pallas-entries"``). Assembled for an H100, the factorisation's kernel
+            then holds 12 barriers instead of 369 in thesis-vbar's engine (the model from the
+            phase table), 108 instead of 465 for QPs with a model each and none instead of 357
+            with one model, with as many spills or fewer; read entry by entry, the model's 54
+            entries a stage made it spill more (docs/benchmark.md).
 
-    The solver takes ``fused``, ``block_io`` and ``solve_block_io`` from its kernel name, and the
-    rest from :func:`default_config`.
+    The solver takes ``fused``, ``block_io``, ``solve_block_io`` and ``model_blocks_only`` from
+    its kernel name, and the rest from :func:`default_config`.
     """
 
     block: int = 128
@@ -122,6 +130,7 @@ class KernelConfig:
     block_io: bool = False
     solve_block_io: bool = True
     padded_blocks: bool = False
+    model_blocks_only: bool = False
 
 
 _DEFAULT = [KernelConfig()]
@@ -492,15 +501,19 @@ def tri_unpack(flat, axis: int, symmetric: bool):
     return jnp.moveaxis(rows, (0, 1), (axis, axis + 1))
 
 
-def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, *refs):
+def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, model_only, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
     factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp; outputs: (factorise) L, K, BPA,
     P; (with_rhs) du, dx, nu. The backward sweep keeps k_t in du's rows and p_{t+1} in nu's
-    rows until the forward sweep overwrites them. ``model`` as :func:`_model_refs`.
+    rows until the forward sweep overwrites them. ``model`` as :func:`_model_refs`;
+    ``model_only``: with ``block_io``, the model alone in blocks, the rest entry by entry
+    (:attr:`KernelConfig.model_blocks_only`).
     """
     refs = _model_refs(refs, model, block_io, padded)
+    if model_only:
+        refs = [refs[0], *(_Entries(r.ref) if isinstance(r, _Block) else r for r in refs[1:])]
     M_ref = refs[0]
     pos = 1
     if factorise:
@@ -754,8 +767,9 @@ def _call(
     if refine:
         kernel = functools.partial(_refined_kernel, N, nx, nu, lanes, block_io, padded, model)
     else:
+        model_only = block_io and cfg.model_blocks_only
         kernel = functools.partial(
-            _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model
+            _kernel, N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, model_only
         )
     res = pl.pallas_call(
         kernel,

@@ -351,6 +351,7 @@ def _lane_ops(impl):
         block_io=form.block_io,
         solve_block_io=form.solve_block_io,
         fused=form.fused,
+        model_blocks_only=form.model_blocks_only,
     )
     factor, apply, apply_refined = (
         functools.partial(f, cfg=cfg) for f in (lanes.factor, lanes.apply, lanes.apply_refined)
@@ -467,7 +468,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-rows"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-entries"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -569,13 +570,13 @@ def _by_platform(kernel: str, xla, pallas, *args):
     (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops
     elsewhere, chosen when the program is lowered for its device.
 
-    Why "auto" picks "pallas-rows" on a CUDA GPU: "pallas-block-factor" was the fastest
+    Why "auto" picks "pallas-entries" on a CUDA GPU: "pallas-block-factor" was the fastest
     form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
     kernel's sweeps, the fused kernels move 12 % fewer bytes an accurate iteration than it
     (65 536 fastmpc-3d QPs) and the rows kernels 11-12 % fewer a tick of the batch engine
-    than the fused kernels alone, where the bytes set the pace; with the rows and the solves
-    entry by entry rather than in blocks, the same bytes pass through no shared memory and no
-    barrier, and no kernel of thesis-vbar's engine falls to 32 registers and kilobytes of
+    than the fused kernels alone, where the bytes set the pace; with every operand entry by
+    entry rather than in blocks (but the factorisation's model), the same bytes pass through
+    almost no shared memory and barrier, and no kernel falls to 32 registers and kilobytes of
     spills (ptxas for sm_90a; docs/benchmark.md; none of these timed on a GPU yet). On the
     CPU XLA's loops are the fastest form (the kernels are only interpreted there). The
     measurements are in docs/solver.md."""
@@ -704,9 +705,8 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto", table=None) -> Ricc
         Phi_u: (N, nu, nu), Phi_x: (N, nx, nx) Hessian blocks (Phi_u positive definite,
             Phi_x positive semidefinite).
         kernel: "auto" (:data:`AUTO_ON_CUDA` on a CUDA GPU, else XLA's loops), "xla"
-            (XLA's loops), "pallas", "pallas-block-io", "pallas-block-factor",
-            "pallas-fused", "pallas-block-fused", "pallas-block-rows" or "pallas-rows" (the
-            kernels of :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
+            (XLA's loops), a form of :data:`rvdjax.solver.types.PALLAS_FORMS` (the kernels of
+            :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
             "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
         table: a :class:`ModelTable` whose entry is [B, A], or None: under ``vmap`` with the
             table shared and its index batched, the kernels read the model from it.

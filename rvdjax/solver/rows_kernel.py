@@ -35,10 +35,10 @@ rows but not Fx (the row products it wrote in the first sweep), and writes the n
 into the old one's buffers. Otherwise the kernels compute the expressions of
 :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
-Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see
-:func:`pd_rows`. The kernels read and write them entry by entry, the soft rows one at a time
-in a loop inside each stage (``kernel="pallas-rows"``, the default on a CUDA GPU), or a
-stage's block at a time, every row at once (``"pallas-block-rows"``): the same arithmetic. A
+Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see :func:`pd_rows`.
+The kernels read and write them entry by entry, the soft rows one at a time in a loop inside
+each stage (``kernel="pallas-rows"``, and ``"pallas-entries"``, the default on a CUDA GPU), or
+a stage's block at a time, every row at once (``"pallas-block-rows"``): the same arithmetic. A
 block is split into lane vectors and joined back through shared memory with a barrier each:
 assembled by ptxas for an H100, the three kernels of thesis-vbar's engine held about 1 200
 barriers that way, and the step's kernel fell to 32 registers with 22 KB of spill stores; a

@@ -38,6 +38,8 @@ class KernelForm(NamedTuple):
             after the solves (:mod:`rvdjax.solver.rows_kernel`).
         rows_block_io: those load and store blocks, instead of entry by entry with the soft
             rows in a loop.
+        model_blocks_only: with ``block_io``, the factorisation reads only the model [B, A]
+            in blocks, every other operand and its outputs entry by entry.
     """
 
     block_io: bool = False
@@ -45,6 +47,7 @@ class KernelForm(NamedTuple):
     fused: bool = False
     rows: bool = False
     rows_block_io: bool = False
+    model_blocks_only: bool = False
 
 
 # the Newton step's Pallas forms, in the order they were built (docs/solver.md measures them)
@@ -56,9 +59,10 @@ PALLAS_FORMS = {
     "pallas-block-fused": KernelForm(block_io=True, fused=True),
     "pallas-block-rows": KernelForm(block_io=True, fused=True, rows=True, rows_block_io=True),
     "pallas-rows": KernelForm(block_io=True, solve_block_io=False, fused=True, rows=True),
-    # "pallas-rows" with the factorisation entry by entry too: no barrier left in thesis-vbar's
-    # engine, more spills in the QPs' factorisation (docs/benchmark.md)
-    "pallas-entries": KernelForm(fused=True, rows=True),
+    # "pallas-rows" with the factorisation entry by entry too, but for the model [B, A]
+    "pallas-entries": KernelForm(
+        block_io=True, solve_block_io=False, fused=True, rows=True, model_blocks_only=True
+    ),
 }
 # every form of the Newton step (rvdjax.solver.riccati, which takes them from here): "auto",
 # XLA's loops, the Pallas kernels and their algebra as XLA loops
