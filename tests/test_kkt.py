@@ -163,8 +163,9 @@ def test_block_chunks_cover_every_entry():
 def test_factor_storage_keeps_the_lower_triangles():
     """The kernels store L and P as their lower triangles, row by row (lanes.pack): the
     entries land where the kernels' loads look for them (P[2][1] is entry 4 of 21), and
-    unpack gives back a symmetric P and a lower L exactly. That the kernels' solves with the
-    packed factorisation are XLA's to 1e-12 and to the bit is test_kernels.py's."""
+    unpack gives back a symmetric P and a lower L exactly, the matrices last (as the XLA
+    forms' factor carries them beside the matrices) or batch last. That the kernels' solves
+    with the packed factorisation agree with XLA's to rounding is test_kernels.py's."""
     rng = np.random.default_rng(5)
     N, nx, nu, b = 2, 6, 3, 4
     X = rng.standard_normal((N, nx, nx, b))
@@ -177,6 +178,8 @@ def test_factor_storage_keeps_the_lower_triangles():
     np.testing.assert_array_equal(np.asarray(packed[0][:, 5]), np.asarray(L[:, 2, 2]))
     for got, want in zip(lanes.unpack(*packed), (L, K_, BPA, P), strict=True):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    first = lanes.tri_pack(jnp.moveaxis(P, -1, 0))  # (b, N, 21): the matrices' axes last
+    np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[3]), -1, 0))
     # the kernels' reads of a stage (here from the arrays themselves)
     P_t, L_t = lanes._load_sym(packed[3], 1, nx), lanes._load_lower(packed[0], 1, nu)
     np.testing.assert_array_equal(np.stack([np.stack(r) for r in P_t]), np.asarray(P[1]))

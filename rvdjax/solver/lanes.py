@@ -460,8 +460,8 @@ def pack(L, K, BPA, P):
     nu, b), P (N, nx, nx, b)): L's and P's lower triangles, row by row ((N, tri(nu), b),
     (N, tri(nx), b); :func:`tri_pack`), K and BPA as they are. P is symmetric and L's upper
     triangle zero, so nothing is lost; the solves read 21 entries of P a stage instead of 36
-    (of an accurate iteration's reads of the factorisation, P's upper triangle was a fifth:
-    docs/solver.md)."""
+    (P's upper triangle was about a quarter of an accurate iteration's reads of the
+    factorisation: docs/benchmark.md)."""
     return tri_pack(L, 1), K, BPA, tri_pack(P, 1)
 
 
