@@ -497,7 +497,7 @@ def _packs(kernel: str) -> bool:
     """Whether the factor of ``kernel`` carries the kernels' storage of L and P (Lp, Pp):
     with the kernels, and with "auto" where a program may run on a CUDA GPU (both of
     :func:`cuda_or_default`'s branches give one structure)."""
-    return kernel.startswith("pallas") or (kernel == "auto" and traces_cuda())
+    return kernel in PALLAS_FORMS or (kernel == "auto" and traces_cuda())
 
 
 def _with_packed(op: str, out):
