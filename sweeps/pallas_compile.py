@@ -80,6 +80,11 @@ def _fns(part: str, cfg, tabled: bool = False):
     )
 
 
+def _tri(a):
+    """A Hessian block's lower triangles, as the kernels read them (lanes.tri_pack)."""
+    return lanes.tri_pack(a, 1)
+
+
 def _unpacked(out):
     """lanes.factor_solve's (factorisation, step) with the factorisation's matrices whole."""
     f, s = out
@@ -92,14 +97,14 @@ def _plain_fns(part: str, cfg):
     if part == "factor":
         return (
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.unpack(
-                *lanes.factor(M, Pu, Px, cfg=cfg, index=index)
+                *lanes.factor(M, _tri(Pu), _tri(Px), cfg=cfg, index=index)
             ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor(M, Pu, Px),
         )
     if part == "factor_solve":
         return (
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: _unpacked(
-                lanes.factor_solve(M, Pu, Px, gu, gx, r, cfg=cfg, index=index)
+                lanes.factor_solve(M, _tri(Pu), _tri(Px), gu, gx, r, cfg=cfg, index=index)
             ),
             lambda M, Pu, Px, gu, gx, r: unrolled.factor_solve(M, Pu, Px, gu, gx, r),
         )
@@ -124,7 +129,7 @@ def _plain_fns(part: str, cfg):
 
         return (
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.apply_refined(
-                M, *packed(M, Pu, Px, copy), Pu, Px, gu, gx, r, cfg=cfg, index=index
+                M, *packed(M, Pu, Px, copy), _tri(Pu), _tri(Px), gu, gx, r, cfg=cfg, index=index
             ),
             xla_refined,
         )

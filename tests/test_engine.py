@@ -339,6 +339,23 @@ def test_the_segment_program_lowers_for_a_gpu():
     assert "rvdjax_riccati_factor_solve" in text and "rvdjax_riccati_solve_refined" in text
     assert "rvdjax_pd_rows" in text and "rvdjax_pd_step_rows" in text
     assert "rvdjax_pd_blocks" in text
+    # the Hessian blocks Phi_u, Phi_x go from the blocks' kernel to the Riccati kernels as
+    # their lower triangles (6 and 21 entries a stage; nu = 3, nx = 6), the right-hand sides
+    # g_u, g_x, rp after them
+    assert _triton_entries(text, "rvdjax_pd_blocks", "out")[:2] == [6, 21]
+    for kernel in ("rvdjax_riccati_factor_solve", "rvdjax_riccati_solve_refined"):
+        assert _triton_entries(text, kernel, "in")[-5:] == [6, 21, 3, 6, 6], kernel
+
+
+def _triton_entries(text: str, kernel: str, side: str) -> list[int]:
+    """The entries a stage of each [stage][entry][problem] operand (``side`` "in") or result
+    ("out") of the Triton launch of ``kernel`` in a lowered program."""
+    import re
+
+    line = next(ln for ln in text.splitlines() if "gpu.triton" in ln and kernel in ln)
+    ins, outs = line[line.rindex(" : (") :].split(") -> ", 1)
+    types = ins if side == "in" else outs
+    return [int(m.group(1)) for m in re.finditer(r"tensor<\d+x(\d+)x\d+xf64>", types)]
 
 
 def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():

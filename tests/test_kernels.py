@@ -316,7 +316,8 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
     reading its input rows, soft rows' mask and penalty, cost blocks and model from tables of
     K = 3 at each problem's index (the batch engine's phase tables)."""
     from rvdjax.solver import primal_dual as pd
-    from rvdjax.solver.riccati import ModelTable
+    from rvdjax.solver.lanes import tri_pack
+    from rvdjax.solver.riccati import ModelTable, SymStored
 
     N, mx, mu, K = 5, 3, 4, 3
     k = iter(jax.random.split(jax.random.key(40), 8))
@@ -328,6 +329,9 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
 
     def check(want, got):
         for w, g in zip(want, got, strict=True):
+            if isinstance(g, SymStored):  # Phi_u, Phi_x: the triangles the kernel wrote
+                assert _rel(tri_pack(w, -2), g.lower) <= 1e-12
+                g = g.whole
             assert _rel(w, g) <= 1e-12
 
     def both(a, table=None):
@@ -532,7 +536,8 @@ def test_the_kernels_read_a_model_table_as_the_copies_it_stands_for(form):
         X = rng.normal(size=(N, n, n, b))
         return jnp.asarray(np.einsum("tijb,tkjb->tikb", X, X) + n * np.eye(n)[..., None])
 
-    Pu, Px = spd(nu), spd(nx)
+    Pu_whole, Px_whole = spd(nu), spd(nx)
+    Pu, Px = (lanes.tri_pack(a, 1) for a in (Pu_whole, Px_whole))  # the kernels' storage
     rhs = [jnp.asarray(rng.normal(size=(N, n, b))) for n in (nu, nx, nx)]
     block_io = form != "entries"
     cfg = dataclasses.replace(lanes.default_config(), interpret=True, block_io=block_io)
@@ -552,7 +557,7 @@ def test_the_kernels_read_a_model_table_as_the_copies_it_stands_for(form):
         kkt, s = riccati.riccati_factor_solve(A, B, Pu, Px, gu, gx, rp, AUTO_ON_CUDA, (table, i))
         return riccati.riccati_apply_refined(kkt, Pu, Px, gu, gx, rp, AUTO_ON_CUDA, (table, i))
 
-    first = [jnp.moveaxis(a, -1, 0) for a in (Pu, Px, *rhs)]
+    first = [jnp.moveaxis(a, -1, 0) for a in (Pu_whole, Px_whole, *rhs)]
     args = (table[index][..., nu:], table[index][..., :nu], *first, index)
     with tracing_for_cuda():
         jaxpr = jax.make_jaxpr(jax.vmap(solve_both))(*args)

@@ -204,7 +204,7 @@ def test_block_kernels_read_and_write_the_arrays_as_they_are():
 
     A = np.eye(nx)[None, :, :, None] + 0.2 * rng.standard_normal((n, nx, nx, b))
     M = jnp.asarray(np.concatenate([rng.standard_normal((n, nx, nu, b)), A], 2))
-    mats = (spd(nu), spd(nx))
+    mats = tuple(lanes.tri_pack(spd(k), 1) for k in (nu, nx))  # the kernels' storage
     rhs = tuple(jnp.asarray(rng.standard_normal((n, k, b))) for k in (nu, nx, nx))
 
     def run(padded, model):

@@ -43,6 +43,7 @@ from rvdjax.solver.riccati import (  # noqa: F401  (KERNELS and the Riccati name
     riccati_factor,
     riccati_factor_solve,
     riccati_solve,
+    whole,
 )
 
 __all__ = [
@@ -61,6 +62,7 @@ def dense_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> Newto
 
     Arguments and result as :func:`riccati_solve` (``kernel`` is not used).
     """
+    Phi_u, Phi_x = whole(Phi_u), whole(Phi_x)
     N, nx, nu = B.shape
     ns = nu + nx
     nz = N * ns
@@ -92,7 +94,7 @@ class KKT(NamedTuple):
 
     A: jnp.ndarray
     B: jnp.ndarray
-    Phi_u: jnp.ndarray
+    Phi_u: jnp.ndarray  # or a SymStored (rvdjax.solver.riccati), as the kernels formed it
     Phi_x: jnp.ndarray
     factor: RiccatiFactor | None
     table: ModelTable | None = None

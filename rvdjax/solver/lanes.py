@@ -15,7 +15,8 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
   the cost-to-go P and the affine term p live in registers across the stage loop;
 * the gains K, BPA, P (and the backward sweep's k, p) are written once per stage and read
   back by the forward sweep; P (symmetric) and the Cholesky factor L are stored as their
-  lower triangles (:func:`pack`), 21 and 6 entries a stage instead of 36 and 9.
+  lower triangles (:func:`pack`), 21 and 6 entries a stage instead of 36 and 9, and the
+  kernels read the Hessian blocks Phi_x and Phi_u as theirs too (21 and 6 entries).
 
 Four kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
@@ -37,9 +38,9 @@ every other operand entry by entry. The other forms call :func:`factor` then
 block loads and stores the factorisation compiles in seconds (docs/solver.md).
 
 Inputs are batch-last: ``A`` (N, nx, nx[, b]), ``B`` (N, nx, nu[, b]) (without the batch
-axis when the model is shared by every problem), ``Phi_u`` (N, nu, nu, b), ``Phi_x``
-(N, nx, nx, b), right-hand sides ``g_u`` (N, nu, b), ``g_x``, ``rp`` (N, nx, b). The batch is
-padded to a multiple of ``BLOCK`` inside.
+axis when the model is shared by every problem), ``Phi_u`` (N, tri(nu), b), ``Phi_x``
+(N, tri(nx), b) (lower triangles, :func:`tri_pack`), right-hand sides ``g_u`` (N, nu, b),
+``g_x``, ``rp`` (N, nx, b). The batch is padded to a multiple of ``BLOCK`` inside.
 """
 
 from __future__ import annotations
@@ -244,7 +245,8 @@ def _split(M, nu):
 
 def _factor_stage(P, M, Phu, Phx_prev):
     """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.riccati.riccati_factor`'s stage.
-    M is the stage's [B, A]."""
+    M is the stage's [B, A]; ``Phx_prev`` the matrix, or a function that loads it (called
+    where it is added, last, so that its entries are not live through the stage)."""
     nu = len(Phu)
     A, B = _split(M, nu)
     PM = _mm(P, M)
@@ -258,15 +260,27 @@ def _factor_stage(P, M, Phu, Phx_prev):
     K = [[k - e for k, e in zip(rk, re, strict=True)] for rk, re in zip(K, E, strict=True)]
     PAcl = _add([row[nu:] for row in PM], _mm([row[:nu] for row in PM], K))
     Acl = _add(A, _mm(B, K))
-    P_new = _add(_add(Phx_prev, _sym(_mtm(Acl, PAcl))), _sym(_mtm(K, _mm(Phu, K))))
+    joseph = (_sym(_mtm(Acl, PAcl)), _sym(_mtm(K, _mm(Phu, K))))
+    Phx_prev = Phx_prev() if callable(Phx_prev) else Phx_prev
+    P_new = _add(_add(Phx_prev, joseph[0]), joseph[1])
     return P_new, L, K, BPA
 
 
 def _backward_rhs(p, M, L, BPA, P, gu, r, gx_prev):
     """(p_t, k_t) from p_{t+1}: :func:`rvdjax.solver.riccati.riccati_apply`'s backward stage."""
+    return _backward_rhs_of(_offset(p, P, r), M, L, BPA, gu, gx_prev)
+
+
+def _offset(p, P, r):
+    """p - P r: the part of :func:`_backward_rhs` that needs neither the stage's model and
+    factorisation nor its right-hand side g."""
+    return [pi - q for pi, q in zip(p, _mv(P, r), strict=True)]
+
+
+def _backward_rhs_of(q, M, L, BPA, gu, gx_prev):
+    """:func:`_backward_rhs` from :func:`_offset`'s q = p - P r."""
     nu = len(L)
-    Pr = _mv(P, r)
-    Mp = _mtv(M, [pi - q for pi, q in zip(p, Pr, strict=True)])
+    Mp = _mtv(M, q)
     k = [-v for v in chol_solve(L, [g + m for g, m in zip(gu, Mp[:nu], strict=True)])]
     bk = _mtv(BPA, k)
     p_new = [g + m + b for g, m, b in zip(gx_prev, Mp[nu:], bk, strict=True)]
@@ -504,10 +518,11 @@ def tri_unpack(flat, axis: int, symmetric: bool):
 def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, model_only, *refs):
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
-    refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x or (not
-    factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp; outputs: (factorise) L, K, BPA,
-    P; (with_rhs) du, dx, nu. The backward sweep keeps k_t in du's rows and p_{t+1} in nu's
-    rows until the forward sweep overwrites them. ``model`` as :func:`_model_refs`;
+    refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x (their lower
+    triangles, :func:`_tri`) or (not factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp;
+    outputs: (factorise) L, K, BPA, P; (with_rhs) du, dx, nu. The backward sweep keeps k_t
+    in du's rows and p_{t+1} in nu's rows until the forward sweep overwrites them. ``model``
+    as :func:`_model_refs`;
     ``model_only``: with ``block_io``, the model alone in blocks, the rest entry by entry
     (:attr:`KernelConfig.model_blocks_only`).
     """
@@ -539,15 +554,27 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
     def backward(i, carry):
         t = N - 1 - i
         M = _load(M_ref, t, nx, nu + nx)
+        q = None
         if factorise:
+            # P_{t+1} and p_{t+1} stored and the right-hand side's p - P r formed first, and
+            # Phi_x read last (Phx_prev): past its product with [B, A] the stage needs
+            # nothing else of P, so fewer entries are live at once (ptxas for sm_90a, the
+            # factorisation in thesis-vbar's engine: 1.7 / 2.2 KB of spill stores / loads
+            # instead of 2.6 / 3.2; docs/benchmark.md)
             P = _untri(carry[0], nx)
-            Phu = _load(Phu_ref, t, nu, nu)
+            _store(P_ref, t, list(carry[0]))
+            if with_rhs:
+                _store(nu_ref, t, list(carry[-1]))
+                q = _offset(list(carry[-1]), P, _load(rp_ref, t, nx))
+            Phu = _load_sym(Phu_ref, t, nu)
             prev = jnp.maximum(t - 1, 0)
             on = t > 0
-            Phx = _load(Phx_ref, prev, nx, nx)
-            Phx_prev = [[jnp.where(on, v, 0.0) for v in row] for row in Phx]
+
+            def Phx_prev():
+                Phx = _load(Phx_ref, prev, tri_size(nx))
+                return _untri([jnp.where(on, v, 0.0) for v in Phx], nx)
+
             P_new, L, K, BPA = _factor_stage(P, M, Phu, Phx_prev)
-            _store(P_ref, t, list(carry[0]))
             _store(L_ref, t, list(_lower(L)))
             _store(K_ref, t, K)
             _store(BPA_ref, t, BPA)
@@ -562,17 +589,17 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
             prev = jnp.maximum(t - 1, 0)
             on = t > 0
             gx_prev = [jnp.where(on, v, 0.0) for v in _load(gx_ref, prev, nx)]
-            p_new, k = _backward_rhs(
-                p, M, L, BPA, P, _load(gu_ref, t, nu), _load(rp_ref, t, nx), gx_prev
-            )
+            if q is None:
+                _store(nu_ref, t, p)
+                q = _offset(p, P, _load(rp_ref, t, nx))
+            p_new, k = _backward_rhs_of(q, M, L, BPA, _load(gu_ref, t, nu), gx_prev)
             _store(du_ref, t, k)
-            _store(nu_ref, t, p)
             new = new + (tuple(p_new),)
         return new
 
     carry = ()
     if factorise:
-        carry += (_tri(_load(Phx_ref, N - 1, nx, nx)),)
+        carry += (tuple(_load(Phx_ref, N - 1, tri_size(nx))),)
     if with_rhs:
         carry += (tuple(_load(gx_ref, N - 1, nx)),)
     lax.fori_loop(0, N, backward, carry)
@@ -660,7 +687,7 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
     def r_x(t, A_next=None):
         """Phi_x dx_t + g_x + nu_t - A_{t+1}^T nu_{t+1} (``A_next`` = A_{t+1}; none at the last
         stage)."""
-        Phx = _load(Phx_ref, t, nx, nx)
+        Phx = _load_sym(Phx_ref, t, nx)
         g = [
             a + b for a, b in zip(_mv(Phx, _load(dx_ref, t, nx)), _load(gx_ref, t, nx), strict=True)
         ]
@@ -675,7 +702,7 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
         du, dx, nu_t = _load(du_ref, t, nu), _load(dx_ref, t, nx), _load(nu_ref, t, nx)
         g_u = [
             a + b
-            for a, b in zip(_mv(_load(Phu_ref, t, nu, nu), du), _load(gu_ref, t, nu), strict=True)
+            for a, b in zip(_mv(_load_sym(Phu_ref, t, nu), du), _load(gu_ref, t, nu), strict=True)
         ]
         r_u = [a - b for a, b in zip(g_u, _mtv(B, nu_t), strict=True)]
         on = t > 0
@@ -812,7 +839,8 @@ def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
     Args:
         M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared), or with
             ``index`` a table (K, N, nx, nu + nx) of K models.
-        Phi_u: (N, nu, nu, b), Phi_x: (N, nx, nx, b) Hessian blocks.
+        Phi_u: (N, tri(nu), b), Phi_x: (N, tri(nx), b) the Hessian blocks' lower triangles
+            (:func:`tri_pack`; symmetric, so nothing is lost).
         index: (b,) int, the model of each problem in the table ``M`` (the same arithmetic
             as ``M[index]`` moved batch last, without that copy).
     """
@@ -839,7 +867,7 @@ def apply_refined(
     """The step (du, dx, nu) of one right-hand side with a stored factorisation (packed, as
     :func:`factor` returns it), plus one step of iterative refinement
     (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the residual needs the Hessian
-    blocks Phi_u (N, nu, nu, b) and Phi_x (N, nx, nx, b) too (``M`` and ``index`` as
+    blocks Phi_u and Phi_x too, as :func:`factor` takes them (``M`` and ``index`` as
     :func:`factor`)."""
     mats = [L, K, BPA, P, Phi_u, Phi_x]
     return tuple(_call(cfg, False, True, M, mats, [g_u, g_x, rp], True, index=index))

@@ -29,7 +29,15 @@ from rvdjax.solver.barrier import (
     x_violation,
 )
 from rvdjax.solver.kkt import kkt_factor_solve, kkt_solve_refined
-from rvdjax.solver.riccati import AUTO_ON_CUDA, ROWS_BLOCK_IO, ROWS_IN_KERNEL, cuda_or_default
+from rvdjax.solver.lanes import tri_pack, tri_unpack
+from rvdjax.solver.riccati import (
+    AUTO_ON_CUDA,
+    ROWS_BLOCK_IO,
+    ROWS_IN_KERNEL,
+    SymStored,
+    cuda_or_default,
+    traces_cuda,
+)
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration"]
@@ -143,8 +151,17 @@ def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None, blo
     fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables), block_io)
     cost = (ocp.Q, ocp.R, model, ocp.q, ocp.r, ocp.x_ref, ocp.c, ocp.x0[None])
     out = fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables)
-    Phi_u, Phi_x, g_x, base_u, base_x, rp = out
+    Phi_u, Phi_x, g_x, base_u, base_x, rp = out  # the blocks' lower triangles
+    Phi_u, Phi_x = (SymStored(tri_unpack(a, 1, True), a) for a in (Phi_u, Phi_x))
     return Phi_u, Phi_x, base_u, g_x, base_u, base_x, rp
+
+
+def _stored_blocks(ocp, rows, st: PDState, su, sx):
+    """:func:`_newton_blocks` with Phi_u and Phi_x as :class:`SymStored`, the structure of
+    :func:`_blocks_in_kernel`'s, for the branch of a program that also holds the kernels
+    (the triangles are dead code where XLA's loops run)."""
+    Phi_u, Phi_x, *rest = _newton_blocks(ocp, rows, st, su, sx)
+    return (SymStored(Phi_u, tri_pack(Phi_u, 1)), SymStored(Phi_x, tri_pack(Phi_x, 1)), *rest)
 
 
 def _pd_unpack(rows, st: PDState, step, su, sx, tau_u, tau_x, tau_s, h):
@@ -429,7 +446,7 @@ def pd_iteration(
     Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp = _by_kernel(
         (ocp, rows, st, su, sx),
         kernel,
-        _newton_blocks,
+        _stored_blocks if kernel == "auto" and traces_cuda() else _newton_blocks,
         functools.partial(_blocks_in_kernel, table=table),
     )
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel, table)

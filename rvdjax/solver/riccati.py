@@ -32,6 +32,7 @@ from rvdjax.solver.types import (  # the Newton step's forms, checked by SolverS
 __all__ = [
     "ModelTable",
     "NewtonStep",
+    "SymStored",
     "RiccatiFactor",
     "riccati_factor",
     "riccati_apply",
@@ -123,6 +124,36 @@ class ModelTable(NamedTuple):
     R: Any = None
 
 
+class SymStored(NamedTuple):
+    """A stage-wise symmetric Hessian block and its lower triangle, as the GPU kernels store
+    it: the blocks' kernel (:func:`rvdjax.solver.rows_kernel.pd_blocks`) writes Phi_u and
+    Phi_x as their lower triangles (:func:`rvdjax.solver.lanes.tri_pack`: 6 and 21 entries a
+    stage instead of 9 and 36), which the Riccati kernels read as they are. XLA does not fold
+    a copy of the triangles into whole matrices and back between two kernels, so the
+    triangles go beside the whole matrices, which every other use reads (the XLA forms, the
+    derivatives) and which are dead code where none does. Every function here that takes
+    Phi_u or Phi_x takes either an array or this.
+
+    Attributes:
+        whole: (N, n, n) the blocks.
+        lower: (N, n (n + 1) / 2) their lower triangles, row by row.
+    """
+
+    whole: Any
+    lower: Any
+
+
+def whole(a):
+    """The matrices of a Hessian block passed as an array or as :class:`SymStored`."""
+    return a.whole if isinstance(a, SymStored) else a
+
+
+def _lower(a, axis: int):
+    """The lower triangles of a Hessian block (:class:`SymStored`'s, or formed from the
+    matrices at ``axis`` and the next)."""
+    return a.lower if isinstance(a, SymStored) else lanes.tri_pack(a, axis)
+
+
 def _small_chol(H):
     """Cholesky of a small SPD matrix written out element by element
     (:func:`rvdjax.solver.lanes.chol`).
@@ -176,6 +207,7 @@ _ELEMENTWISE = _Products(
 
 
 def _factor(A, B, Phi_u, Phi_x, ops: _Products) -> RiccatiFactor:
+    Phi_u, Phi_x = whole(Phi_u), whole(Phi_x)
     nu = B.shape[2]
     batch = jnp.broadcast_shapes(A.shape[3:], B.shape[3:])
     A = jnp.broadcast_to(A, A.shape[:3] + batch)
@@ -240,6 +272,7 @@ class _Model(NamedTuple):
 def newton_residual(A, B, Phi_u, Phi_x, g_u, g_x, rp, step: NewtonStep):
     """K z + (g, rp) for z = (du, dx, nu): the residual of the stage-structured Newton system
     (the rows of :func:`rvdjax.solver.kkt.dense_solve`'s matrix, applied stage by stage)."""
+    Phi_u, Phi_x = whole(Phi_u), whole(Phi_x)
     r_u, r_x = dual_residual(
         _Model(A, B), sw.mv(Phi_u, step.du) + g_u, sw.mv(Phi_x, step.dx) + g_x, step.nu
     )
@@ -303,8 +336,8 @@ def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     f = _factor(
         _to_last(A, bA),
         _to_last(B, bB),
-        _to_last(_full(axis_size, Phi_u, bPu)),
-        _to_last(_full(axis_size, Phi_x, bPx)),
+        _to_last(_full(axis_size, whole(Phi_u), whole(bPu))),
+        _to_last(_full(axis_size, whole(Phi_x), whole(bPx))),
         _ELEMENTWISE,
     )
     m_batched = bool(bA or bB)
@@ -392,7 +425,7 @@ def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs, t
     flags = _factor_flags(in_batched)
     M = _model_M(axis_size, A, B, bA, bB, flags.M)
     lane_M, index = _lane_model(impl, M, flags.M, table)
-    mats = [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
+    mats = _lane_blocks(impl, axis_size, (Phi_u, bPu), (Phi_x, bPx))
     factor, factor_solve, _, _ = _lane_ops(impl)
     at = {} if index is None else {"index": index}
     if impl != "unrolled":
@@ -427,6 +460,19 @@ def _lane_factor_mats(impl, axis_size, f: RiccatiFactor, fb: RiccatiFactor):
     return [_to_last(_full(axis_size, a, b)) for a, b in fields]
 
 
+def _lane_blocks(impl, axis_size, *blocks):
+    """The batch-last Hessian blocks a kernel reads, each given as (block, batched): the
+    lower triangles for the Pallas kernels (:class:`SymStored`'s, or packed from the
+    matrices), the matrices for the unrolled loops."""
+    if impl == "unrolled":
+        return [_to_last(_full(axis_size, whole(a), whole(b))) for a, b in blocks]
+    return [_to_last(_full(axis_size, _lower(a, -2), _lower_flag(b))) for a, b in blocks]
+
+
+def _lower_flag(b):
+    return b.lower if isinstance(b, SymStored) else b
+
+
 def _pallas_apply_rule(impl, axis_size, in_batched, f, g_u, g_x, rp, table=None):
     fb, bu, bx, br = in_batched
     mats = _lane_factor_mats(impl, axis_size, f, fb)
@@ -444,7 +490,7 @@ def _pallas_apply_refined_rule(
         return _xla_apply_refined_rule(axis_size, in_batched, f, Phi_u, Phi_x, g_u, g_x, rp)
     fb, bPu, bPx, bu, bx, br = in_batched
     mats = _lane_factor_mats(impl, axis_size, f, fb)
-    mats += [_to_last(_full(axis_size, a, b)) for a, b in ((Phi_u, bPu), (Phi_x, bPx))]
+    mats += _lane_blocks(impl, axis_size, (Phi_u, bPu), (Phi_x, bPx))
     vecs = [_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br))]
     lane_M, index = _lane_model(impl, f.M, fb.M, table)
     at = {} if index is None else {"index": index}

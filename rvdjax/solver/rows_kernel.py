@@ -68,6 +68,8 @@ from rvdjax.solver.lanes import (
     _mv,
     _pad,
     _store,
+    _tri,
+    tri_size,
 )
 
 __all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "pd_blocks", "batched"]
@@ -591,8 +593,9 @@ def _blocks_kernel(dims, N, *refs):
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the iterate's u, x, the cost blocks Q,
     R, the model [B, A], the linear costs q, r, the reference x_ref and the dynamics' offset c
     (these four per problem or :class:`_Shared`), the initial state x0 (1, nx); outputs
-    Phi_u (N, nu nu), Phi_x (N, nx nx), g_x (N, nx), the cost's gradient base_u (N, nu),
-    base_x (N, nx) and the dynamics' residual rp (N, nx). The residual at stage t needs the
+    Phi_u (N, tri(nu)), Phi_x (N, tri(nx)) (lower triangles, :func:`lanes.tri_pack`'s order),
+    g_x (N, nx), the cost's gradient base_u (N, nu), base_x (N, nx) and the dynamics'
+    residual rp (N, nx). The residual at stage t needs the
     previous stage's state: a second sweep forms it, carrying the state (it reads u, x and the
     model again, 3 KB a thesis-vbar problem)."""
     mx, mu, nx, nu = dims
@@ -629,8 +632,8 @@ def _blocks_kernel(dims, N, *refs):
         Phi_x = blocks(Q, rows.Fx, d)
         base_u, base_x = cost(t, Q, R)
         g_x = [b + f for b, f in zip(base_x, _mtv(rows.Fx, v), strict=True)]
-        _store(Pu_out, t, Phi_u)
-        _store(Px_out, t, Phi_x)
+        _store(Pu_out, t, list(_tri(Phi_u)))
+        _store(Px_out, t, list(_tri(Phi_x)))
         _store(gx_out, t, g_x)
         _store(bu_out, t, base_u)
         _store(bx_out, t, base_x)
@@ -642,26 +645,28 @@ def _blocks_kernel(dims, N, *refs):
         summed row by row in the order of :func:`rvdjax.solver.lanes._mtm`."""
         inputs = StageRows(dims, row_refs, t, "inputs")
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
-        _store(Pu_out, t, blocks(R, inputs.Fu, inputs.Du))
+        _store(Pu_out, t, list(_tri(blocks(R, inputs.Fu, inputs.Du))))
         base_u, base_x = cost(t, Q, R)
         _store(bu_out, t, base_u)
         _store(bx_out, t, base_x)
 
-        def soft(i, acc):
+        def soft(i, acc):  # the lower triangle of F^T diag(d) F, row j entry k: F_j (d F_k)
             P, g = acc
             row = StageRows(dims, row_refs, t, i)
             (d,), (v,) = soft_parts(row)
             (F,) = row.Fx
-            P = [
-                [p + f * (d * h) for p, h in zip(P_j, F, strict=True)]
-                for P_j, f in zip(P, F, strict=True)
-            ]
+            P = [p + F[j] * (d * F[k]) for p, (j, k) in zip(P, pairs, strict=True)]
             g = [a + f * v for a, f in zip(g, F, strict=True)]
             return P, g
 
         zero = jnp.zeros_like(Q[0][0])
-        P, g = jax.lax.fori_loop(0, mx, soft, ([[zero] * nx] * nx, [zero] * nx))
-        _store(Px_out, t, _add([[2.0 * w for w in row] for row in Q], P))
+        pairs = [(j, k) for j in range(nx) for k in range(j + 1)]
+        P, g = jax.lax.fori_loop(0, mx, soft, ([zero] * len(pairs), [zero] * nx))
+        # Q read again rather than held through the rows' loop, where its entries took
+        # registers (ptxas for sm_90a: 166 registers a thread instead of 184, so three
+        # programs a multiprocessor instead of two; docs/benchmark.md)
+        Q = _load(Q_r, t, nx, nx)
+        _store(Px_out, t, [2.0 * Q[j][k] + p for p, (j, k) in zip(P, pairs, strict=True)])
         _store(gx_out, t, [b + f for b, f in zip(base_x, g, strict=True)])
         return carry
 
@@ -913,8 +918,9 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None, block_
     last four without the problem axis where the batch shares them; x0 (1, nx, b).
 
     Returns:
-        Phi_u (N, nu, nu, b), Phi_x (N, nx, nx, b), g_x (N, nx, b), base_u (N, nu, b),
-        base_x (N, nx, b), rp (N, nx, b).
+        Phi_u (N, tri(nu), b), Phi_x (N, tri(nx), b) as their lower triangles
+        (:func:`rvdjax.solver.lanes.tri_pack`; the Riccati kernels read them so),
+        g_x (N, nx, b), base_u (N, nu, b), base_x (N, nx, b), rp (N, nx, b).
 
     ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]) with each table (K, N, ...)
     or None: the kernel reads those given from the tables at each problem's index.
@@ -927,13 +933,13 @@ def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None, block_
         functools.partial(_blocks_kernel, dims, N),
         "rvdjax_pd_blocks",
         [*rows, u, x, *cost, x0],
-        [(N, nu * nu), (N, nx * nx), (N, nx), (N, nu), (N, nx), (N, nx)],
+        [(N, tri_size(nu)), (N, tri_size(nx)), (N, nx), (N, nu), (N, nx), (N, nx)],
         interpret,
         _tables("blocks", tables),
         shared=_SHARED["blocks"],
         block_io=block_io,
     )
-    return Pu.reshape(N, nu, nu, b), Px.reshape(N, nx, nx, b), g_x, base_u, base_x, rp
+    return Pu, Px, g_x, base_u, base_x, rp
 
 
 @functools.cache
