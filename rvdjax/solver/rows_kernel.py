@@ -36,14 +36,17 @@ into the old one's buffers. Otherwise the kernels compute the expressions of
 :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see :func:`pd_rows`.
-The kernels read and write them entry by entry, the soft rows one at a time in a loop inside
-each stage (``kernel="pallas-rows"``, and ``"pallas-entries"``, the default on a CUDA GPU), or
-a stage's block at a time, every row at once (``"pallas-block-rows"``): the same arithmetic. A
-block is split into lane vectors and joined back through shared memory with a barrier each:
-assembled by ptxas for an H100, the three kernels of thesis-vbar's engine held about 1 200
-barriers that way, and the step's kernel fell to 32 registers with 22 KB of spill stores; a
-stage's 12 rows unrolled entry by entry still spilled 2-8 KB a kernel. One row at a time, the
-three hold no barrier and spill nothing (``sweeps/gpu_registers.py``, docs/benchmark.md).
+The kernels read and write them entry by entry, the input rows and then the soft rows one at a
+time in loops inside each stage (``kernel="pallas-rows"``, and ``"pallas-entries"``, the
+default on a CUDA GPU), or a stage's block at a time, every row at once
+(``"pallas-block-rows"``): the same arithmetic. A block is split into lane vectors and joined
+back through shared memory with a barrier each: assembled by ptxas for an H100, the three
+kernels of thesis-vbar's engine held about 1 200 barriers that way, and the step's kernel fell
+to 32 registers with 22 KB of spill stores; a stage's 12 rows unrolled entry by entry still
+spilled 2-8 KB a kernel. One row at a time, the three hold no barrier and spill nothing
+(``sweeps/gpu_registers.py``, docs/benchmark.md); the input rows one at a time too, they need
+151-168 registers instead of 198-244 (a multiprocessor then holds three programs instead of
+two).
 """
 
 from __future__ import annotations
@@ -116,13 +119,18 @@ class StageRows:
     ``barrier.rows_of`` zeroes them."""
 
     def __init__(self, dims, refs, t, part=None):
-        """``part``: None (every row), "inputs" (the input rows alone) or a soft row's index
-        (traced; that row alone, from refs read entry by entry)."""
+        """``part``: None (every row), "inputs" (the input rows alone), ("input", i) (input
+        row i alone, ``i`` traced) or a soft row's index (traced; that row alone); a row alone
+        from refs read entry by entry."""
         mx, mu, nx, nu = dims
         (Fx_r, Fu_r, s_r, g_r, mu_r, pi_r, wx_r, rho_r, su_r, lam_r, wu_r) = refs[:11]
         self.Fx, self.s, self.g, self.mu, self.pi, self.wx, self.rho = ([],) * 7
         self.Fu, self.su, self.lam, self.wu = ([],) * 4
-        if part is None:
+        if isinstance(part, tuple):
+            i = part[1]
+            self.Fu = [_row_entries(Fu_r, t, i, nu)]
+            self.su, self.lam, self.wu = (_row_entries(r, t, i, 1) for r in (su_r, lam_r, wu_r))
+        elif part is None:
             self.Fx = _load(Fx_r, t, mx, nx)
             self.s, self.g, self.mu, self.pi = (_load(r, t, mx) for r in (s_r, g_r, mu_r, pi_r))
             self.wx, self.rho = _load(wx_r, t, mx), _load(rho_r, t, mx)
@@ -311,17 +319,28 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
         return alpha, c0, c1, c2
 
     def stage_by_row(t, carry):
-        """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
-        entry), as the step's kernel does (:func:`_step_kernel`)."""
+        """:func:`stage` with the input rows and the soft rows one at a time in loops (refs
+        read entry by entry), as the step's kernel does (:func:`_step_kernel`)."""
         alpha, c0, c1, c2 = carry
         dx, du = _load(row_refs[11], t, nx), _load(row_refs[12], t, nu)
-        inputs = StageRows(dims, row_refs, t, "inputs")
-        r = _affine((0, mu, nx, nu), inputs, _mv(inputs.Fu, du), [])
-        alpha = _min_ratio(r.pairs(inputs), alpha)
-        c0, c1, c2 = _sum_products(r.products(inputs), c0, c1, c2)
-        u1, u2 = _input_terms(inputs, r)
-        _store(Gu_out, t, [_load(bu_r, t, nu), _mtv(inputs.Fu, u1), _mtv(inputs.Fu, u2)])
-        _store(Fdu_out, t, r.Fdu)
+
+        def inp(i, acc):  # one input row
+            alpha, c0, c1, c2, U1, U2 = acc
+            row = StageRows(dims, row_refs, t, ("input", i))
+            r = _affine((0, 1, nx, nu), row, _mv(row.Fu, du), [])
+            alpha = _min_ratio(r.pairs(row), alpha)
+            c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            u1, u2 = _input_terms(row, r)
+            U1 = [a + b for a, b in zip(U1, _mtv(row.Fu, u1), strict=True)]
+            U2 = [a + b for a, b in zip(U2, _mtv(row.Fu, u2), strict=True)]
+            Fdu_out.ref[t, i] = r.Fdu[0]
+            return alpha, c0, c1, c2, U1, U2
+
+        zeros_u = [jnp.zeros_like(gap)] * nu
+        alpha, c0, c1, c2, U1, U2 = jax.lax.fori_loop(
+            0, mu, inp, (alpha, c0, c1, c2, zeros_u, zeros_u)
+        )
+        _store(Gu_out, t, [_load(bu_r, t, nu), U1, U2])
 
         def soft(i, acc):
             alpha, c0, c1, c2, *G = acc
@@ -422,28 +441,35 @@ def _step_kernel(dims, N, *refs):
         return alpha, c0, c1, c2
 
     def stage_by_row(t, carry):
-        """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
-        entry): a stage's rows, steps and products are never live at once. All of them at
-        once, unrolled, leave ptxas at the edge of its register allocation: thesis-vbar's
-        12 rows a stage gave 255 registers and 5.6 KB of spill stores, and the same sweep
-        without the update's fell to 32 registers and 12.8 KB (sm_90a). The sums over the
-        rows run in the same order (X as _mtv's), the complementarity's interleaved by row."""
+        """:func:`stage` with the input rows, then the soft rows, one at a time in loops (refs read
+        entry by entry): a stage's rows, steps and products are never live at once. All of them
+        at once, unrolled, leave ptxas at the edge of its register allocation: thesis-vbar's 12
+        rows a stage gave 255 registers and 5.6 KB of spill stores, and the same sweep without
+        the update's fell to 32 registers and 12.8 KB (sm_90a). The sums over the rows run in the
+        same order (X and U as _mtv's), the complementarity's interleaved by row (the ratio
+        test's minimum too, which does not depend on the order)."""
         alpha, c0, c1, c2 = carry
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
         for v in (*dx, *du, *_load(nun_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
             alpha = alpha + 0.0 * v
-        inputs = StageRows(dims, row_refs, t, "inputs")
-        d_in, d_row = (0, mu, nx, nu), (1, 0, nx, nu)
-        aff = _affine(d_in, inputs, _load(Fdua_r, t, mu), [])
-        r = _corrector(d_in, inputs, aff, _mv(inputs.Fu, du), [], alpha_a, kappa)
-        alpha = _min_ratio(r.pairs(inputs), alpha, nan_if_not_finite=True)
-        c0, c1, c2 = _sum_products(r.products(inputs), c0, c1, c2)
-        U = [
-            _mtv(inputs.Fu, weighted(inputs.wu, inputs.lam)),
-            _mtv(inputs.Fu, weighted(inputs.wu, r.dlam)),
-        ]
-        _store(Fdu_out, t, r.Fdu)
-        _store(U_out, t, U)
+        d_in, d_row = (0, 1, nx, nu), (1, 0, nx, nu)
+
+        def inp(i, acc):  # one input row
+            alpha, c0, c1, c2, U0, U1 = acc
+            row = StageRows(dims, row_refs, t, ("input", i))
+            aff = _affine(d_in, row, _row_entries(Fdua_r, t, i, 1), [])
+            r = _corrector(d_in, row, aff, _mv(row.Fu, du), [], alpha_a, kappa)
+            alpha = _min_ratio(r.pairs(row), alpha, nan_if_not_finite=True)
+            c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            U0 = [a + b for a, b in zip(U0, _mtv(row.Fu, weighted(row.wu, row.lam)), strict=True)]
+            U1 = [a + b for a, b in zip(U1, _mtv(row.Fu, weighted(row.wu, r.dlam)), strict=True)]
+            Fdu_out.ref[t, i] = r.Fdu[0]
+            return alpha, c0, c1, c2, U0, U1
+
+        zeros_u = [jnp.zeros_like(alpha_a)] * nu
+        acc = jax.lax.fori_loop(0, mu, inp, (alpha, c0, c1, c2, zeros_u, zeros_u))
+        alpha, c0, c1, c2, U0, U1 = acc
+        _store(U_out, t, [U0, U1])
 
         def soft(i, acc):
             alpha, c0, c1, c2, X0, X1 = acc
@@ -537,8 +563,8 @@ def _step_kernel(dims, N, *refs):
         return ru, rx, gm, J, p_t
 
     def update_by_row(t, carry):
-        """:func:`update` with the soft rows one at a time in a loop (as :func:`stage_by_row`;
-        the same operations, and the penalty sum in the same order)."""
+        """:func:`update` with the soft rows and the input rows one at a time in loops (as
+        :func:`stage_by_row`; the same operations, and the penalty sum in the same order)."""
         rs, js, wr, ru, rx, gm, J, p_prev = carry
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
         nu_old = _load(nu_r, t, nx)
@@ -546,15 +572,20 @@ def _step_kernel(dims, N, *refs):
         u_n = [upd(v, d) for v, d in zip(_load(u_r, t, nu), du, strict=True)]
         x_n = [upd(v, d) for v, d in zip(_load(x_r, t, nx), dx, strict=True)]
         nu_n = [upd(v, d) for v, d in zip(nu_old, dnu, strict=True)]
-        inputs = StageRows(dims, row_refs, t, "inputs")
-        d_in, d_row = (0, mu, nx, nu), (1, 0, nx, nu)
-        aff = _affine(d_in, inputs, _load(Fdua_r, t, mu), [])
-        r = _corrector(d_in, inputs, aff, _load(Fdu_out, t, mu), [], alpha_a, kappa)
-        lam_n = [upd(v, d, w) for v, d, w in zip(inputs.lam, r.dlam, inputs.wu, strict=True)]
-        su_n = [upd(v, d) for v, d in zip(inputs.su, r.dsu, strict=True)]
         u_o, x_o, nu_o, s_o, lam_o, mu_o, pi_o, su_o, g_o = new_out
-        for ref, v in ((u_o, u_n), (x_o, x_n), (nu_o, nu_n), (lam_o, lam_n), (su_o, su_n)):
+        for ref, v in ((u_o, u_n), (x_o, x_n), (nu_o, nu_n)):
             _store(ref, t, v)
+        d_in, d_row = (0, 1, nx, nu), (1, 0, nx, nu)
+
+        def inp(i, carry):  # one input row
+            row = StageRows(dims, row_refs, t, ("input", i))
+            aff = _affine(d_in, row, _row_entries(Fdua_r, t, i, 1), [])
+            r = _corrector(d_in, row, aff, _row_entries(Fdu_out, t, i, 1), [], alpha_a, kappa)
+            lam_o.ref[t, i] = upd(row.lam[0], r.dlam[0], row.wu[0])
+            su_o.ref[t, i] = upd(row.su[0], r.dsu[0])
+            return carry
+
+        jax.lax.fori_loop(0, mu, inp, 0)
 
         def soft(i, acc):
             rs, js, wr = acc
@@ -641,8 +672,11 @@ def _blocks_kernel(dims, N, *refs):
 
     def stage_by_row(t, carry):
         """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
-        entry), as the step's kernel does (:func:`_step_kernel`): F^T diag(d) F and F^T v
-        summed row by row in the order of :func:`rvdjax.solver.lanes._mtm`."""
+        entry), as the step's kernel does (:func:`_step_kernel`): F^T diag(d) F (its lower
+        triangle) and F^T v summed row by row in the order of
+        :func:`rvdjax.solver.lanes._mtm`. The input rows stay unrolled: in a loop of their own
+        they took the kernel from 168 to 204 registers with 65 536 QPs of a model each (the
+        cost block R then lives through the loop; ptxas for sm_90a)."""
         inputs = StageRows(dims, row_refs, t, "inputs")
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         _store(Pu_out, t, list(_tri(blocks(R, inputs.Fu, inputs.Du))))
