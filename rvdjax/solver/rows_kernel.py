@@ -44,9 +44,10 @@ back through shared memory with a barrier each: assembled by ptxas for an H100, 
 kernels of thesis-vbar's engine held about 1 200 barriers that way, and the step's kernel fell
 to 32 registers with 22 KB of spill stores; a stage's 12 rows unrolled entry by entry still
 spilled 2-8 KB a kernel. One row at a time, the three hold no barrier and spill nothing
-(``sweeps/gpu_registers.py``, docs/benchmark.md); the input rows one at a time too, they need
-151-168 registers instead of 198-244 (a multiprocessor then holds three programs instead of
-two).
+(``sweeps/gpu_registers.py``, docs/benchmark.md). With the input rows one at a time too, the
+kernels between and after the solves need 151 and 168 registers instead of 198 and 244 in
+thesis-vbar's engine (154 and 168 instead of 218 and 242-254 with 65 536 fastmpc-3d QPs): a
+multiprocessor then holds three of their programs instead of two.
 """
 
 from __future__ import annotations
@@ -563,7 +564,7 @@ def _step_kernel(dims, N, *refs):
         return ru, rx, gm, J, p_t
 
     def update_by_row(t, carry):
-        """:func:`update` with the soft rows and the input rows one at a time in loops (as
+        """:func:`update` with the input rows and the soft rows one at a time in loops (as
         :func:`stage_by_row`; the same operations, and the penalty sum in the same order)."""
         rs, js, wr, ru, rx, gm, J, p_prev = carry
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
