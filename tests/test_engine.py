@@ -5,6 +5,7 @@ batch, settings chosen for the device, a segment program that lowers for a GPU."
 from __future__ import annotations
 
 import functools
+import re
 
 import jax
 import jax.numpy as jnp
@@ -328,7 +329,8 @@ def test_the_segment_program_lowers_for_a_gpu():
     lowering error would show here), with the accelerator settings (one chunk, compacted,
     the slots stored last), and the solver's default Newton step as Pallas (Triton) kernels
     there: the Newton blocks, the factorisation with the predictor's step, the row work between
-    the solves, the corrector's step with its refinement, and its row work."""
+    the solves, the corrector's step with its refinement, and its row work; the Newton blocks
+    pass from the first to the Riccati kernels as their lower triangles."""
     from rvdjax.loop.engine.segment import _slots_last
 
     exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
@@ -350,8 +352,6 @@ def test_the_segment_program_lowers_for_a_gpu():
 def _triton_entries(text: str, kernel: str, side: str) -> list[int]:
     """The entries a stage of each [stage][entry][problem] operand (``side`` "in") or result
     ("out") of the Triton launch of ``kernel`` in a lowered program."""
-    import re
-
     line = next(ln for ln in text.splitlines() if "gpu.triton" in ln and kernel in ln)
     ins, outs = line[line.rindex(" : (") :].split(") -> ", 1)
     types = ins if side == "in" else outs

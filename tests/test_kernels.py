@@ -309,8 +309,9 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
 @ROW_IO
 def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
     """The predictor's Newton blocks as one kernel (rows_kernel.pd_blocks, interpreted):
-    Phi_u, Phi_x, the right-hand side, the cost's gradient and the dynamics' residual against
-    XLA's primal_dual._newton_blocks to 1e-12 relative, from random interior iterates with masked
+    Phi_u, Phi_x (the lower triangles it writes, and the matrices mirrored from them), the
+    right-hand side, the cost's gradient and the dynamics' residual against XLA's
+    primal_dual._newton_blocks to 1e-12 relative, from random interior iterates with masked
     rows: one problem; a vmapped batch whose cost is shared (the blocks read as a table of
     one, the linear costs, the reference and the dynamics' offset as scalars); and a batch
     reading its input rows, soft rows' mask and penalty, cost blocks and model from tables of

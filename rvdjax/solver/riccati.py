@@ -470,6 +470,8 @@ def _lane_blocks(impl, axis_size, *blocks):
 
 
 def _lower_flag(b):
+    """The batch flag of :func:`_lower`'s triangles (a custom_vmap rule's flags come in the
+    arguments' structure)."""
     return b.lower if isinstance(b, SymStored) else b
 
 
