@@ -245,8 +245,8 @@ def _split(M, nu):
 
 def _factor_stage(P, M, Phu, Phx_prev):
     """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.riccati.riccati_factor`'s stage.
-    M is the stage's [B, A]; ``Phx_prev`` the matrix, or a function that loads it (called
-    where it is added, last, so that its entries are not live through the stage)."""
+    M is the stage's [B, A]; ``Phx_prev`` a function that gives Phi_x[t - 1] (called where
+    it is added, last, so that a kernel's loads of it are not live through the stage)."""
     nu = len(Phu)
     A, B = _split(M, nu)
     PM = _mm(P, M)
@@ -261,8 +261,7 @@ def _factor_stage(P, M, Phu, Phx_prev):
     PAcl = _add([row[nu:] for row in PM], _mm([row[:nu] for row in PM], K))
     Acl = _add(A, _mm(B, K))
     joseph = (_sym(_mtm(Acl, PAcl)), _sym(_mtm(K, _mm(Phu, K))))
-    Phx_prev = Phx_prev() if callable(Phx_prev) else Phx_prev
-    P_new = _add(_add(Phx_prev, joseph[0]), joseph[1])
+    P_new = _add(_add(Phx_prev(), joseph[0]), joseph[1])
     return P_new, L, K, BPA
 
 
@@ -554,18 +553,21 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
     def backward(i, carry):
         t = N - 1 - i
         M = _load(M_ref, t, nx, nu + nx)
-        q = None
+        # P_{t+1} and p_{t+1} stored and the right-hand side's p - P r formed first, and Phi_x
+        # read last (Phx_prev): past its product with [B, A] the factorisation needs nothing
+        # else of P, so fewer entries are live at once (ptxas for sm_90a, the factorisation
+        # in thesis-vbar's engine: 1.7 / 2.2 KB of spill stores / loads instead of 2.6 / 3.2;
+        # docs/benchmark.md)
         if factorise:
-            # P_{t+1} and p_{t+1} stored and the right-hand side's p - P r formed first, and
-            # Phi_x read last (Phx_prev): past its product with [B, A] the stage needs
-            # nothing else of P, so fewer entries are live at once (ptxas for sm_90a, the
-            # factorisation in thesis-vbar's engine: 1.7 / 2.2 KB of spill stores / loads
-            # instead of 2.6 / 3.2; docs/benchmark.md)
             P = _untri(carry[0], nx)
             _store(P_ref, t, list(carry[0]))
-            if with_rhs:
-                _store(nu_ref, t, list(carry[-1]))
-                q = _offset(list(carry[-1]), P, _load(rp_ref, t, nx))
+        else:
+            P = _load_sym(P_ref, t, nx)
+        if with_rhs:
+            p = list(carry[-1])
+            _store(nu_ref, t, p)
+            q = _offset(p, P, _load(rp_ref, t, nx))
+        if factorise:
             Phu = _load_sym(Phu_ref, t, nu)
             prev = jnp.maximum(t - 1, 0)
             on = t > 0
@@ -580,18 +582,13 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
             _store(BPA_ref, t, BPA)
             new = (_tri(P_new),)
         else:
-            P = _load_sym(P_ref, t, nx)
             L = _load_lower(L_ref, t, nu)
             BPA = _load(BPA_ref, t, nu, nx)
             new = ()
         if with_rhs:
-            p = list(carry[-1])
             prev = jnp.maximum(t - 1, 0)
             on = t > 0
             gx_prev = [jnp.where(on, v, 0.0) for v in _load(gx_ref, prev, nx)]
-            if q is None:
-                _store(nu_ref, t, p)
-                q = _offset(p, P, _load(rp_ref, t, nx))
             p_new, k = _backward_rhs_of(q, M, L, BPA, _load(gu_ref, t, nu), gx_prev)
             _store(du_ref, t, k)
             new = new + (tuple(p_new),)

@@ -107,7 +107,7 @@ def _sweeps(M, Phi_u, Phi_x, rhs, unroll):
         P_arr, p_arr = carry
         M_t, Phu, Phx_prev = stage[:3]
         P = _mat(P_arr)
-        P_new, L, K, BPA = _factor_stage(P, _mat(M_t), _mat(Phu), _mat(Phx_prev))
+        P_new, L, K, BPA = _factor_stage(P, _mat(M_t), _mat(Phu), lambda: _mat(Phx_prev))
         out = (_stack(L, like), _stack(K, like), _stack(BPA, like), P_arr)
         new_P = _stack(P_new, like)
         if not with_rhs:
