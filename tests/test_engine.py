@@ -328,9 +328,10 @@ def test_the_segment_program_lowers_for_a_gpu():
     """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
     lowering error would show here), with the accelerator settings (one chunk, compacted,
     the slots stored last), and the solver's default Newton step as Pallas (Triton) kernels
-    there: the Newton blocks, the factorisation with the predictor's step, the row work between
-    the solves, the corrector's step with its refinement, and its row work; the Newton blocks
-    pass from the first to the Riccati kernels as their lower triangles."""
+    there: the Newton blocks once a tick, then in each iteration the factorisation with the
+    predictor's step, the row work between the solves, the corrector's step with its
+    refinement, and its row work with the next iteration's Newton blocks; the blocks pass to
+    the Riccati kernels as their lower triangles."""
     from rvdjax.loop.engine.segment import _slots_last
 
     exported = export_segment(LOOP, arrays_source(X0S), PARAMS)
@@ -339,12 +340,14 @@ def test_the_segment_program_lowers_for_a_gpu():
     text = exported.mlir_module()
     assert "stablehlo.while" in text and "__gpu$xla.gpu.triton" in text
     assert "rvdjax_riccati_factor_solve" in text and "rvdjax_riccati_solve_refined" in text
-    assert "rvdjax_pd_rows" in text and "rvdjax_pd_step_rows" in text
-    assert "rvdjax_pd_blocks" in text
-    # the Hessian blocks Phi_u, Phi_x go from the blocks' kernel to the Riccati kernels as
-    # their lower triangles (6 and 21 entries a stage; nu = 3, nx = 6), the right-hand sides
-    # g_u, g_x, rp after them
-    assert _triton_entries(text, "rvdjax_pd_blocks", "out")[:2] == [6, 21]
+    assert "rvdjax_pd_rows" in text and "rvdjax_pd_step_system" in text
+    assert "rvdjax_pd_blocks" in text and "rvdjax_pd_step_rows" not in text
+    # the Hessian blocks Phi_u, Phi_x go from the blocks' kernel and the step's to the Riccati
+    # kernels as their lower triangles (6 and 21 entries a stage; nu = 3, nx = 6), then g_x,
+    # base_u, base_x, rp (the step's last output: alpha, the gap, the residual, the objective,
+    # whether finite); the Riccati kernels take the right-hand sides g_u, g_x, rp after them
+    assert _triton_entries(text, "rvdjax_pd_blocks", "out") == [6, 21, 6, 3, 6, 6]
+    assert _triton_entries(text, "rvdjax_pd_step_system", "out")[-7:] == [6, 21, 6, 3, 6, 6, 5]
     for kernel in ("rvdjax_riccati_factor_solve", "rvdjax_riccati_solve_refined"):
         assert _triton_entries(text, kernel, "in")[-5:] == [6, 21, 3, 6, 6], kernel
 

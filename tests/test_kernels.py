@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 
 import jax
 import jax.extend
@@ -87,7 +88,8 @@ def _random(name, n):
         ),
         pytest.param("pallas-block-rows", marks=pytest.mark.slow),
         pytest.param("pallas-rows", marks=pytest.mark.slow),
-        "pallas-entries",
+        pytest.param("pallas-entries", marks=pytest.mark.slow),
+        "pallas-carried",
         pytest.param("unrolled", marks=pytest.mark.slow),  # opt-in; its gradients checked below
     ],
 )
@@ -224,6 +226,39 @@ def _random_cost(key, N=5, nx=6, nu=3, model=None, cost=None):
     return OCP(A, B, c, x0, Q, R, normal(N, nx), normal(N, nx), normal(N, nu), *none)
 
 
+def _step_case(key, nan, stop, emphasis, shared=None):
+    """Arguments of primal_dual._step_xla (ocp, rows, st, su, sx, step, taus, h, stop) and the
+    predictor's (Fdu_a, Fdx_a, alpha_a, kappa) the step's kernel takes too: a random interior
+    iterate, the predictor's row products and a random corrector step, a NaN in the step's
+    multipliers (``nan``), stopped (``stop``); ``emphasis`` 0-3 scales one stage's model or
+    multipliers by 1e3 (test_the_step_kernel_takes_the_xla_step); ``shared`` the cost and
+    model instead of a random one."""
+    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import stagewise as sw
+
+    rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
+    k1, k2, k3 = jax.random.split(jax.random.fold_in(key, 7), 3)
+    ocp = _random_cost(k3) if shared is None else shared
+    big = jnp.where(jnp.arange(4) == emphasis, 1e3, 1.0)
+    # emphasis 2: the last stage's multipliers 1e3 larger, its model 1e3 smaller
+    ocp = ocp._replace(
+        A=ocp.A.at[1].multiply(big[0]).at[-1].multiply(big[1] / big[2]),
+        B=ocp.B.at[0].multiply(big[3]).at[-1].divide(big[2]),
+    )
+    st = st._replace(nu=st.nu.at[-1].multiply(big[2]))
+    step = step._replace(nu=step.nu.at[-1].multiply(big[2]))
+    pred = jax.random.normal(k1, step.dx.shape, jnp.float64)
+    Fdu_a = sw.mv(rows.Fu, jax.random.normal(k2, step.du.shape, jnp.float64))
+    Fdx_a = sw.mv(rows.Fx, pred)
+    alpha_a, kappa = jnp.asarray(0.7), jnp.asarray(0.05)
+    zu, zx = jnp.zeros_like(su), jnp.zeros_like(sx)
+    aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
+    taus = pd._targets(aff, alpha_a, kappa)
+    h = pd._soft_h(rows, st, sx, taus[1], taus[2])
+    step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
+    return (ocp, rows, st, su, sx, step, taus, h, stop), (Fdu_a, Fdx_a, alpha_a, kappa)
+
+
 @ROW_IO
 def test_the_step_kernel_takes_the_xla_step(block_io):
     """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
@@ -240,34 +275,12 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
     a stopped solve's. A batch that shares its cost and model (the batch engine's) gives the
     same as XLA too."""
     from rvdjax.solver import primal_dual as pd
-    from rvdjax.solver import stagewise as sw
 
     def case(key, nan, stop, emphasis, shared=None):
-        rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
-        k1, k2, k3 = jax.random.split(jax.random.fold_in(key, 7), 3)
-        ocp = _random_cost(k3) if shared is None else shared
-        big = jnp.where(jnp.arange(4) == emphasis, 1e3, 1.0)
-        # emphasis 2: the last stage's multipliers 1e3 larger, its model 1e3 smaller
-        ocp = ocp._replace(
-            A=ocp.A.at[1].multiply(big[0]).at[-1].multiply(big[1] / big[2]),
-            B=ocp.B.at[0].multiply(big[3]).at[-1].divide(big[2]),
-        )
-        st = st._replace(nu=st.nu.at[-1].multiply(big[2]))
-        step = step._replace(nu=step.nu.at[-1].multiply(big[2]))
-        pred = jax.random.normal(k1, step.dx.shape, jnp.float64)
-        Fdu_a = sw.mv(rows.Fu, jax.random.normal(k2, step.du.shape, jnp.float64))
-        Fdx_a = sw.mv(rows.Fx, pred)
-        alpha_a, kappa = jnp.asarray(0.7), jnp.asarray(0.05)
-        zu, zx = jnp.zeros_like(su), jnp.zeros_like(sx)
-        aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
-        taus = pd._targets(aff, alpha_a, kappa)
-        h = pd._soft_h(rows, st, sx, taus[1], taus[2])
-        step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
-        args = (ocp, rows, st, su, sx, step, taus, h, stop)
+        args, rows_a = _step_case(key, nan, stop, emphasis, shared)
         want = pd._step_xla(*args)
-        rows_a = (Fdu_a, Fdx_a, alpha_a, kappa)
         got = pd._step_in_kernel(*args, aff=rows_a, interpret=True, block_io=block_io)
-        return st, want, got
+        return args[2], want, got
 
     # eight problems of one batch: steps taken, one with a NaN, one stopped, four emphases
     nan = np.array([False, False, True, False, False, False, False, False])
@@ -304,6 +317,56 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
     for want, got in zip(*jax.jit(run)(keys[:3]), strict=True):
         for w, g in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
             assert _rel(np.asarray(w, float), np.asarray(g, float)) <= 1e-12
+
+
+@ROW_IO
+def test_the_step_kernel_forms_the_next_newton_system(block_io):
+    """The step's kernel that carries the Newton system ("pallas-carried";
+    primal_dual._step_in_kernel with ``system``, interpreted): the same step, complementarity,
+    stopping test and finiteness as the kernel without it, and the Newton system at the new
+    iterate that the blocks' kernel forms from it (rows_kernel.pd_blocks), both to 1e-15
+    relative (the same arithmetic; the compiler contracts a product and a sum into one
+    rounding in some places and not in others: Phi_x differed in the last bit in 17 of 105
+    entries), and XLA's (primal_dual._system_xla) to 1e-12 relative: steps taken, one with a
+    NaN and one stopped
+    (both keep the iterate), and a batch sharing its cost and model (the dynamics' offset c
+    read as scalars)."""
+    from rvdjax.solver import primal_dual as pd
+
+    def case(key, nan, stop, shared=None):
+        args, rows_a = _step_case(key, nan, stop, -1, shared)
+        ocp, rows, st = args[:3]
+        kernel = functools.partial(pd._step_in_kernel, aff=rows_a, interpret=True)
+        plain = kernel(*args, block_io=block_io)
+        *carried, system = kernel(*args, block_io=block_io, system=True)
+        u, x, nu, s, lam, mu, pi, su, g = carried[0]
+        at = st._replace(u=u, x=x, nu=nu, s=s, lam=lam, mu=mu, pi=pi, su=su, g=g)
+        blocks = pd._system_in_kernel(ocp, rows, at, su, s - g, True, block_io=block_io)
+        return plain, carried, system, blocks, pd._system_xla(ocp, rows, at, su, s - g), st.s
+
+    def check(plain, carried, system, blocks, xla, _):
+        for p, c in zip(jax.tree.leaves(plain), jax.tree.leaves(carried), strict=True):
+            assert _rel(np.asarray(p, float), np.asarray(c, float)) <= 1e-15
+        for got, by_blocks, want in zip(system, blocks, xla, strict=True):
+            assert _rel(by_blocks, got) <= 1e-15
+            assert _rel(want, got) <= 1e-12
+
+    nan, stop = jnp.asarray([False, True, False]), jnp.asarray([False, False, True])
+    keys = jax.random.split(jax.random.key(20), 3)
+    out = jax.jit(jax.vmap(case))(keys, nan, stop)
+    for i in range(3):
+        check(*jax.tree.map(lambda a, i=i: a[i], out))
+    assert _rel(out[1][0][3][0], out[-1][0]) > 1e-3  # the first step moved its iterate
+    shared = _random_cost(jax.random.key(21))
+    run = jax.vmap(lambda key: case(key, False, False, shared))
+    calls = [
+        str([v.aval for v in e.invars])
+        for e in _eqns(jax.make_jaxpr(run)(keys).jaxpr)
+        if e.primitive.name == "pallas_call"
+    ]
+    # q, x_ref (and c, with the system) without a problem axis
+    assert [call.count("float64[5,6]") for call in calls[:2]] == [2, 3]
+    check(*jax.jit(run)(keys))
 
 
 @ROW_IO
@@ -595,9 +658,10 @@ def _triton_calls(text):
     [
         # accurate: factorisation, then the predictor, corrector and refinement steps (in
         # "pallas-block-fused": the factorisation with the predictor's step, and the
-        # corrector's step with its refinement; in "pallas-entries", the default on a GPU,
-        # "pallas-rows" and "pallas-block-rows", the row work before, between and after them
-        # three more);
+        # corrector's step with its refinement; in "pallas-entries", "pallas-rows" and
+        # "pallas-block-rows", the row work before, between and after them three more; in
+        # "pallas-carried", the default on a GPU, the blocks' kernel at the start only, its
+        # work in the step's kernel of each iteration);
         # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on a
         # GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s
         # each)
@@ -607,6 +671,8 @@ def _triton_calls(text):
         ),
         pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
         pytest.param(SolverSettings(), 5, 1, "pallas-block-rows", marks=pytest.mark.slow),
+        # the Newton system formed by the start's blocks kernel, then by the step's
+        pytest.param(SolverSettings(), 5, 1, "pallas-carried", marks=pytest.mark.slow),
         # the default form's five kernels are lowered in the default run by the engine's
         # segment (test_engine); counted here in the slow run (20 s)
         pytest.param(SolverSettings(), 5, 1, "auto", marks=pytest.mark.slow),
@@ -645,6 +711,48 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     assert "triton" not in gpu_xla and gpu_xla.count("stablehlo.while") > loops
     cpu_auto = jax.jit(jax.vmap(lambda o: solve(o, settings))).trace(ocps).lower().as_text()
     assert "triton" not in cpu_auto and cpu_auto.count("stablehlo.while") > loops
+
+
+def _loop_body(text: str) -> str:
+    """The body region of the first ``stablehlo.while`` of a lowered program (to the closing
+    brace at the indentation of its ``} do {``)."""
+    lines = text[text.index("stablehlo.while") :].splitlines()
+    do = next(i for i, ln in enumerate(lines) if ln.strip() == "} do {")
+    end = lines[do][: lines[do].index("}")] + "}"
+    return "\n".join(lines[do + 1 : next(i for i in range(do + 1, len(lines)) if lines[i] == end)])
+
+
+def test_a_batched_solve_for_a_gpu_takes_no_select_over_the_state(monkeypatch):
+    """Lowered for a CUDA GPU, a vmapped accurate solve's loop takes every problem's
+    iteration until the batch's last one finishes (driver._until_finished: a finished
+    problem's iteration leaves it as it is), without vmap's select between each problem's old
+    and new state: no select over the batch's (problems, stages, ...) arrays in the loop's
+    body, where vmap's own rule puts one on each array of the state (checked by lowering with
+    it). Run on the CPU (XLA's form, traced beside the kernels), the batch takes the same
+    iterations and statuses as the CPU process's rule, and the same plans to 1e-12."""
+    from rvdjax.solver import driver
+
+    ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
+    fn = jax.vmap(lambda o: solve(o, SolverSettings()))
+
+    def state_selects(text):  # selects of f64 arrays with a batch and a stage axis (3 x 30)
+        return len(re.findall(r"stablehlo.select .*, tensor<3x30x[\dx]*f64>", _loop_body(text)))
+
+    assert state_selects(_cuda_text(fn, ocps)) == 0
+    with monkeypatch.context() as m:
+        m.setattr(driver, "traces_cuda", lambda: False)  # vmap's own rule for the loop
+        jax.clear_caches()  # solve's trace is cached
+        assert state_selects(_cuda_text(fn, ocps)) >= 9  # u, x, nu, s, lam, mu, pi, su, g
+    jax.clear_caches()
+    problems = _random("small", 6)
+    run = jax.vmap(lambda o: solve(o, SolverSettings(kernel="xla")))
+    cpu = jax.jit(run)(problems)
+    with tracing_for_cuda():
+        gpu_loop = jax.jit(run)(problems)
+    assert len(set(np.asarray(cpu.iterations).tolist())) > 1  # finished at different times
+    np.testing.assert_array_equal(np.asarray(gpu_loop.iterations), np.asarray(cpu.iterations))
+    np.testing.assert_array_equal(np.asarray(gpu_loop.status), np.asarray(cpu.status))
+    assert _rel(cpu.u, gpu_loop.u) <= 1e-12
 
 
 def test_a_cpu_process_traces_the_cpu_form_alone():
@@ -698,7 +806,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():
-    """What outputs print beside the device: "auto" is "pallas-entries" on a CUDA GPU
+    """What outputs print beside the device: "auto" is "pallas-carried" on a CUDA GPU
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
@@ -708,20 +816,22 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))
 
     assert kernel_on(jax.devices("cpu")[0]) == "xla"
-    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-entries"
+    assert kernel_on(fake("gpu", "PJRT C API\ncuda 13000")) == "pallas-carried"
     assert kernel_on(fake("gpu", "rocm 6.2")) == "xla"
     assert kernel_on(fake("gpu", "cuda 13000"), "xla") == "xla"
     assert kernel_on(jax.devices("cpu")[0], "pallas") == "pallas"
 
 
 @pytest.mark.slow  # interpreted kernels in a closed loop: ~60 s
-def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
+@pytest.mark.parametrize("form", [AUTO_ON_CUDA, "pallas-carried"])
+def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch, form):
     """The batch engine with the default GPU form of the Newton step ("pallas-entries":
     the Newton blocks, the factorisation with the predictor's step, the row work between the
-    solves, the corrector's step with its refinement and its update; interpreted) flies
-    thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's loops:
-    the same steps, run statuses and solver statuses, delta-v to 1e-9; so too with the phase
-    tables read by the kernels and the slots stored last, as on a GPU."""
+    solves, the corrector's step with its refinement and its update; interpreted), and with
+    the form that carries the Newton system through a tick's iterations ("pallas-carried"),
+    flies thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's
+    loops: the same steps, run statuses and solver statuses, delta-v to 1e-9; so too with the
+    phase tables read by the kernels and the slots stored last, as on a GPU."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import EngineConfig, fly_batch, program, segment
     from rvdjax.scenarios import FlightOptions, get_scenario
@@ -729,7 +839,7 @@ def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
     sc = get_scenario("thesis-vbar")
     options = FlightOptions(n_steps=6)
     flown = {}
-    for kernel in ("xla", AUTO_ON_CUDA):
+    for kernel in ("xla", form):
         flight = sc.flight(options, settings=sc.settings(options.mode, kernel=kernel))
         x0s = perturbed_states(flight.x0, 3, rel=0.05)
         config = EngineConfig(slots=2, chunk=2, iterations=3)
@@ -747,7 +857,7 @@ def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch):
         program._build_one.cache_clear()
     assert asked  # built again, with the slots last
     xla = flown["xla"]
-    for gpu in (flown[AUTO_ON_CUDA], flown["tables"]):
+    for gpu in (flown[form], flown["tables"]):
         np.testing.assert_array_equal(np.asarray(gpu.steps), np.asarray(xla.steps))
         np.testing.assert_array_equal(np.asarray(gpu.status), np.asarray(xla.status))
         np.testing.assert_array_equal(np.asarray(gpu.status_counts), np.asarray(xla.status_counts))

@@ -631,24 +631,27 @@ def test_track_start_is_the_lqr_tracking_optimum(fastmpc_pair, fastmpc_accurate)
     assert tracking(u) < 0.5 * tracking(init.u)
 
 
-def test_iterate_leaves_a_finished_or_frozen_solve_unchanged():
+@pytest.mark.parametrize("settings", [ACCURATE, PAPER, BARRIER], ids=lambda s: s.mode)
+def test_iterate_leaves_a_finished_or_frozen_solve_unchanged(settings):
     """A solve that met its stopping test, and one frozen before it did (the batch engine's
     free slots), come back from one more iteration with every field's values as they were;
-    the same iteration moves a solve that is neither (so the check could fail). Accurate
-    mode, where a stopped solve takes a step of length zero."""
-    from rvdjax.solver import freeze, iterate, start
+    the same iteration moves a solve that is neither (so the check could fail). In accurate
+    mode a stopped solve takes a step of length zero; the others keep the old state. A batched
+    solve relies on it: its loop runs every problem's iteration until the last one finishes
+    (driver._until_finished)."""
+    from rvdjax.solver import finished, freeze, iterate, start
 
-    ocp, params = random_ocp(3, SHAPE_CLASSES["small"]), SolverParams()
-    ocp, st = start(ocp, ACCURATE, params)
-    step = jax.jit(lambda s: iterate(ocp, ACCURATE, params, s))
+    ocp, params = random_ocp(3, SHAPE_CLASSES["small"]), SolverParams.for_settings(settings)
+    ocp, st = start(ocp, settings, params)
+    step = jax.jit(lambda s: iterate(ocp, settings, params, s))
     moved = step(st)
     assert not np.array_equal(np.asarray(moved.core.u), np.asarray(st.core.u))
     # the barrier terms, counted once at the start for every iteration: one per input row,
     # two per soft state row (s >= 0, s >= g)
     wu, wx = np.asarray(ocp.u_mask, float), np.asarray(ocp.x_mask, float)
     assert float(moved.n_barrier) == float(st.n_barrier) == wu.sum() + 2.0 * wx.sum() > 0
-    for state in (freeze(st), jax.lax.while_loop(lambda s: ~s.core.done, step, st)):
+    for state in (freeze(st), jax.lax.while_loop(lambda s: ~finished(settings, s), step, st)):
         again = step(state)
-        assert bool(state.core.done)
+        assert bool(finished(settings, state))
         for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(again), strict=True):
             np.testing.assert_array_equal(np.asarray(b), np.asarray(a))

@@ -49,7 +49,9 @@ from rvdjax.solver.driver import (
     solve_if,
     start,
     with_objective,
+    with_system,
 )
+from rvdjax.solver.primal_dual import carries_system
 from rvdjax.solver.riccati import tracing_for_cuda
 from rvdjax.solver.start import drift_plan, shift_solution, warm_start
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
@@ -61,6 +63,7 @@ __all__ = [
     "SolverSettings",
     "SolveState",
     "Status",
+    "carries_system",
     "drift_plan",
     "finish",
     "finished",
@@ -76,4 +79,5 @@ __all__ = [
     "tracing_for_cuda",
     "warm_start",
     "with_objective",
+    "with_system",
 ]

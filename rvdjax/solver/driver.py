@@ -39,7 +39,8 @@ from rvdjax.solver.dual import solve_dual
 from rvdjax.solver.implicit import implicit_bwd, kkt_at
 from rvdjax.solver.kkt import kkt_solve
 from rvdjax.solver.newton import NewtonState, newton_iteration
-from rvdjax.solver.primal_dual import PDState, pd_iteration, pd_start
+from rvdjax.solver.primal_dual import PDState, carries_system, pd_iteration, pd_start, pd_system
+from rvdjax.solver.riccati import traces_cuda
 from rvdjax.solver.start import drift, pull_inside, track_plan
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
@@ -89,6 +90,7 @@ def start(
     params: SolverParams,
     init: Plan | None = None,
     trusted_model: bool = False,
+    system: bool = True,
 ):
     """Sanitise ``ocp`` and build the first iterate.
 
@@ -96,6 +98,11 @@ def start(
     where they were built) and are passed through untouched. A batch engine uses it to keep a
     model shared by every problem of a batch unbatched (one large matrix product for the whole
     batch instead of one small one per problem).
+
+    ``system`` (static): where the Newton step's form carries the Newton system from one
+    iteration to the next (:func:`~rvdjax.solver.primal_dual.carries_system`), the start forms
+    the first one; without it the state has none, and :func:`with_system` adds it later (the
+    batch engine, at each tick, where its iterations run batch-last).
 
     Returns:
         (the OCP to iterate on — the same problem with its masked rows neutralised, to pass to
@@ -153,6 +160,8 @@ def start(
         kappa0 = params.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(n_barrier, 1.0)
     if settings.mode == "accurate":
         core = pd_start(rows, u0, x0s, nu0, kappa0, done, start_status)
+        if system and carries_system(settings):  # the first Newton system
+            core = core._replace(system=pd_system(ocp, rows, core, settings.kernel))
     else:
         inf = jnp.asarray(jnp.inf, dtype)
         core = NewtonState(u0, x0s, nu0, kappa0, jnp.asarray(0), done, start_status, inf)
@@ -178,7 +187,8 @@ def iterate(
     """One iteration from ``state`` on the OCP returned by :func:`start`; a finished state is
     returned unchanged. ``table``: a :class:`~rvdjax.solver.riccati.ModelTable` whose entry is
     the OCP's [B, A] (the batch engine's phase models), which the GPU kernels read instead of
-    a copy of A and B per problem, or None."""
+    a copy of A and B per problem, or None. Where ``state`` carries the Newton system
+    (:func:`with_system`), so does the new state, at its iterate."""
     params = _prepared(params, ocp.B.dtype)
     rows = rows_in(ocp)
     stop = finished(settings, state)
@@ -192,6 +202,20 @@ def iterate(
     )
     core = jax.tree.map(lambda old, n: jnp.where(stop, old, n), state.core, new)
     return state._replace(core=core)
+
+
+def with_system(ocp: OCP, settings: SolverSettings, state: SolveState, table=None):
+    """``state`` with the Newton system at its iterate, where the Newton step's form carries
+    it (:func:`~rvdjax.solver.primal_dual.carries_system`) and ``state`` has none (a
+    :func:`start` without ``system``); else ``state`` itself. ``table`` as :func:`iterate`.
+    The batch engine's ticks start so, and drop the system after their iterations, so that
+    the slots hold none between ticks (on a GPU the refresh would form and move it, the
+    slots first, for more than the iterations save; docs/benchmark.md)."""
+    core = state.core
+    if not carries_system(settings) or core.system is not None:
+        return state
+    system = pd_system(ocp, rows_in(ocp), core, settings.kernel, table)
+    return state._replace(core=core._replace(system=system))
 
 
 def finish(ocp: OCP, settings: SolverSettings, params: SolverParams, state: SolveState):
@@ -251,15 +275,63 @@ def _forward_state(ocp, params, init, settings, trusted_model: bool = False):
     """The solve loop: :func:`start` (``trusted_model`` as there), :func:`iterate` until
     finished, :func:`finish`. Returns (solution, the OCP iterated on, the final state)."""
     ocp_safe, state = start(ocp, settings, params, init, trusted_model)
+    state = _until_finished(ocp_safe, params, state, settings)
+    return finish(ocp_safe, settings, params, state), ocp_safe, state
+
+
+def _until_finished(ocp_safe, params, state, settings: SolverSettings):
+    """:func:`iterate` until :func:`finished` (a ``while`` loop).
+
+    In a process that lowers for a CUDA GPU (:func:`~rvdjax.solver.riccati.traces_cuda`), a
+    batched (vmapped) solve's loop runs while any problem of the batch is unfinished and takes
+    every problem's iteration, finished or not: :func:`iterate` leaves a finished state as it
+    is (a step of length zero; its counters kept). vmap's own rule for a loop whose condition
+    differs between problems selects between the old and the new state of every problem at
+    each iteration, a pass over every array of the state that also keeps the old one alive: on
+    a GPU, a copy and a select of each of the iterate's arrays an iteration (counted for
+    65 536 fastmpc-3d QPs: 42 of 451 KB a problem and 12 of 20 launches; docs/benchmark.md).
+    A CPU-only process keeps vmap's rule, and its programs as they were (not measured there;
+    a float32 solve's rounding, for one, depends on the program)."""
+    if not traces_cuda():
+        return lax.while_loop(
+            lambda st: ~finished(settings, st),
+            lambda st: iterate(ocp_safe, settings, params, st),
+            state,
+        )
+    return _loop(settings)(ocp_safe, params, state)
+
+
+@functools.cache
+def _loop(settings: SolverSettings):
+    """:func:`_until_finished` for ``settings`` (a ``custom_vmap`` function)."""
 
     def cond(st):
         return ~finished(settings, st)
 
-    def body(st):
-        return iterate(ocp_safe, settings, params, st)
+    @jax.custom_batching.custom_vmap
+    def loop(ocp_safe, params, state):
+        return lax.while_loop(cond, lambda st: iterate(ocp_safe, settings, params, st), state)
 
-    state = lax.while_loop(cond, body, state)
-    return finish(ocp_safe, settings, params, state), ocp_safe, state
+    @loop.def_vmap
+    def _batched(axis_size, in_batched, ocp_safe, params, state):
+        ocp_axes, params_axes = (
+            jax.tree.map(lambda b: 0 if b else None, bs) for bs in in_batched[:2]
+        )
+        state = jax.tree.map(
+            lambda a, b: a if b else jnp.broadcast_to(a, (axis_size, *jnp.shape(a))),
+            state,
+            in_batched[2],
+        )
+        step = jax.vmap(
+            lambda o, p, st: iterate(o, settings, p, st), in_axes=(ocp_axes, params_axes, 0)
+        )
+        unfinished = jax.vmap(cond)
+        out = lax.while_loop(
+            lambda st: jnp.any(unfinished(st)), lambda st: step(ocp_safe, params, st), state
+        )
+        return out, jax.tree.map(lambda _: True, out)
+
+    return loop
 
 
 def _forward(ocp, params, init, settings):

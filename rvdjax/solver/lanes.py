@@ -27,11 +27,11 @@ order (the Joseph form, the refined gain K), so their results agree with the XLA
 rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
 ``SolverSettings(kernel="pallas")`` (or another of the forms of
 :data:`rvdjax.solver.types.PALLAS_FORMS`, through :class:`KernelConfig`), and
-``kernel="auto"`` runs ``"pallas-entries"`` when a program is compiled for a CUDA GPU: an
-accurate-mode iteration is then the Newton blocks, the factorisation with the predictor's
-step (the model [B, A] read in blocks), the row work between the solves
-(:mod:`rvdjax.solver.rows_kernel`), the corrector's step with its refinement and its row work,
-every other operand entry by entry. The other forms call :func:`factor` then
+``kernel="auto"`` runs ``"pallas-carried"`` when a program is compiled for a CUDA GPU: an
+accurate-mode iteration is then the factorisation with the predictor's step (the model
+[B, A] read in blocks), the row work between the solves (:mod:`rvdjax.solver.rows_kernel`),
+the corrector's step with its refinement, and its row work with the next iteration's Newton
+blocks, every other operand entry by entry. The other forms call :func:`factor` then
 :func:`apply` (and :func:`apply` again for the refinement): on one H200 (jax 0.11.2, CUDA 13,
 2026-11-26) Triton compiled the entry-wise :func:`factor` in 51 s and :func:`apply` in about
 3 s, where the entry-wise :func:`factor_solve` had not finished in 165 s on an H100; with

@@ -34,13 +34,14 @@ from rvdjax.solver.riccati import (
     AUTO_ON_CUDA,
     ROWS_BLOCK_IO,
     ROWS_IN_KERNEL,
+    SYSTEM_CARRIED,
     SymStored,
     cuda_or_default,
     traces_cuda,
 )
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
-__all__ = ["PDState", "pd_start", "pd_iteration"]
+__all__ = ["PDState", "pd_start", "pd_iteration", "carries_system", "pd_system"]
 
 # sigma >= SIGMA_FLOOR while the relative dual residual exceeds SIGMA_FLOOR_RES (chosen on the
 # closed loops of paper 003: 0.2 / 0.3 / 0.5 gave 29.5 / 24.8 / 22.0 iterations per solve on
@@ -68,6 +69,12 @@ class PDState(NamedTuple):
     # each product reads the row matrices, and the row work is memory bound, docs/benchmark.md)
     su: jnp.ndarray  # fu - Fu u (input-row slacks)
     g: jnp.ndarray  # Fx x - fx (soft-row values)
+    # The predictor's Newton system at this iterate (Phi_u's and Phi_x's lower triangles, g_x,
+    # base_u, base_x, rp: rows_kernel.pd_blocks's outputs), where the Newton step's form
+    # carries it (carries_system): formed by the start, then by each iteration's step kernel
+    # at the point it steps to, so that the next iteration does not read the rows and the
+    # iterate again to form it. None elsewhere (the iteration forms it itself).
+    system: tuple | None = None
 
 
 def pd_start(rows, u0, x0s, nu0, kappa0, done, status) -> PDState:
@@ -146,14 +153,52 @@ def _blocks_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None, blo
     input rows' targets are zero: g_u is base_u). ``table``: the model's table, whose input
     rows, soft rows' mask and penalty, cost blocks and model [B, A] the kernel reads where it
     has them all; ``block_io``: as :func:`rvdjax.solver.rows_kernel.batched`."""
+    return _system_blocks(_system_in_kernel(ocp, rows, st, su, sx, interpret, table, block_io))
+
+
+def _system_in_kernel(ocp, rows, st: PDState, su, sx, interpret, table=None, block_io=True):
+    """The Newton system as :func:`rows_kernel.pd_blocks` returns it (:attr:`PDState.system`;
+    arguments as :func:`_blocks_in_kernel`)."""
     del sx  # the kernel forms s - g itself
     model, tables = _kernel_model(ocp, table)
     fn = rows_kernel.batched("blocks", 0, None, interpret, bool(tables), block_io)
     cost = (ocp.Q, ocp.R, model, ocp.q, ocp.r, ocp.x_ref, ocp.c, ocp.x0[None])
-    out = fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables)
-    Phi_u, Phi_x, g_x, base_u, base_x, rp = out  # the blocks' lower triangles
+    return tuple(fn(*_kernel_rows(rows, st, su), st.u, st.x, *cost, *tables))
+
+
+def _system_xla(ocp, rows, st: PDState, su, sx):
+    """:func:`_system_in_kernel`'s system by XLA (:func:`_newton_blocks`; g_u is base_u)."""
+    Phi_u, Phi_x, _, g_x, base_u, base_x, rp = _newton_blocks(ocp, rows, st, su, sx)
+    return tri_pack(Phi_u, 1), tri_pack(Phi_x, 1), g_x, base_u, base_x, rp
+
+
+def _system_blocks(system):
+    """:func:`_newton_blocks`'s (Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp) from a system
+    as :attr:`PDState.system` holds it, Phi_u and Phi_x as :class:`SymStored` (the kernels
+    read the triangles; the matrices are for XLA's forms)."""
+    Phi_u, Phi_x, g_x, base_u, base_x, rp = system
     Phi_u, Phi_x = (SymStored(tri_unpack(a, 1, True), a) for a in (Phi_u, Phi_x))
     return Phi_u, Phi_x, base_u, g_x, base_u, base_x, rp
+
+
+def carries_system(settings: SolverSettings) -> bool:
+    """Whether the solve's state carries the Newton system (:attr:`PDState.system`): the
+    accurate mode with a form of :data:`rvdjax.solver.riccati.SYSTEM_CARRIED`, or with
+    ``"auto"`` where that is what it runs on a CUDA GPU and the program keeps the CUDA form
+    (:func:`rvdjax.solver.riccati.traces_cuda`; on a CPU-only process, never)."""
+    if settings.mode != "accurate":
+        return False
+    if settings.kernel == "auto":
+        return AUTO_ON_CUDA in SYSTEM_CARRIED and traces_cuda()
+    return settings.kernel in SYSTEM_CARRIED
+
+
+def pd_system(ocp, rows, st: PDState, kernel: str, table=None):
+    """The Newton system at ``st`` (:attr:`PDState.system`), by the blocks' kernel where the
+    Newton step runs on the GPU kernels, else by XLA (a start's; the iterations form the
+    next one in their step's kernel). ``table`` as :func:`_blocks_in_kernel`."""
+    args = (ocp, rows, st, st.su, st.s - st.g)
+    return _by_kernel(args, kernel, _system_xla, functools.partial(_system_in_kernel, table=table))
 
 
 def _stored_blocks(ocp, rows, st: PDState, su, sx):
@@ -363,16 +408,32 @@ def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
 
 
 def _step_in_kernel(
-    ocp, rows, st: PDState, su, sx, step, taus, h, stop, aff, interpret, table=None, block_io=True
+    ocp,
+    rows,
+    st: PDState,
+    su,
+    sx,
+    step,
+    taus,
+    h,
+    stop,
+    aff,
+    interpret,
+    table=None,
+    block_io=True,
+    system=False,
 ):
     """:func:`_step_xla` by :func:`rows_kernel.pd_step_rows`, which also takes the step and
     forms the stopping test's terms (``aff``: the predictor's Fdu_a, Fdx_a, alpha_a, kappa,
     from which it forms the targets ``taus`` and ``h`` again; ``table`` as
-    :func:`_blocks_in_kernel`, whose model [B, A] it reads too)."""
+    :func:`_blocks_in_kernel`, whose model [B, A] it reads too); with ``system``, also the
+    Newton system at the new point (:func:`_step_xla_system`)."""
     Fdu_a, Fdx_a, alpha_a, kappa = aff
     model, tables = _kernel_model(ocp, table)
-    fn = rows_kernel.batched("step", 3, None, interpret, bool(tables), block_io)
-    new, sc, finite = fn(
+    kind = "step_system" if system else "step"
+    fn = rows_kernel.batched(kind, 3, None, interpret, bool(tables), block_io)
+    extra = (ocp.c, ocp.x0[None]) if system else ()
+    out = fn(
         *_kernel_rows(rows, st, su),
         step.dx,
         step.du,
@@ -388,13 +449,24 @@ def _step_in_kernel(
         ocp.q,
         ocp.r,
         ocp.x_ref,
+        *extra,
         alpha_a,
         kappa,
         jnp.asarray(stop, kappa.dtype),
         *tables,
     )
+    new, sc, finite = out[:3]
     _, gap_n, rel_d, J = sc
-    return new, gap_n, finite, (rel_d, J)
+    return (new, gap_n, finite, (rel_d, J), *out[3:])
+
+
+def _step_xla_system(ocp, rows, st: PDState, su, sx, step, taus, h, stop):
+    """:func:`_step_xla`'s results and the Newton system at the new point
+    (:func:`_system_xla`): XLA's form of the step kernel that carries the system."""
+    new, gap_n, finite, terms = _step_xla(ocp, rows, st, su, sx, step, taus, h, stop)
+    u, x, nu, s, lam, mu, pi, su_n, g_n = new
+    at = st._replace(u=u, x=x, nu=nu, s=s, lam=lam, mu=mu, pi=pi, su=su_n, g=g_n)
+    return new, gap_n, finite, terms, _system_xla(ocp, rows, at, su_n, s - g_n)
 
 
 def _max_step(pairs, wmask, nan_if_not_finite=False):
@@ -433,7 +505,8 @@ def pd_iteration(
     or not), ``st`` itself: a step of length zero, so that a finished solve costs no select
     over the state's arrays (docs/benchmark.md, "A stopped solve's step of length zero").
     ``table``: the model's :class:`~rvdjax.solver.riccati.ModelTable`, for the GPU kernels,
-    or None."""
+    or None. The Newton system is ``st.system`` where it carries one, and then the new state
+    carries the system at its iterate, formed by the step's kernel (:attr:`PDState.system`)."""
     stop = jnp.asarray(stop, bool)
     method, kernel = settings.method, settings.kernel
     su = st.su
@@ -443,12 +516,16 @@ def pd_iteration(
     taus = (zero_u, zero_x, zero_x)
     h = _soft_h(rows, st, sx, zero_x, zero_x)
     # base_u, base_x: the cost's gradient, shared by the predictor and the corrector
-    Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp = _by_kernel(
-        (ocp, rows, st, su, sx),
-        kernel,
-        _stored_blocks if kernel == "auto" and traces_cuda() else _newton_blocks,
-        functools.partial(_blocks_in_kernel, table=table),
-    )
+    carried = st.system is not None
+    if carried:  # formed by the start or by the previous iteration's step
+        Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp = _system_blocks(st.system)
+    else:
+        Phi_u, Phi_x, g_u, g_x, base_u, base_x, rp = _by_kernel(
+            (ocp, rows, st, su, sx),
+            kernel,
+            _stored_blocks if kernel == "auto" and traces_cuda() else _newton_blocks,
+            functools.partial(_blocks_in_kernel, table=table),
+        )
     kkt, step = kkt_factor_solve(ocp.A, ocp.B, Phi_u, Phi_x, g_u, g_x, rp, method, kernel, table)
     args = (rows, st, base_u, base_x, su, sx, step, h, m_eff)
     g_u, g_x, Fdu_a, Fdx_a, alpha_a, kappa = _by_kernel(
@@ -464,11 +541,11 @@ def pd_iteration(
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
     args = (ocp, rows, st, su, sx, step, taus, h, stop)
-    new, gap_n, finite, (rel_d, J) = _by_kernel(
-        args,
-        kernel,
-        _step_xla,
-        functools.partial(_step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa), table=table),
+    in_kernel = functools.partial(
+        _step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa), table=table, system=carried
+    )
+    new, gap_n, finite, (rel_d, J), *system = _by_kernel(
+        args, kernel, _step_xla_system if carried else _step_xla, in_kernel
     )
     u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
 
@@ -507,4 +584,5 @@ def pd_iteration(
         kept(st.res, rel_d),
         su_n,
         g_n,
+        system[0] if carried else None,
     )

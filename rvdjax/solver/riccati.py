@@ -516,7 +516,7 @@ def _factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, ops):
     return f, _apply(f, g_u, g_x, rp, ops)
 
 
-AUTO_ON_CUDA = "pallas-entries"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
+AUTO_ON_CUDA = "pallas-carried"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)
 
 
 def kernel_on(device, kernel: str = "auto") -> str:
@@ -618,16 +618,19 @@ def _by_platform(kernel: str, xla, pallas, *args):
     (:mod:`.unrolled`); "auto" runs :data:`AUTO_ON_CUDA` on a CUDA GPU and XLA's loops
     elsewhere, chosen when the program is lowered for its device.
 
-    Why "auto" picks "pallas-entries" on a CUDA GPU: "pallas-block-factor" was the fastest
+    Why "auto" picks "pallas-carried" on a CUDA GPU: "pallas-block-factor" was the fastest
     form measured on a GPU (2026-11-27); in the programs compiled for an H100, counting each
     kernel's sweeps, the fused kernels move 12 % fewer bytes an accurate iteration than it
     (65 536 fastmpc-3d QPs) and the rows kernels 11-12 % fewer a tick of the batch engine
     than the fused kernels alone, where the bytes set the pace; with every operand entry by
     entry rather than in blocks (but the factorisation's model), the same bytes pass through
     almost no shared memory and barrier, and no kernel falls to 32 registers and kilobytes of
-    spills (ptxas for sm_90a; docs/benchmark.md; none of these timed on a GPU yet). On the
-    CPU XLA's loops are the fastest form (the kernels are only interpreted there). The
-    measurements are in docs/solver.md."""
+    spills ("pallas-entries"); with the next Newton system formed in the step's kernel, an
+    iteration is four kernels and 9 % fewer bytes in a batch of QPs' solve loop, 2.4 % fewer
+    a thesis-vbar tick, for a step kernel of 254 registers instead of 168 (ptxas for sm_90a;
+    docs/benchmark.md; none of these timed on a GPU yet). On the CPU XLA's loops are the
+    fastest form (the kernels are only interpreted there). The measurements are in
+    docs/solver.md."""
     if kernel == "unrolled":
         return pallas("unrolled", *args)
     if kernel == "auto":
@@ -802,6 +805,9 @@ REFINED_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.fused)
 # whose row kernels load and store a stage's blocks (the other reads them entry by entry)
 ROWS_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.rows)
 ROWS_BLOCK_IO = tuple(k for k, form in PALLAS_FORMS.items() if form.rows_block_io)
+# the forms whose solves carry the next Newton system from one iteration to the next
+# (rvdjax.solver.primal_dual.PDState.system)
+SYSTEM_CARRIED = tuple(k for k, form in PALLAS_FORMS.items() if form.rows and form.carried)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(6,))

@@ -32,13 +32,17 @@ c0 + alpha c1 + alpha^2 c2, and the right-hand side, G0 + kappa G1 + alpha G2 (t
 kappa - alpha dv dy are affine in both), evaluated once they are known. The update needs the
 step length at every row: the corrector's kernel sweeps a second time for it, reading the
 rows but not Fx (the row products it wrote in the first sweep), and writes the new iterate
-into the old one's buffers. Otherwise the kernels compute the expressions of
+into the old one's buffers. Where the solve carries the Newton system
+(``kernel="pallas-carried"``, the default on a CUDA GPU), that second sweep also forms the
+next iteration's blocks and right-hand side at the new iterate, reading Fx again, and the next
+iteration starts without :func:`pd_blocks` (:attr:`rvdjax.solver.primal_dual.PDState.system`).
+Otherwise the kernels compute the expressions of
 :mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see :func:`pd_rows`.
 The kernels read and write them entry by entry, the input rows and then the soft rows one at a
-time in loops inside each stage (``kernel="pallas-rows"``, and ``"pallas-entries"``, the
-default on a CUDA GPU), or a stage's block at a time, every row at once
+time in loops inside each stage (``kernel="pallas-rows"``, ``"pallas-entries"`` and
+``"pallas-carried"``, the default on a CUDA GPU), or a stage's block at a time, every row at once
 (``"pallas-block-rows"``): the same arithmetic. A block is split into lane vectors and joined
 back through shared memory with a barrier each: assembled by ptxas for an H100, the three
 kernels of thesis-vbar's engine held about 1 200 barriers that way, and the step's kernel fell
@@ -387,14 +391,54 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
     jax.lax.fori_loop(0, N, combine, 0)
 
 
-def _step_kernel(dims, N, *refs):
+def _hessian_block(W, F, d):
+    """2 W + F^T diag(d) F (primal_dual._newton_blocks), F's rows summed in order."""
+    scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
+    return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
+
+
+def _soft_parts(wx, rho, s, g, mu, pi):
+    """The soft rows' weights in the predictor's Newton system at (s, g, mu, pi): d of
+    Phi_x = 2 Q + Fx^T diag(d) Fx and v of g_x = base_x + Fx^T v (primal_dual._pd_rhs with
+    zero targets, h = 0 / sx + 0 / s - rho), formed as :class:`StageRows` forms a, c, h."""
+    d, v = [], []
+    for w, r, si, gi, m, p in zip(wx, rho, s, g, mu, pi, strict=True):
+        sx = si - gi
+        a, c = m / sx, p / si
+        h = 0.0 / sx + 0.0 / si - r
+        d.append(w * a * c / (a + c))
+        v.append(w * (0.0 / sx - a * h / (a + c)))
+    return d, v
+
+
+def _residual(M, nu, x, x_prev, u, c):
+    """The dynamics' residual x_t - A_t x_{t-1} - B_t u_t - c_t (barrier.dyn_residual) of a
+    stage, M = [B_t, A_t]."""
+    Ax, Bu = _mv([row[nu:] for row in M], x_prev), _mv([row[:nu] for row in M], u)
+    return [((xi - a) - b) - ci for xi, a, b, ci in zip(x, Ax, Bu, c, strict=True)]
+
+
+def _pairs(n):
+    """(j, k) of a symmetric n x n matrix's lower triangle, in :func:`lanes._tri`'s order."""
+    return [(j, k) for j in range(n) for k in range(j + 1)]
+
+
+def _twice_plus(W, sums):
+    """The lower triangle of 2 W + S from S's (``sums``, :func:`_pairs`' order): a Newton
+    block from its rows' sum F^T diag(d) F."""
+    return [2.0 * W[j][k] + p for p, (j, k) in zip(sums, _pairs(len(W)), strict=True)]
+
+
+def _step_kernel(dims, N, system, *refs):
     """One program of :func:`pd_step_rows`: two sweeps for a tile of problems.
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, nu, the
     predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, the cost blocks Q, R, the
     model [B, A], the linear costs q, r, the reference x_ref (these three per problem or
-    :class:`_Shared`), the scalars alpha_a, kappa, stop (1, 1) each;
-    outputs U (N, 2, nu), X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g and
+    :class:`_Shared`), with ``system`` the dynamics' offset c (the same) and the initial
+    state x0 (1, nx), the scalars alpha_a, kappa, stop (1, 1) each; outputs U (N, 2, nu),
+    X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g, with ``system`` the
+    next iteration's Newton system at the new point (:func:`pd_blocks`'s six outputs), and
     (alpha, gap, relative dual residual, objective, finite).
 
     The first sweep forms the row products and the ratio test; the step length is known only
@@ -409,13 +453,27 @@ def _step_kernel(dims, N, *refs):
     objective. The state rows' residual r_x,t = ... - A_{t+1}^T nu_{t+1} needs the next
     stage's multipliers: the sweep carries it one stage and ends it there. On a GPU that
     replaced XLA's passes over the rows, the steps, the iterate and the model after the kernel
-    (docs/benchmark.md)."""
+    (docs/benchmark.md).
+
+    With ``system`` the second sweep also forms the Newton system of the next iteration at
+    the new point, as :func:`_blocks_kernel` would from the stored iterate (the same
+    arithmetic; the dynamics' residual carries the previous stage's new state): the next
+    iteration starts with the factorisation, without the blocks' kernel and its reads of the
+    rows and the iterate."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r = refs[11:19]
     Q_r, R_r, M_r, q_r, r_r, xref_r = refs[19:25]
-    alpha_a, kappa, stop = _scalars(refs[25:28])
-    U_out, X_out, Fdu_out, Fdx_out, *new_out, sc_out = refs[28:]
+    n_in = 27 if system else 25
+    c_r, x0_r = refs[25:27] if system else (None, None)
+    alpha_a, kappa, stop = _scalars(refs[n_in : n_in + 3])
+    U_out, X_out, Fdu_out, Fdx_out, *outs = refs[n_in + 3 :]
+    new_out, sys_out, sc_out = outs[:9], outs[9:-1], outs[-1]
+
+    def store_system(t, Phi_u, Phi_x, g_x, base_u, base_x, rp):
+        """The next iteration's Newton system at stage t (lower triangles of Phi_u, Phi_x)."""
+        for ref, v in zip(sys_out, (Phi_u, Phi_x, g_x, base_u, base_x, rp), strict=True):
+            _store(ref, t, v)
 
     def corrector(rows, t, Fdu, Fdx):
         aff = _affine(dims, rows, _load(Fdua_r, t, mu), _load(Fdxa_r, t, mx))
@@ -511,7 +569,7 @@ def _step_kernel(dims, N, *refs):
         return [jnp.where(finite, a + alpha * b, a) for a, b in zip(y, dy, strict=True)]
 
     def update(t, carry):
-        rs, js, wr, ru, rx, gm, J, p_prev = carry
+        rs, js, wr, ru, rx, gm, J, p_prev, *x_prev = carry
         rows = StageRows(dims, row_refs, t)
         r = corrector(rows, t, _load(Fdu_out, t, mu), _load(Fdx_out, t, mx))
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
@@ -530,18 +588,32 @@ def _step_kernel(dims, N, *refs):
         ]
         for ref, v in zip(new_out, new, strict=True):
             _store(ref, t, v)
-        u_n, x_n, nu_n, _, _, mu_n, pi_n, _, g_n = new
+        u_n, x_n, nu_n, s_n, lam_n, mu_n, pi_n, su_n, g_n = new
         for w, rho, m, p, g in zip(rows.wx, rows.rho, mu_n, pi_n, g_n, strict=True):
             rs = jnp.maximum(rs, jnp.abs(w * (rho - m - p)))
             js = js + w * rho * jnp.maximum(g, 0.0)
             wr = jnp.maximum(wr, w * rho)
-        ru, rx, gm, J, p_t = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
-        return rs, js, wr, ru, rx, gm, J, p_t
+        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
+        if not system:
+            return rs, js, wr, *carry
+        Du = [w * lm / v for w, lm, v in zip(rows.wu, lam_n, su_n, strict=True)]
+        d, v = _soft_parts(rows.wx, rows.rho, s_n, g_n, mu_n, pi_n)
+        store_system(
+            t,
+            list(_tri(_hessian_block(_load(R_r, t, nu, nu), rows.Fu, Du))),
+            list(_tri(_hessian_block(_load(Q_r, t, nx, nx), rows.Fx, d))),
+            [b + f for b, f in zip(base_x, _mtv(rows.Fx, v), strict=True)],
+            base_u,
+            base_x,
+            _residual(M, nu, x_n, x_prev[0], u_n, _load_any(c_r, t, nx)),
+        )
+        return rs, js, wr, *carry, x_n
 
     def stopping(t, u_n, x_n, nu_n, carry):
         """The stopping test (primal_dual._stopping_terms) at the new point u_n, x_n, nu_n
         of stage t: the dual residual's maxima, the gradient's, the objective and the state
-        residual's part carried to the next stage."""
+        residual's part carried to the next stage; and the cost's gradient there (the next
+        Newton system's base_u, base_x) and the stage's model."""
         ru, rx, gm, J, p_prev = carry
         e = [a - b for a, b in zip(x_n, _load_any(xref_r, t, nx), strict=True)]
         Ru, Qe = _mv(_load(R_r, t, nu, nu), u_n), _mv(_load(Q_r, t, nx, nx), e)
@@ -561,12 +633,14 @@ def _step_kernel(dims, N, *refs):
             gm = jnp.maximum(gm, jnp.abs(g))
         for a, b in ((e, Qe), (u_n, Ru), (q, x_n), (r_lin, u_n)):
             J = J + _dot(a, b)
-        return ru, rx, gm, J, p_t
+        return (ru, rx, gm, J, p_t), (grad_u, grad_x, M)
 
     def update_by_row(t, carry):
         """:func:`update` with the input rows and the soft rows one at a time in loops (as
-        :func:`stage_by_row`; the same operations, and the penalty sum in the same order)."""
-        rs, js, wr, ru, rx, gm, J, p_prev = carry
+        :func:`stage_by_row`; the same operations, and the penalty sum in the same order).
+        With ``system``, the next Newton system's sums over the rows run in those loops, in
+        the order of :func:`_blocks_kernel`'s."""
+        rs, js, wr, ru, rx, gm, J, p_prev, *x_prev = carry
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
         nu_old = _load(nu_r, t, nx)
         dnu = [a - b for a, b in zip(_load(nun_r, t, nx), nu_old, strict=True)]
@@ -578,18 +652,24 @@ def _step_kernel(dims, N, *refs):
             _store(ref, t, v)
         d_in, d_row = (0, 1, nx, nu), (1, 0, nx, nu)
 
-        def inp(i, carry):  # one input row
+        def inp(i, Pu):  # one input row (Pu: the next Phi_u's sum over the rows)
             row = StageRows(dims, row_refs, t, ("input", i))
             aff = _affine(d_in, row, _row_entries(Fdua_r, t, i, 1), [])
             r = _corrector(d_in, row, aff, _row_entries(Fdu_out, t, i, 1), [], alpha_a, kappa)
-            lam_o.ref[t, i] = upd(row.lam[0], r.dlam[0], row.wu[0])
-            su_o.ref[t, i] = upd(row.su[0], r.dsu[0])
-            return carry
+            lam_n = upd(row.lam[0], r.dlam[0], row.wu[0])
+            su_n = upd(row.su[0], r.dsu[0])
+            lam_o.ref[t, i] = lam_n
+            su_o.ref[t, i] = su_n
+            if not system:
+                return Pu
+            Du, (F,) = row.wu[0] * lam_n / su_n, row.Fu
+            return [p + F[j] * (Du * F[k]) for p, (j, k) in zip(Pu, _pairs(nu), strict=True)]
 
-        jax.lax.fori_loop(0, mu, inp, 0)
+        zero = jnp.zeros_like(x_n[0])
+        Pu = jax.lax.fori_loop(0, mu, inp, [zero] * len(_pairs(nu)) if system else 0)
 
         def soft(i, acc):
-            rs, js, wr = acc
+            rs, js, wr, *sums = acc
             row = StageRows(dims, row_refs, t, i)
             aff = _affine(d_row, row, [], _row_entries(Fdxa_r, t, i, 1))
             Fdx = _row_entries(Fdx_out, t, i, 1)
@@ -603,16 +683,35 @@ def _step_kernel(dims, N, *refs):
             rs = jnp.maximum(rs, jnp.abs(w * (rho - mu_n - pi_n)))
             js = js + w * rho * jnp.maximum(g_n, 0.0)
             wr = jnp.maximum(wr, w * rho)
-            return rs, js, wr
+            if not system:
+                return rs, js, wr
+            # the next Phi_x's and g_x's sums over the rows (_blocks_kernel's stage_by_row)
+            (d,), (v,) = _soft_parts(row.wx, row.rho, [s_n], [g_n], [mu_n], [pi_n])
+            (F,), (P, g) = row.Fx, sums
+            P = [p + F[j] * (d * F[k]) for p, (j, k) in zip(P, _pairs(nx), strict=True)]
+            return rs, js, wr, P, [a + f * v for a, f in zip(g, F, strict=True)]
 
-        rs, js, wr = jax.lax.fori_loop(0, mx, soft, (rs, js, wr))
-        ru, rx, gm, J, p_t = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
-        return rs, js, wr, ru, rx, gm, J, p_t
+        sums = ([zero] * len(_pairs(nx)), [zero] * nx) if system else ()
+        rs, js, wr, *sums = jax.lax.fori_loop(0, mx, soft, (rs, js, wr, *sums))
+        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
+        if not system:
+            return rs, js, wr, *carry
+        (P, g), R, Q = sums, _load(R_r, t, nu, nu), _load(Q_r, t, nx, nx)
+        store_system(
+            t,
+            _twice_plus(R, Pu),
+            _twice_plus(Q, P),
+            [b + f for b, f in zip(base_x, g, strict=True)],
+            base_u,
+            base_x,
+            _residual(M, nu, x_n, x_prev[0], u_n, _load_any(c_r, t, nx)),
+        )
+        return rs, js, wr, *carry, x_n
 
     if isinstance(row_refs[0], _Entries):
         update = update_by_row  # noqa: F811
-    carry = (zero,) * 7 + ([zero] * nx,)
-    rs, js, wr, ru, rx, gm, J, p_last = jax.lax.fori_loop(0, N, update, carry)
+    carry = (zero,) * 7 + ([zero] * nx,) + ((_load(x0_r, 0, nx),) if system else ())
+    rs, js, wr, ru, rx, gm, J, p_last, *_ = jax.lax.fori_loop(0, N, update, carry)
     for p in p_last:  # the last stage's r_x: no next stage
         rx = jnp.maximum(rx, jnp.abs(p))
     rel_d = jnp.maximum(jnp.maximum(ru, rx) / (1.0 + gm), rs / (1.0 + wr))
@@ -635,19 +734,8 @@ def _blocks_kernel(dims, N, *refs):
     u_r, x_r, Q_r, R_r, M_r, q_r, r_r, xref_r, c_r, x0_r = refs[11:21]
     Pu_out, Px_out, gx_out, bu_out, bx_out, rp_out = refs[21:]
 
-    def blocks(W, F, d):  # 2 W + F^T diag(d) F, as primal_dual._newton_blocks
-        scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
-        return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
-
     def soft_parts(rows):  # the soft rows' weights: d of Phi_x, v of g_x = base_x + Fx^T v
-        d = [w * a * c / (a + c) for w, a, c in zip(rows.wx, rows.a, rows.c, strict=True)]
-        # the predictor's soft rows: tau = 0, h = 0 / sx + 0 / s - rho (primal_dual._pd_rhs)
-        h = rows.h([0.0] * len(rows.s), [0.0] * len(rows.s))
-        v = [
-            w * (0.0 / x - a * hi / (a + c))
-            for w, x, a, hi, c in zip(rows.wx, rows.sx, rows.a, h, rows.c, strict=True)
-        ]
-        return d, v
+        return _soft_parts(rows.wx, rows.rho, rows.s, rows.g, rows.mu, rows.pi)
 
     def cost(t, Q, R):  # the cost's gradient (primal_dual._cost_gradient)
         x, u = _load(x_r, t, nx), _load(u_r, t, nu)
@@ -660,8 +748,8 @@ def _blocks_kernel(dims, N, *refs):
         rows = StageRows(dims, row_refs, t)
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         d, v = soft_parts(rows)
-        Phi_u = blocks(R, rows.Fu, rows.Du)
-        Phi_x = blocks(Q, rows.Fx, d)
+        Phi_u = _hessian_block(R, rows.Fu, rows.Du)
+        Phi_x = _hessian_block(Q, rows.Fx, d)
         base_u, base_x = cost(t, Q, R)
         g_x = [b + f for b, f in zip(base_x, _mtv(rows.Fx, v), strict=True)]
         _store(Pu_out, t, list(_tri(Phi_u)))
@@ -680,7 +768,7 @@ def _blocks_kernel(dims, N, *refs):
         cost block R then lives through the loop; ptxas for sm_90a)."""
         inputs = StageRows(dims, row_refs, t, "inputs")
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
-        _store(Pu_out, t, list(_tri(blocks(R, inputs.Fu, inputs.Du))))
+        _store(Pu_out, t, list(_tri(_hessian_block(R, inputs.Fu, inputs.Du))))
         base_u, base_x = cost(t, Q, R)
         _store(bu_out, t, base_u)
         _store(bx_out, t, base_x)
@@ -695,13 +783,13 @@ def _blocks_kernel(dims, N, *refs):
             return P, g
 
         zero = jnp.zeros_like(Q[0][0])
-        pairs = [(j, k) for j in range(nx) for k in range(j + 1)]
+        pairs = _pairs(nx)
         P, g = jax.lax.fori_loop(0, mx, soft, ([zero] * len(pairs), [zero] * nx))
         # Q read again rather than held through the rows' loop, where its entries took
         # registers (ptxas for sm_90a: 166 registers a thread instead of 184, so three
         # programs a multiprocessor instead of two; docs/benchmark.md)
         Q = _load(Q_r, t, nx, nx)
-        _store(Px_out, t, [2.0 * Q[j][k] + p for p, (j, k) in zip(P, pairs, strict=True)])
+        _store(Px_out, t, _twice_plus(Q, P))
         _store(gx_out, t, [b + f for b, f in zip(base_x, g, strict=True)])
         return carry
 
@@ -715,12 +803,7 @@ def _blocks_kernel(dims, N, *refs):
         # stores (thesis-vbar's engine, sm_90a; sweeps/gpu_registers.py)
         x, u = _load(x_r, t, nx), _load(u_r, t, nu)
         M = _load(M_r, t, nx, nu + nx)
-        Ax, Bu = _mv([row[nu:] for row in M], x_prev), _mv([row[:nu] for row in M], u)
-        rp = [
-            ((xi - a) - b) - ci
-            for xi, a, b, ci in zip(x, Ax, Bu, _load_any(c_r, t, nx), strict=True)
-        ]
-        _store(rp_out, t, rp)
+        _store(rp_out, t, _residual(M, nu, x, x_prev, u, _load_any(c_r, t, nx)))
         return x
 
     jax.lax.fori_loop(0, N, stage, 0)
@@ -851,16 +934,19 @@ _TABLE_POSITIONS = {
     "rows": (1, 6, 7),
     "blocks": (1, 6, 7, 13, 14, 15),
     "step": (1, 6, 7, 19, 20, 21),
+    "step_system": (1, 6, 7, 19, 20, 21),
 }
 
 #: The inputs read as a table of one (index 0) when a batch shares them (unbatched under
 #: ``vmap``) and no tables are given: not a copy for every problem.
 _SHAREABLE = {"rows": (), "blocks": (13, 14, 15), "step": (19, 20, 21)}
+_SHAREABLE["step_system"] = _SHAREABLE["step"]
 
 #: The inputs read as :class:`_Shared` when a batch shares them, with tables or without:
 #: the linear costs q, r, the reference x_ref and the dynamics' offset c (the batch engine's
 #: zero linear costs and offsets).
 _SHARED = {"rows": (), "blocks": (16, 17, 18, 19), "step": (22, 23, 24)}
+_SHARED["step_system"] = (22, 23, 24, 25)  # and the dynamics' offset c
 
 
 def _tables(kind, tables):
@@ -888,6 +974,7 @@ def pd_step_rows(
     interpret: bool = False,
     tables=None,
     block_io: bool = True,
+    system=None,
 ):
     """The corrector's step taken, for a batch: its row products, its step length (zero where
     the step or a row's step is not finite, or the solve is stopped), the new iterate, the
@@ -913,29 +1000,41 @@ def pd_step_rows(
 
     ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]), each table (K, N, ...) or
     None: the kernel reads those given from the tables at each problem's index.
-    ``block_io``: as :func:`_launch`.
+    ``block_io``: as :func:`_launch`. ``system``: None, or (c (N, nx, b), x0 (1, nx, b)), the
+    dynamics' offset (without the problem axis where the batch shares it) and the initial
+    state: the kernel also forms the next iteration's Newton system at the new point, and
+    returns it fourth, as :func:`pd_blocks` returns it.
     """
     N, mx, nx, b = rows[0].shape
     mu, n_u = rows[10].shape[1], du.shape[1]
     dims = (mx, mu, nx, n_u)
-    _, _, _, _, *new, sc = _launch(
-        functools.partial(_step_kernel, dims, N),
-        "rvdjax_pd_step_rows",
-        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, *cost, *(a[None, None] for a in scalars)],
+    extra, sys_shapes = (), []
+    if system is not None:
+        extra = tuple(system)
+        sys_shapes = [(N, tri_size(n_u)), (N, tri_size(nx)), (N, nx), (N, n_u), (N, nx), (N, nx)]
+    kind = "step" if system is None else "step_system"
+    _, _, _, _, *out, sc = _launch(
+        functools.partial(_step_kernel, dims, N, system is not None),
+        "rvdjax_pd_step_rows" if system is None else "rvdjax_pd_step_system",
+        [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, *cost, *extra]
+        + [a[None, None] for a in scalars],
         [(N, 2 * n_u), (N, 2 * nx), (N, mu), (N, mx)]
         + [(N, n_u), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
+        + sys_shapes
         + [(1, 5)],
         interpret,
-        _tables("step", tables),
+        _tables(kind, tables),
         # the new iterate in the old one's buffers: otherwise XLA copies each new array into
         # the solver loop's carry (counted for an H100: 8 copies an iteration, 35 KB a
         # thesis-vbar slot read and written)
         {16: 4, 17: 5, 18: 6, 2: 7, 9: 8, 4: 9, 5: 10, 8: 11, 3: 12},
-        _SHARED["step"],
+        _SHARED[kind],
         block_io,
     )
-    sc = sc[0]
-    return tuple(new), sc[:4], sc[4] > 0
+    new, next_system, sc = tuple(out[:9]), tuple(out[9:]), sc[0]
+    if system is None:
+        return new, sc[:4], sc[4] > 0
+    return new, sc[:4], sc[4] > 0, next_system
 
 
 def pd_blocks(rows, u, x, cost, x0, interpret: bool = False, tables=None, block_io: bool = True):
@@ -986,10 +1085,12 @@ def batched(
     tabled: bool = False,
     block_io: bool = True,
 ):
-    """:func:`pd_rows` (``kind`` "rows"), :func:`pd_step_rows` ("step") or :func:`pd_blocks`
-    ("blocks") for one problem (arrays without the batch axis; a batch of one), and under
-    ``vmap`` for the batch (``jax.custom_batching.custom_vmap``); unbatched inputs are
-    broadcast. The arguments are the 11 row arrays, the kernel's other arrays, then
+    """:func:`pd_rows` (``kind`` "rows"), :func:`pd_step_rows` ("step"; "step_system" with
+    its ``system``, the dynamics' offset c and the initial state x0 (1, nx) after the cost)
+    or :func:`pd_blocks` ("blocks") for one problem (arrays without the batch axis; a batch
+    of one), and under ``vmap`` for the batch (``jax.custom_batching.custom_vmap``);
+    unbatched inputs are broadcast. The arguments are the 11 row arrays, the kernel's other
+    arrays, then
     ``n_scalars`` scalars a problem, then (``tabled``) the tables of
     :data:`_TABLE_POSITIONS` (Fu, wx, rho; and Q, R for "blocks"; Q, R, A, B for "step") and
     the problem's index, which the kernel reads instead of those arrays where the tables are
@@ -1005,8 +1106,11 @@ def batched(
             out = pd_blocks(rows, *rest[:2], rest[2:-1], rest[-1], interpret, tables, block_io)
         elif kind == "rows":
             out = pd_rows(rows, *rest, scalars, rule, interpret, tables, block_io)
-        else:
+        elif kind == "step":
             out = pd_step_rows(rows, *rest[:8], rest[8:], scalars, interpret, tables, block_io)
+        else:
+            cost, system = rest[8:14], rest[14:]
+            out = pd_step_rows(rows, *rest[:8], cost, scalars, interpret, tables, block_io, system)
         return jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), out)
 
     @jax.custom_batching.custom_vmap

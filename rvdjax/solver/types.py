@@ -40,6 +40,10 @@ class KernelForm(NamedTuple):
             rows in a loop.
         model_blocks_only: with ``block_io``, the factorisation reads only the model [B, A]
             in blocks, every other operand and its outputs entry by entry.
+        carried: with ``rows``, the corrector's step kernel also forms the next iteration's
+            Newton system at the new point, which the solve's state carries
+            (:attr:`rvdjax.solver.primal_dual.PDState.system`): an iteration is four kernels,
+            without the blocks' kernel (the start forms the first system).
     """
 
     block_io: bool = False
@@ -48,6 +52,7 @@ class KernelForm(NamedTuple):
     rows: bool = False
     rows_block_io: bool = False
     model_blocks_only: bool = False
+    carried: bool = False
 
 
 # the Newton step's Pallas forms, in the order they were built (docs/solver.md measures them)
@@ -62,6 +67,15 @@ PALLAS_FORMS = {
     # "pallas-rows" with the factorisation entry by entry too, but for the model [B, A]
     "pallas-entries": KernelForm(
         block_io=True, solve_block_io=False, fused=True, rows=True, model_blocks_only=True
+    ),
+    # "pallas-entries" with the next Newton system formed by the step's kernel
+    "pallas-carried": KernelForm(
+        block_io=True,
+        solve_block_io=False,
+        fused=True,
+        rows=True,
+        model_blocks_only=True,
+        carried=True,
     ),
 }
 # every form of the Newton step (rvdjax.solver.riccati, which takes them from here): "auto",

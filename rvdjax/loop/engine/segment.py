@@ -30,7 +30,7 @@ from rvdjax.loop.kernel import (
     metrics,
     prepare,
 )
-from rvdjax.solver import finish, finished, freeze, iterate, start
+from rvdjax.solver import carries_system, finish, finished, freeze, iterate, start, with_system
 from rvdjax.solver.riccati import cuda_or_default
 
 
@@ -104,7 +104,8 @@ def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs
         params, sp = ctx.params_of(slot)
         nxt = prepare(loop, params, slot.state)
         model = model_of(loop, params, nxt.guidance)
-        ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=model is not None)
+        trusted = model is not None  # the system is formed at each tick (_iterate_chunk)
+        ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=trusted, system=False)
         return slot._replace(
             guidance=_where(n, nxt.guidance, slot.guidance),
             ocp=_where(n, _strip_model(ocp, model), slot.ocp),
@@ -126,7 +127,15 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
     not hoisted out of the loop and stored, but computed in each fusion that reads it: a tenth
     fewer bytes a thesis-vbar tick (docs/benchmark.md). The kernels' model tables, the
     parameters' alone, are built once before the iterations. On the CPU the hoisted model
-    stays (as fast there)."""
+    stays (as fast there).
+
+    Where the Newton step's form carries the Newton system from one iteration to the next
+    (:func:`~rvdjax.solver.carries_system`: the step's kernel forms the next one), the tick
+    forms it once before its iterations and drops the last one's: the slots hold no system
+    between ticks, which the refresh would otherwise form and move, with the slots first.
+    (The last iteration's step without the system saves its writes and reads too, but as an
+    iteration of its own outside the loop, its kernels compiled again: 125 s instead of 74
+    for thesis-vbar's engine program here; docs/benchmark.md.)"""
     loop = ctx.loop
     settings = loop.config.settings
 
@@ -134,18 +143,26 @@ def _iterate_chunk(ctx: _Ctx, cfg: EngineConfig, slots: Slot) -> Slot:
         params, sp = ctx.params_of(slot)
         table0 = table_of(model_of(loop, params, slot.guidance))
 
-        def body(_, st):
-            g, st = cuda_or_default(
-                (slot.guidance, st), cuda=lax.optimization_barrier, default=lambda gs: gs
-            )
+        def problem(g):
             ocp, table = ctx.problem_of(slot._replace(guidance=g), params)
             if table is not None:
                 # the tables (the parameters' alone) built once a tick, not at each
                 # iteration: six launches an iteration on a GPU (docs/benchmark.md)
                 table = table0._replace(index=table.index)
+            return ocp, table
+
+        def body(_, st):
+            g, st = cuda_or_default(
+                (slot.guidance, st), cuda=lax.optimization_barrier, default=lambda gs: gs
+            )
+            ocp, table = problem(g)
             return iterate(ocp, settings, sp, st, table)
 
-        return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
+        if not carries_system(settings):
+            return slot._replace(solve=lax.fori_loop(0, cfg.iterations, body, slot.solve))
+        ocp, table = problem(slot.guidance)
+        st = lax.fori_loop(0, cfg.iterations, body, with_system(ocp, settings, slot.solve, table))
+        return slot._replace(solve=st._replace(core=st.core._replace(system=None)))
 
     return jax.vmap(iterations)(slots)
 

@@ -207,7 +207,12 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
     prep = prepare(loop, p, state)
     model = model_of(loop, p, prep.guidance)
     ocp, solve_state = start(
-        prep.ocp, loop.config.settings, s, prep.warm, trusted_model=model is not None
+        prep.ocp,
+        loop.config.settings,
+        s,
+        prep.warm,
+        trusted_model=model is not None,
+        system=False,  # formed at each tick (segment._iterate_chunk)
     )
     ocp = _strip_model(ocp, model)
     solve_state = freeze(solve_state)
