@@ -5,6 +5,8 @@ machine without one.
     python sweeps/gpu_traffic.py [qp] [--batch 65536] [--kernels auto,pallas,pallas-block-io]
         [--mode accurate] [--target h100|h200] [--padded-blocks] [--top 12] [--out DIR] [--hlo]
     python sweeps/gpu_traffic.py engine [--scenario thesis-vbar] [--slots 4096] [--target h100]
+    python sweeps/gpu_traffic.py solve [--batch 65536] [--kernels auto,pallas-entries]
+        [--shared-model]
 
 XLA compiles for a GPU it is not running on ("deviceless" ahead-of-time compilation: a
 ``jax.experimental.topologies`` description of one H100 or H200, the CUDA plugin's compiler
@@ -20,6 +22,11 @@ the card's bandwidth is the time the iteration cannot go below.
 
 ``engine``: one tick of the batch engine's segment program (the engine's settings for a GPU),
 by the engine's scopes: the solver iterations, the refresh, the ring and the rest.
+
+``solve``: a whole ``jit(vmap(solve))`` of the QPs, as ``sweeps/gpu_benchmark.py qp`` times it
+(with ``--shared-model``, its one-model path): the solve loop's body, one iteration as the
+loop runs it (its carried state, its copies), and the whole program with the loop counted
+once (the start, the finish and one iteration).
 
 Prints one row per form (launches, KB read and written a problem, the Pallas kernels' share,
 that bound at ``--batch``, the compile's seconds on this machine, Triton's included) and each
@@ -495,9 +502,11 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
     sharding = _sharding(target)
     settings = (SolverSettings.paper if mode == "paper" else SolverSettings)(kernel=kernel)
     params = SolverParams.for_settings(settings)
-    # shapes from a small batch started on the host; the GPU program for ``batch`` problems
+    # shapes from a small batch started on the host (as for a GPU: where the Newton step's
+    # form carries the Newton system, the state holds it); the GPU program for ``batch``
     small = fastmpc3d_first_step_batch(perturbed_x0(0, 4))
-    ocps, state = jax.jit(jax.vmap(lambda o: start(o, settings, params)))(small)
+    with tracing_for_cuda():
+        ocps, state = jax.jit(jax.vmap(lambda o: start(o, settings, params)))(small)
 
     def spec(a, batched=True):
         shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
@@ -554,6 +563,102 @@ def _compile_engine(scenario: str, slots: int, target: str, kernel: str = "auto"
         return traced.lower().compile().as_text(), cfg, kernel_sweeps(traced.jaxpr.jaxpr)
 
 
+def _compile_solve(kernel: str, batch: int, mode: str, target: str, shared_model: bool = False):
+    """The optimised GPU program of a whole ``jit(vmap(solve))`` on ``batch`` fastmpc-3d QPs
+    and its Pallas kernels' sweeps: (HLO text, sweeps); with ``shared_model`` one model for
+    every QP, passed through as ``sweeps/gpu_benchmark.py`` passes it (``trusted_model``)."""
+    import jax
+
+    import rvdjax  # noqa: F401  (float64)
+    from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
+    from rvdjax.solver import SolverParams, SolverSettings, driver, solve, tracing_for_cuda
+
+    sharding = _sharding(target)
+    settings = (SolverSettings.paper if mode == "paper" else SolverSettings)(kernel=kernel)
+    params = SolverParams.for_settings(settings)
+    small = fastmpc3d_first_step_batch(perturbed_x0(0, 4))
+    shared = set(driver.MODEL_FIELDS) if shared_model else set()
+
+    def spec(a, batched):
+        shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
+        return jax.ShapeDtypeStruct(shape, a.dtype, sharding=sharding)
+
+    axes = type(small)(*(None if f in shared else 0 for f in small._fields))
+    ocps = type(small)(*(spec(getattr(small, f), f not in shared) for f in small._fields))
+
+    def one(ocp):
+        if not shared_model:
+            return solve(ocp, settings)
+        sol, ocp_safe, _ = driver._forward_state(ocp, params, None, settings, trusted_model=True)
+        return driver.with_objective(ocp_safe, sol)
+
+    with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
+        traced = jax.jit(jax.vmap(one, in_axes=(axes,))).trace(ocps)
+        return traced.lower().compile().as_text(), kernel_sweeps(traced.jaxpr.jaxpr)
+
+
+def _written(path: str, row: dict) -> dict:
+    """``row`` appended to the rows file ``path`` (one JSON line), as it is."""
+    with open(path, "a", encoding="utf-8") as f:
+        f.write(json.dumps(row) + "\n")
+    return row
+
+
+def _outer_loop(comps: dict, comp: str) -> str | None:
+    """The body of the first ``while`` met from ``comp`` (through calls): a solve's loop."""
+    for ln in comps.get(comp, []):
+        m = _INSTR.match(ln)
+        if m and m.group(3) == "while":
+            return re.search(r"body=%?([\w.\-]+)", ln).group(1)
+        called = re.search(r"to_apply=%?([\w.\-]+)", ln) if m and m.group(3) == "call" else None
+        found = _outer_loop(comps, called.group(1)) if called else None
+        if found:
+            return found
+    return None
+
+
+def solve_main(args, kernels, provenance, path) -> int:
+    per = 1e3 * args.batch
+    rows = []
+    for kernel in kernels:
+        t0 = time.perf_counter()
+        hlo, sweeps = _compile_solve(kernel, args.batch, args.mode, args.target, args.shared_model)
+        compile_s = time.perf_counter() - t0
+        body = _outer_loop(*_computations(hlo))
+        whole, loop = traffic(hlo, kernels=sweeps), traffic(hlo, body, kernels=sweeps)
+        row = dict(
+            part="solve",
+            kernel=kernel + (", shared model" if args.shared_model else ""),
+            mode=args.mode,
+            target=args.target,
+            batch=args.batch,
+            loop_launches=loop["launches"],
+            loop_pallas=loop["pallas"][0],
+            loop_kb=(loop["read"] + loop["written"]) / per,
+            launches=whole["launches"],
+            kb=(whole["read"] + whole["written"]) / per,
+            compile_s=compile_s,
+            provenance=provenance,
+        )
+        rows.append(_written(path, row))
+    print(
+        f"a {args.mode}-mode jit(vmap(solve)) of {args.batch} fastmpc-3d QPs compiled for an "
+        f"{TARGETS[args.target][0]} (no GPU used); KB a problem:"
+    )
+    print(
+        "| form | the loop's body: launches (Pallas) | KB an iteration | whole program, the "
+        "loop once: launches | KB | compile |"
+    )
+    print("| --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(
+            f"| {r['kernel']} | {r['loop_launches']} ({r['loop_pallas']}) | {r['loop_kb']:.1f} | "
+            f"{r['launches']} | {r['kb']:.1f} | {r['compile_s']:.1f} s |"
+        )
+    print(f"rows: {path}")
+    return 0
+
+
 def tick(hlo: str, kernels: dict | None = None) -> dict:
     """:func:`traffic` of one tick of an engine segment program (the body of its loop over
     ticks), grouped by the engine's scopes: the solver iterations, the refresh (advance,
@@ -605,8 +710,7 @@ def engine_main(args, provenance, path) -> int:
         by_scope={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
         provenance=provenance,
     )
-    with open(path, "a", encoding="utf-8") as f:
-        f.write(json.dumps(row) + "\n")
+    _written(path, row)
     total = row["read_kb"] + row["written_kb"]
     print(
         f"one tick of the batch engine, {args.scenario} at {args.slots} slots, compiled for an "
@@ -647,7 +751,7 @@ def main(argv=None) -> int:
 
     KERNELS = tuple(k for k in ALL if k != "pallas-fused")  # its compile takes minutes
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine"))
+    ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine", "solve"))
     ap.add_argument("--batch", type=int, default=65536, help="qp: QPs in the batch (>= 1)")
     ap.add_argument("--scenario", default="thesis-vbar", help="engine: the scenario")
     ap.add_argument("--slots", type=int, default=4096, help="engine: slots (>= 1)")
@@ -693,6 +797,8 @@ def main(argv=None) -> int:
     provenance = benchmark_block("sweeps/gpu_traffic.py", vars(args))
     if args.part == "engine":
         return engine_main(args, provenance, path)
+    if args.part == "solve":
+        return solve_main(args, kernels, provenance, path)
     bandwidth = TARGETS[args.target][1]
     rows = []
     for kernel in kernels:
@@ -722,9 +828,7 @@ def main(argv=None) -> int:
             by_source={k: [v[0], v[1] / per] for k, v in t["by_source"].items()},
             provenance=provenance,
         )
-        rows.append(row)
-        with open(path, "a", encoding="utf-8") as f:
-            f.write(json.dumps(row) + "\n")
+        rows.append(_written(path, row))
     print(
         f"one {args.mode} iteration of {args.batch} fastmpc-3d QPs compiled for an "
         f"{TARGETS[args.target][0]} (no GPU used); KB a problem:"

@@ -131,7 +131,8 @@ ENTRY %main (x: f64[4,8]) -> f64[4,8] {
 def test_gpu_traffic_counts_launches_bytes_and_sources():
     """sweeps/gpu_traffic.py's count on a hand-written program: a Pallas kernel reading 256
     bytes and writing 128, then a loop of 3 trips whose fused body reads and writes 256; both
-    attributed to the solver's line that called them (through the small-product helper)."""
+    attributed to the solver's line that called them (through the small-product helper). The
+    ``solve`` part's count of a loop's body alone: one trip."""
     saved = os.environ.get("JAX_SKIP_CUDA_CONSTRAINTS_CHECK")
     gt = _import("gpu_traffic")
     if saved is None:
@@ -141,6 +142,11 @@ def test_gpu_traffic_counts_launches_bytes_and_sources():
     assert t["pallas"] == [1, 256, 128]
     assert t["by_source"] == {"primal_dual.py:10 pd_iteration": [4, 4 * 256 + 128 + 3 * 256]}
     assert gt.nbytes("(s64[], f64[4,8]{1,0}, pred[3])") == 8 + 256 + 3
+    # the solve part's loop: the first while's body, counted once (one iteration)
+    body = gt._outer_loop(*gt._computations(_HLO))
+    assert body == "body"
+    once = gt.traffic(_HLO, body)
+    assert (once["launches"], once["read"], once["written"]) == (1, 256, 256)
 
 
 def test_kernel_sweeps_count_a_kernels_loads_once_a_sweep():
@@ -240,6 +246,8 @@ def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
     assert gt.main(["--kernels", "xla,bogus", "--out", str(tmp_path)]) == 2
     assert "--kernels" in capsys.readouterr().out
     assert gt.main(["--batch", "0", "--out", str(tmp_path)]) == 2
+    assert "--batch must be >= 1" in capsys.readouterr().out
+    assert gt.main(["solve", "--batch", "0", "--out", str(tmp_path)]) == 2
     assert "--batch must be >= 1" in capsys.readouterr().out
     assert gt.main(["engine", "--slots", "0", "--out", str(tmp_path)]) == 2
     assert "--slots must be >= 1" in capsys.readouterr().out
