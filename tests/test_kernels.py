@@ -749,6 +749,7 @@ def test_a_batched_solve_for_a_gpu_takes_no_select_over_the_state(monkeypatch):
     cpu = jax.jit(run)(problems)
     with tracing_for_cuda():
         gpu_loop = jax.jit(run)(problems)
+    jax.clear_caches()  # no later test of this process reuses the GPU loop's trace on the CPU
     assert len(set(np.asarray(cpu.iterations).tolist())) > 1  # finished at different times
     np.testing.assert_array_equal(np.asarray(gpu_loop.iterations), np.asarray(cpu.iterations))
     np.testing.assert_array_equal(np.asarray(gpu_loop.status), np.asarray(cpu.status))
