@@ -824,15 +824,16 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
 
 
 @pytest.mark.slow  # interpreted kernels in a closed loop: ~60 s
-@pytest.mark.parametrize("form", [AUTO_ON_CUDA, "pallas-carried"])
+@pytest.mark.parametrize("form", [AUTO_ON_CUDA, "pallas-entries"])
 def test_the_engine_flies_with_the_gpu_form_as_with_xla(monkeypatch, form):
-    """The batch engine with the default GPU form of the Newton step ("pallas-entries":
-    the Newton blocks, the factorisation with the predictor's step, the row work between the
-    solves, the corrector's step with its refinement and its update; interpreted), and with
-    the form that carries the Newton system through a tick's iterations ("pallas-carried"),
-    flies thesis-vbar's first steps (a model per slot, rebuilt from the phase) as with XLA's
-    loops: the same steps, run statuses and solver statuses, delta-v to 1e-9; so too with the
-    phase tables read by the kernels and the slots stored last, as on a GPU."""
+    """The batch engine with the GPU form of the Newton step that carries the Newton system
+    through a tick's iterations (the default, "pallas-carried") and with the one before it
+    ("pallas-entries": the Newton blocks, the factorisation with the predictor's step, the
+    row work between the solves, the corrector's step with its refinement and its update;
+    both interpreted) flies thesis-vbar's first steps (a model per slot, rebuilt from the
+    phase) as with XLA's loops: the same steps, run statuses and solver statuses, delta-v to
+    1e-9; so too with the phase tables read by the kernels and the slots stored last, as on a
+    GPU."""
     from rvdjax.bench import perturbed_states
     from rvdjax.loop.engine import EngineConfig, fly_batch, program, segment
     from rvdjax.scenarios import FlightOptions, get_scenario

@@ -29,7 +29,8 @@ One argument order for every public function: the problem, the static settings, 
 parameters, then the warm start or the solve's state — ``solve(ocp, settings, params, init)``,
 ``start(ocp, settings, params, init)``, ``iterate(ocp, settings, params, state)``,
 ``finish(ocp, settings, params, state)``, ``finished(settings, state)``,
-``warm_start(ocp, settings, plan, cold)``. Keywords are safest at call sites.
+``with_system(ocp, settings, state)``, ``warm_start(ocp, settings, plan, cold)``. Keywords are
+safest at call sites.
 
 Stopping tests are relative to the problem's scale (the RVD costs are ~1e7 with Riccati
 velocity weights ~1e6, so absolute tolerances never trigger). Every loop has a fixed iteration

@@ -626,7 +626,7 @@ def _by_platform(kernel: str, xla, pallas, *args):
     entry rather than in blocks (but the factorisation's model), the same bytes pass through
     almost no shared memory and barrier, and no kernel falls to 32 registers and kilobytes of
     spills ("pallas-entries"); with the next Newton system formed in the step's kernel, an
-    iteration is four kernels and 9 % fewer bytes in a batch of QPs' solve loop, 2.4 % fewer
+    iteration is four kernels and 6-9 % fewer bytes in a batch of QPs' solve loop, 2.4 % fewer
     a thesis-vbar tick, for a step kernel of 254 registers instead of 168 (ptxas for sm_90a;
     docs/benchmark.md; none of these timed on a GPU yet). On the CPU XLA's loops are the
     fastest form (the kernels are only interpreted there). The measurements are in
