@@ -487,6 +487,19 @@ def _sharding(target: str):
     return NamedSharding(topologies.make_mesh(topo, (1,), ("x",)), P())
 
 
+def _batch_specs(ocps, batch: int, sharding, shared: set):
+    """(vmap's in_axes, the abstract batch) of ``batch`` OCPs shaped as the small batch
+    ``ocps``, the fields in ``shared`` without the batch axis (one for every problem)."""
+    import jax
+
+    def spec(a, batched):
+        shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
+        return jax.ShapeDtypeStruct(shape, a.dtype, sharding=sharding)
+
+    axes = type(ocps)(*(None if f in shared else 0 for f in ocps._fields))
+    return axes, type(ocps)(*(spec(getattr(ocps, f), f not in shared) for f in ocps._fields))
+
+
 def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool = False):
     """The optimised GPU program of one solver iteration on ``batch`` fastmpc-3d QPs and its
     Pallas kernels' sweeps (:func:`kernel_sweeps`): (HLO text, sweeps); with
@@ -508,14 +521,10 @@ def _compile(kernel: str, batch: int, mode: str, target: str, shared_model: bool
     with tracing_for_cuda():
         ocps, state = jax.jit(jax.vmap(lambda o: start(o, settings, params)))(small)
 
-    def spec(a, batched=True):
-        shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
-        return jax.ShapeDtypeStruct(shape, a.dtype, sharding=sharding)
-
-    shared = {f for f in MODEL_FIELDS if shared_model}
-    axes = type(ocps)(*(None if f in shared else 0 for f in ocps._fields))
-    ocps = type(ocps)(*(spec(getattr(ocps, f), f not in shared) for f in ocps._fields))
-    state = jax.tree.map(spec, state)
+    axes, ocps = _batch_specs(ocps, batch, sharding, set(MODEL_FIELDS) if shared_model else set())
+    state = jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype, sharding=sharding), state
+    )
     step = jax.jit(jax.vmap(lambda o, s: iterate(o, settings, params, s), in_axes=(axes, 0)))
     with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
         traced = step.trace(ocps, state)
@@ -578,13 +587,7 @@ def _compile_solve(kernel: str, batch: int, mode: str, target: str, shared_model
     params = SolverParams.for_settings(settings)
     small = fastmpc3d_first_step_batch(perturbed_x0(0, 4))
     shared = set(driver.MODEL_FIELDS) if shared_model else set()
-
-    def spec(a, batched):
-        shape = (batch, *a.shape[1:]) if batched else a.shape[1:]
-        return jax.ShapeDtypeStruct(shape, a.dtype, sharding=sharding)
-
-    axes = type(small)(*(None if f in shared else 0 for f in small._fields))
-    ocps = type(small)(*(spec(getattr(small, f), f not in shared) for f in small._fields))
+    axes, ocps = _batch_specs(small, batch, sharding, shared)
 
     def one(ocp):
         if not shared_model:

@@ -293,12 +293,17 @@ def _until_finished(ocp_safe, params, state, settings: SolverSettings):
     A CPU-only process keeps vmap's rule, and its programs as they were (not measured there;
     a float32 solve's rounding, for one, depends on the program)."""
     if not traces_cuda():
-        return lax.while_loop(
-            lambda st: ~finished(settings, st),
-            lambda st: iterate(ocp_safe, settings, params, st),
-            state,
-        )
+        return _while(ocp_safe, params, state, settings)
     return _loop(settings)(ocp_safe, params, state)
+
+
+def _while(ocp_safe, params, state, settings: SolverSettings):
+    """:func:`iterate` until :func:`finished`: one problem's ``while`` loop."""
+
+    def body(st):
+        return iterate(ocp_safe, settings, params, st)
+
+    return lax.while_loop(lambda st: ~finished(settings, st), body, state)
 
 
 @functools.cache
@@ -310,7 +315,7 @@ def _loop(settings: SolverSettings):
 
     @jax.custom_batching.custom_vmap
     def loop(ocp_safe, params, state):
-        return lax.while_loop(cond, lambda st: iterate(ocp_safe, settings, params, st), state)
+        return _while(ocp_safe, params, state, settings)
 
     @loop.def_vmap
     def _batched(axis_size, in_batched, ocp_safe, params, state):
