@@ -342,6 +342,7 @@ def test_the_segment_program_lowers_for_a_gpu():
     assert "rvdjax_riccati_factor_solve" in text and "rvdjax_riccati_solve_refined" in text
     assert "rvdjax_pd_rows" in text and "rvdjax_pd_step_system" in text
     assert "rvdjax_pd_blocks" in text and "rvdjax_pd_step_rows" not in text
+    assert "rvdjax_drift" not in text  # the starts are XLA's: the slots are stored batch first
     # the Hessian blocks Phi_u, Phi_x go from the blocks' kernel and the step's to the Riccati
     # kernels as their lower triangles (6 and 21 entries a stage; nu = 3, nx = 6), then g_x,
     # base_u, base_x, rp (the step's last output: alpha, the gap, the residual, the objective,

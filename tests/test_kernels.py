@@ -31,6 +31,9 @@ from rvdjax.solver.riccati import AUTO_ON_CUDA
 
 # Problems are padded to a tile of ``block`` lanes: a small tile keeps the interpreter cheap.
 BLOCK = 8
+# the tables' index among a kernel's inputs for a batch of three: one tile of four lanes (a
+# batch smaller than a tile runs in one tile of the next power of two)
+INDEX_OF_3 = "int32[4]"
 
 
 @functools.cache
@@ -313,7 +316,7 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
         for e in _eqns(jax.make_jaxpr(run)(keys[:3]).jaxpr)
         if e.primitive.name == "pallas_call"
     ]
-    assert f"int32[{BLOCK}]" in call and call.count("float64[5,6]") == 2  # index; q, x_ref
+    assert INDEX_OF_3 in call and call.count("float64[5,6]") == 2  # index; q, x_ref
     for want, got in zip(*jax.jit(run)(keys[:3]), strict=True):
         for w, g in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
             assert _rel(np.asarray(w, float), np.asarray(g, float)) <= 1e-12
@@ -413,7 +416,7 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
     calls = [
         str([v.aval for v in e.invars]) for e in _eqns(jaxpr) if e.primitive.name == "pallas_call"
     ]
-    assert len(calls) == 1 and f"int32[{BLOCK}]" in calls[0]
+    assert len(calls) == 1 and INDEX_OF_3 in calls[0]
     assert calls[0].count(f"float64[{N},6]") == 3  # q, x_ref and c, without a problem axis
     want, got = jax.jit(run)(stacked)
     check(want, got)
@@ -502,7 +505,7 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for(block_
         for e in _eqns(jax.make_jaxpr(run)(table, cost, *batch).jaxpr)
         if e.primitive.name == "pallas_call"
     ]
-    with_index = [c for c in calls if f"int32[{BLOCK}]" in c]
+    with_index = [c for c in calls if INDEX_OF_3 in c]
     assert len(calls) == 4 and len(with_index) == 2  # each kernel once with the tables
     assert all(f"float64[{K},{N},{mu * 3}]" in c for c in with_index)
     plain, tabled = jax.jit(run)(table, cost, *batch)
@@ -661,24 +664,24 @@ def _triton_calls(text):
         # corrector's step with its refinement; in "pallas-entries", "pallas-rows" and
         # "pallas-block-rows", the row work before, between and after them three more; in
         # "pallas-carried", the default on a GPU, the blocks' kernel at the start only, its
-        # work in the step's kernel of each iteration);
-        # loops: the solve alone (the start's drift of the warm-start inputs is unrolled on a
-        # GPU) (the opt-in forms in the slow run: "auto" lowers the default GPU form, 10-15 s
-        # each)
+        # work in the step's kernel of each iteration); the forms whose rows run in kernels
+        # run the start's drift of the warm-start inputs as one more;
+        # loops: the solve alone (the drift is a kernel or unrolled on a GPU) (the opt-in
+        # forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
         ),
         pytest.param(SolverSettings(), 2, 1, "pallas-block-fused", marks=pytest.mark.slow),
-        pytest.param(SolverSettings(), 5, 1, "pallas-block-rows", marks=pytest.mark.slow),
+        pytest.param(SolverSettings(), 6, 1, "pallas-block-rows", marks=pytest.mark.slow),
         # the Newton system formed by the start's blocks kernel, then by the step's
-        pytest.param(SolverSettings(), 5, 1, "pallas-carried", marks=pytest.mark.slow),
+        pytest.param(SolverSettings(), 6, 1, "pallas-carried", marks=pytest.mark.slow),
         # the default form's five kernels are lowered in the default run by the engine's
         # segment (test_engine); counted here in the slow run (20 s)
-        pytest.param(SolverSettings(), 5, 1, "auto", marks=pytest.mark.slow),
-        # paper: factorisation + step; loops: the solve, the line search (the count of
-        # launches and loops is the mode's, whichever kernels run them)
-        (SolverSettings.paper(), 1, 2, "auto"),
+        pytest.param(SolverSettings(), 6, 1, "auto", marks=pytest.mark.slow),
+        # paper: factorisation + step, and the drift's kernel in "auto"; loops: the solve, the
+        # line search (the count of loops is the mode's, whichever kernels run them)
+        (SolverSettings.paper(), 2, 2, "auto"),
         pytest.param(SolverSettings.paper(), 2, 2, "pallas-block-factor", marks=pytest.mark.slow),
     ],
 )
@@ -687,10 +690,11 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     a batched and an unbatched solve with the kernels (and with ``kernel="auto"``, whose
     Triton kernels on a CUDA GPU are those of ``AUTO_ON_CUDA``, launch for launch) hold the
     Riccati sweeps as ``kernels`` Triton kernels and no loop over stages beyond the solve
-    loop and (paper mode) the line search: the start's drift is unrolled; ``kernel="xla"``
-    keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs XLA's loops (these
-    three checks, and the unbatched solve of ``"auto"``, in paper mode only: the choice is the
-    same in either mode, and the accurate mode's lowering is the slowest)."""
+    loop and (paper mode) the line search: the start's drift is a kernel or unrolled;
+    ``kernel="xla"`` keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs
+    XLA's loops (these three checks, and the unbatched solve of ``"auto"``, in paper mode
+    only: the choice is the same in either mode, and the accurate mode's lowering is the
+    slowest)."""
     ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
@@ -804,6 +808,74 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
         assert cuda.count("stablehlo.while") == 0
         assert "dot_general" not in cuda  # the products as multiplies and sums, which fuse
         np.testing.assert_array_equal(both, jax.jit(fn)(*args))
+
+
+def test_the_drift_kernel_gives_the_recursion():
+    """The start's drift as one kernel (primal_dual.pd_drift with a form whose rows run in
+    kernels, interpreted here): the states of x_{t+1} = A_t x_t + B_t u_t + c_t written out
+    in NumPy, to 1e-12 relative, for one problem, a batch with a model each and a batch
+    sharing its model and offset (read as a table of one and as scalars: no copy for every
+    problem); lowered for a CUDA GPU, one Triton kernel and no loop."""
+    from rvdjax.solver.primal_dual import pd_drift
+
+    def recursion(A, B, c, u, x0):
+        x, out = np.asarray(x0), []
+        for t in range(A.shape[0]):
+            x = np.asarray(A[t]) @ x + np.asarray(B[t]) @ np.asarray(u[t]) + np.asarray(c[t])
+            out.append(x)
+        return np.stack(out)
+
+    ocp = fastmpc3d_first_step(obstacles=True)
+    ocp = ocp._replace(c=0.01 * jax.random.normal(jax.random.key(4), ocp.c.shape))
+    k = jax.random.split(jax.random.key(5), 3)
+    us = 0.01 * jax.random.normal(k[0], (3, ocp.N, ocp.nu))
+    x0s = ocp.x0 * (1.0 + 0.1 * jax.random.normal(k[1], (3, 1)))
+    A_each = ocp.A * (1.0 + 1e-3 * jax.random.normal(k[2], (3, 1, 1, 1)))
+
+    def drift(o, u):
+        return pd_drift(o, u, "pallas-carried")
+
+    def close(got, want):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+    close(jax.jit(drift)(ocp, us[0]), recursion(ocp.A, ocp.B, ocp.c, us[0], ocp.x0))
+    each = jax.vmap(lambda A, u, x0: drift(ocp._replace(A=A, x0=x0), u))
+    want = [recursion(A_each[i], ocp.B, ocp.c, us[i], x0s[i]) for i in range(3)]
+    close(jax.jit(each)(A_each, us, x0s), np.stack(want))
+    shared = jax.vmap(lambda u, x0: drift(ocp._replace(x0=x0), u))
+    calls = [
+        [str(v.aval) for v in e.invars]
+        for e in _eqns(jax.make_jaxpr(shared)(us, x0s).jaxpr)
+        if e.primitive.name == "pallas_call"
+    ]
+    assert len(calls) == 1 and INDEX_OF_3 in calls[0]  # the model, a table of one
+    assert f"float64[{ocp.N},6]" in calls[0]  # the offset, without a problem axis
+    want = [recursion(ocp.A, ocp.B, ocp.c, us[i], x0s[i]) for i in range(3)]
+    close(jax.jit(shared)(us, x0s), np.stack(want))
+    with tracing_for_cuda():
+        cuda = jax.jit(shared).trace(us, x0s).lower(lowering_platforms=("cuda",)).as_text()
+    assert cuda.count("__gpu$xla.gpu.triton") == 1 and "stablehlo.while" not in cuda
+
+
+def test_a_batch_smaller_than_a_tile_runs_in_one_tile_of_the_next_power_of_two():
+    """Tiles of ``block`` lanes, padded by repeating the last problem; a batch smaller than a
+    tile is one tile of the next power of two, so a problem alone is a tile of one: a solve
+    of one QP lowered for a CUDA GPU launches every kernel on one lane, with no padding to
+    copy in and slice out around each launch."""
+    assert lanes.tile(1, 128) == (1, 1)
+    assert lanes.tile(3, 8) == (4, 4)
+    assert lanes.tile(8, 8) == (8, 8)
+    assert lanes.tile(11, 8) == (8, 16)
+    assert lanes.tile(65536, 128) == (128, 65536)
+    ocp = fastmpc3d_first_step(obstacles=True)
+    one = jax.tree.map(lambda a: a[None], ocp)
+    with tracing_for_cuda():
+        jaxpr = jax.make_jaxpr(jax.vmap(lambda o: solve(o, SolverSettings(kernel=AUTO_ON_CUDA))))
+        eqns = [e for e in _eqns(jaxpr(one).jaxpr) if e.primitive.name == "pallas_call"]
+    assert len(eqns) >= 5  # the start's drift and blocks, the iteration's kernels
+    for e in eqns:
+        assert tuple(e.params["grid_mapping"].grid) == (1,)
+        assert all(v.aval.shape[-1] == 1 for v in e.outvars), e.params["name"]
 
 
 def test_kernel_on_names_the_form_auto_runs_on_a_device():

@@ -39,9 +39,16 @@ from rvdjax.solver.dual import solve_dual
 from rvdjax.solver.implicit import implicit_bwd, kkt_at
 from rvdjax.solver.kkt import kkt_solve
 from rvdjax.solver.newton import NewtonState, newton_iteration
-from rvdjax.solver.primal_dual import PDState, carries_system, pd_iteration, pd_start, pd_system
+from rvdjax.solver.primal_dual import (
+    PDState,
+    carries_system,
+    pd_drift,
+    pd_iteration,
+    pd_start,
+    pd_system,
+)
 from rvdjax.solver.riccati import traces_cuda
-from rvdjax.solver.start import drift, pull_inside, track_plan
+from rvdjax.solver.start import pull_inside, track_plan
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
 __all__ = [
@@ -90,7 +97,7 @@ def start(
     params: SolverParams,
     init: Plan | None = None,
     trusted_model: bool = False,
-    system: bool = True,
+    in_kernels: bool = True,
 ):
     """Sanitise ``ocp`` and build the first iterate.
 
@@ -99,10 +106,13 @@ def start(
     model shared by every problem of a batch unbatched (one large matrix product for the whole
     batch instead of one small one per problem).
 
-    ``system`` (static): where the Newton step's form carries the Newton system from one
-    iteration to the next (:func:`~rvdjax.solver.primal_dual.carries_system`), the start forms
-    the first one; without it the state has none, and :func:`with_system` adds it later (the
-    batch engine, at each tick, where its iterations run batch-last).
+    ``in_kernels`` (static): where the Newton step's form runs the rows in kernels, the start
+    runs in them too: the drift of the first inputs as one kernel, and the first Newton
+    system where the form carries it (:func:`~rvdjax.solver.primal_dual.carries_system`).
+    Without it the start is XLA's and the state has no system; :func:`with_system` adds it
+    later. The batch engine starts so: its slots are stored batch first, and the kernels'
+    batch-last arrays cost it transposes (docs/benchmark.md); each tick forms the system
+    where its iterations run batch last.
 
     Returns:
         (the OCP to iterate on — the same problem with its masked rows neutralised, to pass to
@@ -145,7 +155,8 @@ def start(
     warm_states = (
         x_start is not None and settings.mode == "paper" and settings.paper_start == "warm"
     )
-    x0s = x_start if warm_states else drift(ocp, u0)
+    drift_form = settings.kernel if in_kernels else "xla"
+    x0s = x_start if warm_states else pd_drift(ocp, u0, drift_form)
     start_ok = jnp.all(jnp.where(rows.wu > 0, u_slack(rows, u0) > 0, True))
     start_status = jnp.where(
         ~inputs_ok, Status.NONFINITE, jnp.where(start_ok, Status.MAX_ITER, Status.INFEASIBLE)
@@ -160,7 +171,7 @@ def start(
         kappa0 = params.kappa0_rel * (1.0 + jnp.abs(J0)) / jnp.maximum(n_barrier, 1.0)
     if settings.mode == "accurate":
         core = pd_start(rows, u0, x0s, nu0, kappa0, done, start_status)
-        if system and carries_system(settings):  # the first Newton system
+        if in_kernels and carries_system(settings):  # the first Newton system
             core = core._replace(system=pd_system(ocp, rows, core, settings.kernel))
     else:
         inf = jnp.asarray(jnp.inf, dtype)
@@ -207,7 +218,7 @@ def iterate(
 def with_system(ocp: OCP, settings: SolverSettings, state: SolveState, table=None):
     """``state`` with the Newton system at its iterate, where the Newton step's form carries
     it (:func:`~rvdjax.solver.primal_dual.carries_system`) and ``state`` has none (a
-    :func:`start` without ``system``); else ``state`` itself. ``table`` as :func:`iterate`.
+    :func:`start` without ``in_kernels``); else ``state`` itself. ``table`` as :func:`iterate`.
     The batch engine's ticks start so, and drop the system after their iterations, so that
     the slots hold none between ticks (on a GPU the refresh would form and move it, the
     slots first, for more than the iterations save; docs/benchmark.md)."""

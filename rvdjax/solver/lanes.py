@@ -727,6 +727,16 @@ def _compiler_params(cfg: KernelConfig):
     return pltr.CompilerParams(num_warps=cfg.num_warps, num_stages=1)
 
 
+def tile(b: int, block: int) -> tuple[int, int]:
+    """(problems a program, the batch padded to whole programs) for a batch of ``b``: tiles
+    of ``block`` problems, or, for a batch smaller than a tile, one tile of the next power of
+    two (Triton's blocks are powers of two). A problem alone is a tile of one: every launch
+    of a padded batch pads each input and slices each output, 59 launches an iteration of
+    one fastmpc-3d QP beside the kernels' 8 (``sweeps/gpu_traffic.py solve --batch 1``)."""
+    lanes = min(block, 1 << max(b - 1, 0).bit_length())
+    return lanes, -(-b // lanes) * lanes
+
+
 def _pad(a, b_pad):
     """Pad the trailing batch axis to ``b_pad`` by repeating the last problem (padding lanes
     then compute a real problem's numbers: no NaN, nothing to mask)."""
@@ -750,8 +760,7 @@ def _call(
     N, nx, nu = M.shape[0], M.shape[1], M.shape[2] - M.shape[1]
     b = mats[-1].shape[-1]
     block_io = cfg.block_io and (factorise or cfg.solve_block_io)
-    lanes = cfg.block
-    b_pad = -(-b // lanes) * lanes
+    lanes, b_pad = tile(b, cfg.block)
     model_batched = M.ndim == 4
     if model_batched:
         M = _pad(M, b_pad)

@@ -39,6 +39,7 @@ from rvdjax.solver.riccati import (
     cuda_or_default,
     traces_cuda,
 )
+from rvdjax.solver.start import drift
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
 __all__ = ["PDState", "pd_start", "pd_iteration", "carries_system", "pd_system"]
@@ -334,6 +335,16 @@ def _by_kernel(args, kernel: str, xla, in_kernel):
         interpreted = functools.partial(in_kernel, interpret=True)
         return cuda_or_default(*args, cuda=compiled, default=interpreted)
     return xla(*args)
+
+
+def pd_drift(ocp, u, kernel: str):
+    """:func:`rvdjax.solver.start.drift`, as one kernel where the Newton step's rows run in
+    kernels (:func:`_by_kernel`)."""
+    return _by_kernel((ocp, u), kernel, drift, _drift_in_kernel)
+
+
+def _drift_in_kernel(ocp, u, interpret, block_io=True):
+    return rows_kernel.drift_batched(interpret, block_io)(ocp.A, ocp.B, ocp.c, u, ocp.x0)
 
 
 def _step_xla(ocp, rows, st: PDState, su, sx, step, taus, h, stop):

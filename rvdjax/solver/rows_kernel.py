@@ -827,8 +827,7 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
     b = ins[0].shape[-1]
     shared = {i for i in shared if ins[i].ndim == 2}
     cfg = dataclasses.replace(lanes.default_config(), interpret=interpret)
-    L = cfg.block
-    b_pad = -(-b // L) * L
+    L, b_pad = lanes.tile(b, cfg.block)
     index, by_pos = tables if tables is not None else (None, {})
     ins = [
         by_pos[i].reshape(*by_pos[i].shape[:2], -1)
@@ -1139,5 +1138,72 @@ def batched(
         ]
         out = run(full, tables)
         return out, jax.tree.map(lambda _: True, out)
+
+    return fn
+
+
+def _drift_kernel(dims, N, u_r, x0_r, M_r, c_r, x_out):
+    """x_{t+1} = A_t x_t + B_t u_t + c_t from x0, a stage a trip (start.drift)."""
+    nx, nu = dims
+
+    def stage(t, x_prev):
+        M = _load(M_r, t, nx, nu + nx)
+        Ax = _mv([row[nu:] for row in M], x_prev)
+        Bu = _mv([row[:nu] for row in M], _load(u_r, t, nu))
+        x = [(a + b) + c for a, b, c in zip(Ax, Bu, _load_any(c_r, t, nx), strict=True)]
+        _store(x_out, t, x)
+        return x
+
+    jax.lax.fori_loop(0, N, stage, _load(x0_r, 0, nx))
+
+
+@functools.cache
+def drift_batched(interpret: bool, block_io: bool = True):
+    """The drift x_{t+1} = A_t x_t + B_t u_t + c_t (:func:`rvdjax.solver.start.drift`) of one
+    problem, args (A (N, nx, nx), B (N, nx, nu), c (N, nx), u (N, nu), x0 (nx,)), and under
+    ``vmap`` of a batch as one kernel (a model and offset the batch shares read once a
+    tile)."""
+
+    def run(A, B, c, u, x0, tables, shared_c):
+        N, nx, b = c.shape if not shared_c else (*c.shape, u.shape[-1])
+        nu = u.shape[1]
+        M = jnp.concatenate([B, A], axis=2) if tables is None else A  # unused where tabled
+        (x,) = _launch(
+            functools.partial(_drift_kernel, (nx, nu), N),
+            "rvdjax_drift",
+            [u, x0[None], M, c],
+            [(N, nx)],
+            interpret,
+            tables,
+            shared=(3,) if shared_c else (),
+            block_io=block_io,
+        )
+        return x.reshape(N, nx, -1)
+
+    @jax.custom_batching.custom_vmap
+    def fn(A, B, c, u, x0):
+        return run(
+            A[..., None], B[..., None], c[..., None], u[..., None], x0[..., None], None, False
+        )[..., 0]
+
+    @fn.def_vmap
+    def rule_(axis_size, in_batched, A, B, c, u, x0):
+        def last(a, bt):
+            return jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
+
+        tables = None
+        if not in_batched[0] and not in_batched[1]:
+            M = jnp.concatenate([B, A], axis=2)
+            tables = (jnp.zeros((axis_size,), jnp.int32), {2: M[None].reshape(1, M.shape[0], -1)})
+            A_in = B_in = None
+        else:
+            A_in, B_in = last(A, in_batched[0]), last(B, in_batched[1])
+        shared_c = not in_batched[2]
+        c_in = c if shared_c else last(c, True)
+        u_in, x0_in = last(u, in_batched[3]), last(x0, in_batched[4])
+        if tables is not None:
+            A_in = u_in  # a placeholder the kernel does not read
+        x = run(A_in, B_in, c_in, u_in, x0_in, tables, shared_c)
+        return jnp.moveaxis(x, -1, 0), True
 
     return fn

@@ -105,7 +105,7 @@ def _refresh_group(ctx: _Ctx, source, slots: Slot, solved, assigned, seq, inputs
         nxt = prepare(loop, params, slot.state)
         model = model_of(loop, params, nxt.guidance)
         trusted = model is not None  # the system is formed at each tick (_iterate_chunk)
-        ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=trusted, system=False)
+        ocp, solve = start(nxt.ocp, settings, sp, nxt.warm, trusted_model=trusted, in_kernels=False)
         return slot._replace(
             guidance=_where(n, nxt.guidance, slot.guidance),
             ocp=_where(n, _strip_model(ocp, model), slot.ocp),

@@ -212,7 +212,7 @@ def _empty_slot(loop: Loop, params, sp, source, per_run_params, per_run_solver) 
         s,
         prep.warm,
         trusted_model=model is not None,
-        system=False,  # formed at each tick (segment._iterate_chunk)
+        in_kernels=False,  # formed at each tick (segment._iterate_chunk)
     )
     ocp = _strip_model(ocp, model)
     solve_state = freeze(solve_state)
