@@ -1164,10 +1164,10 @@ def drift_batched(interpret: bool, block_io: bool = True):
     ``vmap`` of a batch as one kernel (a model and offset the batch shares read once a
     tile)."""
 
-    def run(A, B, c, u, x0, tables, shared_c):
-        N, nx, b = c.shape if not shared_c else (*c.shape, u.shape[-1])
-        nu = u.shape[1]
-        M = jnp.concatenate([B, A], axis=2) if tables is None else A  # unused where tabled
+    def run(M, c, u, x0, tables, shared_c):
+        """The states (N, nx, b) from u (N, nu, b), x0 (nx, b), [B, A] (N, nx, nu + nx, b)
+        or ``tables``, c (N, nx, b) or (N, nx) where ``shared_c``."""
+        N, nu, nx = u.shape[0], u.shape[1], x0.shape[0]
         (x,) = _launch(
             functools.partial(_drift_kernel, (nx, nu), N),
             "rvdjax_drift",
@@ -1178,32 +1178,27 @@ def drift_batched(interpret: bool, block_io: bool = True):
             shared=(3,) if shared_c else (),
             block_io=block_io,
         )
-        return x.reshape(N, nx, -1)
+        return x
 
     @jax.custom_batching.custom_vmap
     def fn(A, B, c, u, x0):
-        return run(
-            A[..., None], B[..., None], c[..., None], u[..., None], x0[..., None], None, False
-        )[..., 0]
+        M = jnp.concatenate([B, A], axis=2)
+        return run(*(a[..., None] for a in (M, c, u, x0)), None, False)[..., 0]
 
     @fn.def_vmap
     def rule_(axis_size, in_batched, A, B, c, u, x0):
-        def last(a, bt):
-            return jnp.moveaxis(a if bt else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
+        def last(a, batched):
+            return jnp.moveaxis(a if batched else jnp.broadcast_to(a, (axis_size, *a.shape)), 0, -1)
 
-        tables = None
-        if not in_batched[0] and not in_batched[1]:
-            M = jnp.concatenate([B, A], axis=2)
-            tables = (jnp.zeros((axis_size,), jnp.int32), {2: M[None].reshape(1, M.shape[0], -1)})
-            A_in = B_in = None
-        else:
-            A_in, B_in = last(A, in_batched[0]), last(B, in_batched[1])
+        u, x0 = last(u, in_batched[3]), last(x0, in_batched[4])
         shared_c = not in_batched[2]
-        c_in = c if shared_c else last(c, True)
-        u_in, x0_in = last(u, in_batched[3]), last(x0, in_batched[4])
-        if tables is not None:
-            A_in = u_in  # a placeholder the kernel does not read
-        x = run(A_in, B_in, c_in, u_in, x0_in, tables, shared_c)
-        return jnp.moveaxis(x, -1, 0), True
+        c = c if shared_c else last(c, True)
+        if in_batched[0] or in_batched[1]:  # a model each
+            M = jnp.concatenate([last(B, in_batched[1]), last(A, in_batched[0])], axis=2)
+            tables = None
+        else:  # one model: a table of one, read once a tile (its place in the inputs unread)
+            M = jnp.concatenate([B, A], axis=2)
+            M, tables = u, (jnp.zeros((axis_size,), jnp.int32), {2: M.reshape(1, M.shape[0], -1)})
+        return jnp.moveaxis(run(M, c, u, x0, tables, shared_c), -1, 0), True
 
     return fn
