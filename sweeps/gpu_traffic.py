@@ -7,6 +7,7 @@ machine without one.
     python sweeps/gpu_traffic.py engine [--scenario thesis-vbar] [--slots 4096] [--target h100]
     python sweeps/gpu_traffic.py solve [--batch 65536] [--kernels auto,pallas-entries]
         [--shared-model]
+    python sweeps/gpu_traffic.py maneuver [--scenario fastmpc-3d] [--kernels auto]
 
 XLA compiles for a GPU it is not running on ("deviceless" ahead-of-time compilation: a
 ``jax.experimental.topologies`` description of one H100 or H200, the CUDA plugin's compiler
@@ -27,6 +28,10 @@ by the engine's scopes: the solver iterations, the refresh, the ring and the res
 (with ``--shared-model``, its one-model path): the solve loop's body, one iteration as the
 loop runs it (its carried state, its copies), and the whole program with the loop counted
 once (the start, the finish and one iteration).
+
+``maneuver``: one maneuver flown alone (``rvdjax.loop.fly``, as ``rvdjax run --device gpu``
+flies it): the launches of an MPC step with its solve loop counted once, and of the solve
+loop's iteration.
 
 Prints one row per form (launches, KB read and written a problem, the Pallas kernels' share,
 that bound at ``--batch``, the compile's seconds on this machine, Triton's included) and each
@@ -662,6 +667,96 @@ def solve_main(args, kernels, provenance, path) -> int:
     return 0
 
 
+def _compile_maneuver(scenario: str, kernel: str, target: str):
+    """The optimised GPU program of one maneuver of ``scenario`` flown alone
+    (:func:`rvdjax.loop.fly` with the scenario's published x0 and the Newton step's form
+    ``kernel``) and its Pallas kernels' sweeps: (HLO text, sweeps, MPC steps)."""
+    import jax
+
+    import rvdjax  # noqa: F401  (float64)
+    from rvdjax.loop.kernel import fly
+    from rvdjax.scenarios import FlightOptions, get_scenario
+    from rvdjax.solver import tracing_for_cuda
+
+    sc = get_scenario(scenario)
+    options = FlightOptions()
+    flight = sc.flight(options, settings=sc.settings(options.mode, kernel=kernel))
+    sharding = _sharding(target)
+    args = (flight.params, flight.x0, flight.key, flight.solver_params)
+    args = jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct(
+            jax.numpy.shape(a), jax.numpy.result_type(a), sharding=sharding
+        ),
+        args,
+    )
+    with tracing_for_cuda():  # no GPU backend here: keep the CUDA form in the trace
+        traced = jax.jit(lambda p, x0, k, sp: fly(flight.loop, p, x0, k, sp)).trace(*args)
+        hlo = traced.lower().compile().as_text()
+    return hlo, kernel_sweeps(traced.jaxpr.jaxpr), flight.loop.config.n_steps
+
+
+def _loops(comps: dict) -> list[tuple[str, int | None]]:
+    """Every ``while`` of a program: (its body, its known trip count or None)."""
+    found = []
+    for lines in comps.values():
+        for ln in lines:
+            m = _INSTR.match(ln)
+            if m and m.group(3) == "while":
+                trips = re.search(r'known_trip_count":\{"n":"(\d+)"', ln)
+                found.append(
+                    (
+                        re.search(r"body=%?([\w.\-]+)", ln).group(1),
+                        int(trips.group(1)) if trips else None,
+                    )
+                )
+    return found
+
+
+def maneuver_main(args, kernels, provenance, path) -> int:
+    rows = []
+    for kernel in kernels:
+        t0 = time.perf_counter()
+        hlo, sweeps, n_steps = _compile_maneuver(args.scenario, kernel, args.target)
+        compile_s = time.perf_counter() - t0
+        comps, _ = _computations(hlo)
+        loops = _loops(comps)
+        # the MPC steps' scan (its trip count the steps) and the solve loop (the largest
+        # loop of unknown trip count)
+        step = next((b for b, n in loops if n == n_steps), None)
+        open_ended = [
+            (traffic(hlo, b, kernels=sweeps)["launches"], b) for b, n in loops if n is None
+        ]
+        solve = max(open_ended)[1] if open_ended else None
+        if step is None or solve is None:
+            print(f"gpu_traffic: no loop over the {n_steps} MPC steps or no solve loop found")
+            return 1
+        row = dict(
+            part="maneuver",
+            scenario=args.scenario,
+            kernel=kernel,
+            target=args.target,
+            mpc_steps=n_steps,
+            step_launches=traffic(hlo, step, kernels=sweeps)["launches"],
+            solve_iteration_launches=max(open_ended)[0],
+            compile_s=compile_s,
+            provenance=provenance,
+        )
+        rows.append(_written(path, row))
+    print(
+        f"one {args.scenario} maneuver flown alone ({rows[0]['mpc_steps']} MPC steps), "
+        f"compiled for an {TARGETS[args.target][0]} (no GPU used); launches:"
+    )
+    print("| form | an MPC step, its solve loop once | the solve loop's iteration | compile |")
+    print("| --- | --- | --- | --- |")
+    for r in rows:
+        print(
+            f"| {r['kernel']} | {r['step_launches']} | {r['solve_iteration_launches']} | "
+            f"{r['compile_s']:.1f} s |"
+        )
+    print(f"rows: {path}")
+    return 0
+
+
 def tick(hlo: str, kernels: dict | None = None) -> dict:
     """:func:`traffic` of one tick of an engine segment program (the body of its loop over
     ticks), grouped by the engine's scopes: the solver iterations, the refresh (advance,
@@ -754,9 +849,11 @@ def main(argv=None) -> int:
 
     KERNELS = tuple(k for k in ALL if k != "pallas-fused")  # its compile takes minutes
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine", "solve"))
+    ap.add_argument("part", nargs="?", default="qp", choices=("qp", "engine", "solve", "maneuver"))
     ap.add_argument("--batch", type=int, default=65536, help="qp: QPs in the batch (>= 1)")
-    ap.add_argument("--scenario", default="thesis-vbar", help="engine: the scenario")
+    ap.add_argument(
+        "--scenario", default=None, help="engine (thesis-vbar), maneuver (fastmpc-3d): the scenario"
+    )
     ap.add_argument("--slots", type=int, default=4096, help="engine: slots (>= 1)")
     ap.add_argument("--kernels", default="auto", help=f"forms, comma-separated: {KERNELS}")
     ap.add_argument("--mode", choices=("accurate", "paper"), default="accurate")
@@ -778,7 +875,9 @@ def main(argv=None) -> int:
         if getattr(args, name) < 1:
             print(f"gpu_traffic: --{name} must be >= 1, got {getattr(args, name)}")
             return 2
-    if args.part == "engine":
+    if args.scenario is None:
+        args.scenario = "fastmpc-3d" if args.part == "maneuver" else "thesis-vbar"
+    if args.part in ("engine", "maneuver"):
         from rvdjax.scenarios import SCENARIOS
 
         if args.scenario not in SCENARIOS:
@@ -802,6 +901,8 @@ def main(argv=None) -> int:
         return engine_main(args, provenance, path)
     if args.part == "solve":
         return solve_main(args, kernels, provenance, path)
+    if args.part == "maneuver":
+        return maneuver_main(args, kernels, provenance, path)
     bandwidth = TARGETS[args.target][1]
     rows = []
     for kernel in kernels:

@@ -147,6 +147,10 @@ def test_gpu_traffic_counts_launches_bytes_and_sources():
     assert body == "body"
     once = gt.traffic(_HLO, body)
     assert (once["launches"], once["read"], once["written"]) == (1, 256, 256)
+    # the maneuver part's loops: each body with its known trip count, or None
+    assert gt._loops(gt._computations(_HLO)[0]) == [("body", 3)]
+    open_ended = _HLO.replace(', backend_config={"known_trip_count":{"n":"3"}}', "")
+    assert gt._loops(gt._computations(open_ended)[0]) == [("body", None)]
 
 
 def test_kernel_sweeps_count_a_kernels_loads_once_a_sweep():
@@ -252,6 +256,8 @@ def test_gpu_traffic_bad_input_and_no_cuda_plugin(tmp_path, capsys):
     assert gt.main(["engine", "--slots", "0", "--out", str(tmp_path)]) == 2
     assert "--slots must be >= 1" in capsys.readouterr().out
     assert gt.main(["engine", "--scenario", "nowhere", "--out", str(tmp_path)]) == 2
+    assert "--scenario" in capsys.readouterr().out
+    assert gt.main(["maneuver", "--scenario", "nowhere", "--out", str(tmp_path)]) == 2
     assert "--scenario" in capsys.readouterr().out
     if gt._cuda_missing() is None:
         pytest.skip("a CUDA plugin is installed here")
