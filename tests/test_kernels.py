@@ -860,8 +860,9 @@ def test_the_drift_kernel_gives_the_recursion():
 def test_a_batch_smaller_than_a_tile_runs_in_one_tile_of_the_next_power_of_two():
     """Tiles of ``block`` lanes, padded by repeating the last problem; a batch smaller than a
     tile is one tile of the next power of two, so a problem alone is a tile of one: a solve
-    of one QP lowered for a CUDA GPU launches every kernel on one lane, with no padding to
-    copy in and slice out around each launch."""
+    of one QP traced for a CUDA GPU launches every kernel on one lane, with no padding to
+    copy in and slice out around each launch (paper mode: the drift's kernel and the
+    Riccati kernels, the two launchers every form uses, in the shortest trace)."""
     assert lanes.tile(1, 128) == (1, 1)
     assert lanes.tile(3, 8) == (4, 4)
     assert lanes.tile(8, 8) == (8, 8)
@@ -870,9 +871,11 @@ def test_a_batch_smaller_than_a_tile_runs_in_one_tile_of_the_next_power_of_two()
     ocp = fastmpc3d_first_step(obstacles=True)
     one = jax.tree.map(lambda a: a[None], ocp)
     with tracing_for_cuda():
-        jaxpr = jax.make_jaxpr(jax.vmap(lambda o: solve(o, SolverSettings(kernel=AUTO_ON_CUDA))))
+        settings = SolverSettings.paper(kernel=AUTO_ON_CUDA)
+        jaxpr = jax.make_jaxpr(jax.vmap(lambda o: solve(o, settings)))
         eqns = [e for e in _eqns(jaxpr(one).jaxpr) if e.primitive.name == "pallas_call"]
-    assert len(eqns) >= 5  # the start's drift and blocks, the iteration's kernels
+    names = {str(e.params["name"]) for e in eqns}
+    assert "rvdjax_drift" in names and any("riccati" in n for n in names), names
     for e in eqns:
         assert tuple(e.params["grid_mapping"].grid) == (1,)
         assert all(v.aval.shape[-1] == 1 for v in e.outvars), e.params["name"]
