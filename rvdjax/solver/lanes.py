@@ -69,6 +69,7 @@ __all__ = [
     "tri_size",
     "tri_pack",
     "tri_unpack",
+    "tile",
 ]
 
 

@@ -42,7 +42,7 @@ from rvdjax.solver.riccati import (
 from rvdjax.solver.start import drift
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
-__all__ = ["PDState", "pd_start", "pd_iteration", "carries_system", "pd_system"]
+__all__ = ["PDState", "pd_start", "pd_iteration", "carries_system", "pd_system", "pd_drift"]
 
 # sigma >= SIGMA_FLOOR while the relative dual residual exceeds SIGMA_FLOOR_RES (chosen on the
 # closed loops of paper 003: 0.2 / 0.3 / 0.5 gave 29.5 / 24.8 / 22.0 iterations per solve on
@@ -338,8 +338,9 @@ def _by_kernel(args, kernel: str, xla, in_kernel):
 
 
 def pd_drift(ocp, u, kernel: str):
-    """:func:`rvdjax.solver.start.drift`, as one kernel where the Newton step's rows run in
-    kernels (:func:`_by_kernel`)."""
+    """The states of the inputs ``u`` from x0 (:func:`rvdjax.solver.start.drift`): one kernel
+    where the Newton step's form ``kernel`` runs the rows in kernels (compiled on a CUDA GPU,
+    interpreted elsewhere; ``"auto"`` runs XLA's loop on the CPU), else XLA's."""
     return _by_kernel((ocp, u), kernel, drift, _drift_in_kernel)
 
 

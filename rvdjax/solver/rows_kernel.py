@@ -80,7 +80,7 @@ from rvdjax.solver.lanes import (
     tri_size,
 )
 
-__all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "pd_blocks", "batched"]
+__all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "pd_blocks", "batched", "drift_batched"]
 
 
 @dataclasses.dataclass(frozen=True)
