@@ -667,7 +667,7 @@ def _triton_calls(text):
         # work in the step's kernel of each iteration); the forms whose rows run in kernels
         # run the start's drift of the warm-start inputs as one more;
         # loops: the solve alone (the drift is a kernel or unrolled on a GPU) (the opt-in
-        # forms in the slow run: "auto" lowers the default GPU form, 10-15 s each)
+        # forms in the slow run, 3-5 s each; "auto" lowers the default GPU form)
         *(
             pytest.param(SolverSettings(), 4, 1, v, marks=pytest.mark.slow)
             for v in ("pallas", "pallas-block-io", "pallas-block-factor")
@@ -676,9 +676,8 @@ def _triton_calls(text):
         pytest.param(SolverSettings(), 6, 1, "pallas-block-rows", marks=pytest.mark.slow),
         # the Newton system formed by the start's blocks kernel, then by the step's
         pytest.param(SolverSettings(), 6, 1, "pallas-carried", marks=pytest.mark.slow),
-        # the default form's five kernels are lowered in the default run by the engine's
-        # segment (test_engine); counted here in the slow run (20 s)
-        pytest.param(SolverSettings(), 6, 1, "auto", marks=pytest.mark.slow),
+        # the default form: the start's blocks and drift kernels, then four an iteration
+        (SolverSettings(), 6, 1, "auto"),
         # paper: factorisation + step, and the drift's kernel in "auto"; loops: the solve, the
         # line search (the count of loops is the mode's, whichever kernels run them)
         (SolverSettings.paper(), 2, 2, "auto"),
@@ -694,8 +693,9 @@ def test_solver_lowers_for_a_gpu_in_few_kernels(settings, kernels, loops, varian
     ``kernel="xla"`` keeps XLA's loops on a GPU, and ``"auto"`` lowered for the CPU runs
     XLA's loops (these three checks, and the unbatched solve of ``"auto"``, in paper mode
     only: the choice is the same in either mode, and the accurate mode's lowering is the
-    slowest)."""
-    ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
+    slowest). A small problem (N = 5) keeps the five lowerings cheap: the counts are the
+    solver's, whatever the problem's sizes."""
+    ocps = _random("small", 3)
     one = jax.tree.map(lambda a: a[0], ocps)
     settings = dataclasses.replace(settings, kernel=variant)
     batched = _cuda_text(jax.vmap(lambda o: solve(o, settings)), ocps)
@@ -736,11 +736,11 @@ def test_a_batched_solve_for_a_gpu_takes_no_select_over_the_state(monkeypatch):
     iterations and statuses as the CPU process's rule, and the same plans to 1e-12."""
     from rvdjax.solver import driver
 
-    ocps = stack_ocps([fastmpc3d_first_step(obstacles=True)] * 3)
+    ocps = _random("small", 3)  # lowered twice: a small problem (N = 5) keeps it cheap
     fn = jax.vmap(lambda o: solve(o, SolverSettings()))
 
-    def state_selects(text):  # selects of f64 arrays with a batch and a stage axis (3 x 30)
-        return len(re.findall(r"stablehlo.select .*, tensor<3x30x[\dx]*f64>", _loop_body(text)))
+    def state_selects(text):  # selects of f64 arrays with a batch and a stage axis (3 x 5)
+        return len(re.findall(r"stablehlo.select .*, tensor<3x5x[\dx]*f64>", _loop_body(text)))
 
     assert state_selects(_cuda_text(fn, ocps)) == 0
     with monkeypatch.context() as m:
