@@ -122,7 +122,7 @@ def _plain_fns(part: str, cfg):
             m_axis = -1 if M.ndim == 4 else None  # copies per problem, or one shared model
             one = jax.vmap(  # batch-last arrays: one problem a lane
                 lambda f, *a: riccati._apply_refined(f, *a, riccati._ELEMENTWISE),
-                in_axes=(riccati.RiccatiFactor(m_axis, -1, -1, -1, -1), -1, -1, -1, -1, -1),
+                in_axes=(riccati.RiccatiFactor(m_axis, -1, -1, -1), -1, -1, -1, -1, -1),
                 out_axes=-1,
             )
             return one(f, Pu, Px, gu, gx, r)

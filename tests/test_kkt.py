@@ -171,17 +171,17 @@ def test_factor_storage_keeps_the_lower_triangles():
     X = rng.standard_normal((N, nx, nx, b))
     P = jnp.asarray(X + np.swapaxes(X, 1, 2))
     L = jnp.asarray(np.tril(rng.standard_normal((N, b, nu, nu))).transpose(0, 2, 3, 1))
-    K_, BPA = (jnp.asarray(rng.standard_normal((N, nu, nx, b))) for _ in range(2))
-    packed = lanes.pack(L, K_, BPA, P)
-    assert packed[0].shape == (N, 6, b) and packed[3].shape == (N, 21, b)
-    np.testing.assert_array_equal(np.asarray(packed[3][:, 4]), np.asarray(P[:, 2, 1]))
+    K_ = jnp.asarray(rng.standard_normal((N, nu, nx, b)))
+    packed = lanes.pack(L, K_, P)
+    assert packed[0].shape == (N, 6, b) and packed[2].shape == (N, 21, b)
+    np.testing.assert_array_equal(np.asarray(packed[2][:, 4]), np.asarray(P[:, 2, 1]))
     np.testing.assert_array_equal(np.asarray(packed[0][:, 5]), np.asarray(L[:, 2, 2]))
-    for got, want in zip(lanes.unpack(*packed), (L, K_, BPA, P), strict=True):
+    for got, want in zip(lanes.unpack(*packed), (L, K_, P), strict=True):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
     first = lanes.tri_pack(jnp.moveaxis(P, -1, 0))  # (b, N, 21): the matrices' axes last
-    np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[3]), -1, 0))
+    np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[2]), -1, 0))
     # the kernels' reads of a stage (here from the arrays themselves)
-    P_t, L_t = lanes._load_sym(packed[3], 1, nx), lanes._load_lower(packed[0], 1, nu)
+    P_t, L_t = lanes._load_sym(packed[2], 1, nx), lanes._load_lower(packed[0], 1, nu)
     np.testing.assert_array_equal(np.stack([np.stack(r) for r in P_t]), np.asarray(P[1]))
     assert all(L_t[i][j] is None for i in range(nu) for j in range(i + 1, nu))
     for i in range(nu):
@@ -250,7 +250,7 @@ def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
     model = None if shared else 0
     if shared:  # one model for the batch, as the engine's slots share it
         kkt = kkt._replace(A=kkt.A[0], B=kkt.B[0], factor=kkt.factor._replace(M=kkt.factor.M[0]))
-    axes = K.KKT(model, model, 0, 0, K.RiccatiFactor(model, 0, 0, 0, 0))
+    axes = K.KKT(model, model, 0, 0, K.RiccatiFactor(model, 0, 0, 0))
     rhs = data[4:]
     with lanes.configured(block=8):
         got = _refined("pallas-rows", axes)(kkt, *rhs)

@@ -13,10 +13,12 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
 * the 6x6, 6x3 and 3x3 algebra is written out entry by entry over those lane vectors
   (nested lists of ``(BLOCK,)`` vectors, no ``dot``: float64 MMA needs blocks of 16 and more);
   the cost-to-go P and the affine term p live in registers across the stage loop;
-* the gains K, BPA, P (and the backward sweep's k, p) are written once per stage and read
-  back by the forward sweep; P (symmetric) and the Cholesky factor L are stored as their
+* the factorisation L, K, P (and the backward sweep's k, p) is written once per stage and
+  read back by the later sweeps; P (symmetric) and the Cholesky factor L are stored as their
   lower triangles (:func:`pack`), 21 and 6 entries a stage instead of 36 and 9, and the
-  kernels read the Hessian blocks Phi_x and Phi_u as theirs too (21 and 6 entries).
+  kernels read the Hessian blocks Phi_x and Phi_u as theirs too (21 and 6 entries). A
+  solve's backward sweep takes B^T P A's part of p_t as K^T (g_u + B^T q)
+  (:func:`_backward_rhs_of`), so B^T P A is not stored: 45 entries a stage instead of 63.
 
 Four kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
@@ -245,7 +247,7 @@ def _split(M, nu):
 
 
 def _factor_stage(P, M, Phu, Phx_prev):
-    """(P_t, L, K, BPA) from P_{t+1}: :func:`rvdjax.solver.riccati.riccati_factor`'s stage.
+    """(P_t, L, K) from P_{t+1}: :func:`rvdjax.solver.riccati.riccati_factor`'s stage.
     M is the stage's [B, A]; ``Phx_prev`` a function that gives Phi_x[t - 1] (called where
     it is added, last, so that a kernel's loads of it are not live through the stage)."""
     nu = len(Phu)
@@ -263,12 +265,14 @@ def _factor_stage(P, M, Phu, Phx_prev):
     Acl = _add(A, _mm(B, K))
     joseph = (_sym(_mtm(Acl, PAcl)), _sym(_mtm(K, _mm(Phu, K))))
     P_new = _add(_add(Phx_prev(), joseph[0]), joseph[1])
-    return P_new, L, K, BPA
+    return P_new, L, K
 
 
-def _backward_rhs(p, M, L, BPA, P, gu, r, gx_prev):
-    """(p_t, k_t) from p_{t+1}: :func:`rvdjax.solver.riccati.riccati_apply`'s backward stage."""
-    return _backward_rhs_of(_offset(p, P, r), M, L, BPA, gu, gx_prev)
+def _backward_rhs(p, M, L, P, gu, r, gx_prev):
+    """(p_t, k_t) from p_{t+1} with a stored factorisation:
+    :func:`rvdjax.solver.riccati.riccati_apply`'s backward stage, from L and P alone
+    (:func:`_backward_rhs_stored`)."""
+    return _backward_rhs_stored(_offset(p, P, r), M, L, lambda: P, gu, gx_prev)
 
 
 def _offset(p, P, r):
@@ -277,13 +281,32 @@ def _offset(p, P, r):
     return [pi - q for pi, q in zip(p, _mv(P, r), strict=True)]
 
 
-def _backward_rhs_of(q, M, L, BPA, gu, gx_prev):
-    """:func:`_backward_rhs` from :func:`_offset`'s q = p - P r."""
+def _backward_rhs_of(q, M, L, K, gu, gx_prev):
+    """(p_t, k_t) from :func:`_offset`'s q = p - P r, with the stage's gain K at hand (the
+    factorisation's own sweep): with v = g_u + B^T q, k = -H^-1 v and p_t = g_x + A^T q +
+    K^T v, which is g_x + A^T q + (B^T P A)^T k as K = -H^-1 B^T P A
+    (:func:`rvdjax.solver.riccati._apply`)."""
     nu = len(L)
     Mp = _mtv(M, q)
-    k = [-v for v in chol_solve(L, [g + m for g, m in zip(gu, Mp[:nu], strict=True)])]
-    bk = _mtv(BPA, k)
-    p_new = [g + m + b for g, m, b in zip(gx_prev, Mp[nu:], bk, strict=True)]
+    v = [g + m for g, m in zip(gu, Mp[:nu], strict=True)]
+    k = [-w for w in chol_solve(L, v)]
+    p_new = [g + m + b for g, m, b in zip(gx_prev, Mp[nu:], _mtv(K, v), strict=True)]
+    return p_new, k
+
+
+def _backward_rhs_stored(q, M, L, P_of, gu, gx_prev):
+    """(p_t, k_t) from q = p - P r with a stored factorisation, reading L and P only:
+    p_t = g_x + A^T (q + P B k), the same as (B^T P A)^T k = A^T P B k. A solve's backward
+    sweep then reads neither K nor B^T P A (18 entries a stage each), which a GPU reads from
+    device memory in every sweep; P it reads for q anyway. ``P_of()`` gives P_{t+1} (a
+    kernel loads it again here, from the cache, rather than hold its 21 entries through the
+    stage)."""
+    nu = len(L)
+    A, B = _split(M, nu)
+    v = [g + m for g, m in zip(gu, _mtv(B, q), strict=True)]
+    k = [-w for w in chol_solve(L, v)]
+    w = [a + b for a, b in zip(q, _mv(P_of(), _mv(B, k)), strict=True)]
+    p_new = [g + m for g, m in zip(gx_prev, _mtv(A, w), strict=True)]
     return p_new, k
 
 
@@ -469,20 +492,20 @@ def tri_size(n: int) -> int:
     return n * (n + 1) // 2
 
 
-def pack(L, K, BPA, P):
-    """The kernels' storage of a factorisation from (L, K, BPA, P), batch last (L (N, nu,
+def pack(L, K, P):
+    """The kernels' storage of a factorisation from (L, K, P), batch last (L (N, nu,
     nu, b), P (N, nx, nx, b)): L's and P's lower triangles, row by row ((N, tri(nu), b),
-    (N, tri(nx), b); :func:`tri_pack`), K and BPA as they are. P is symmetric and L's upper
+    (N, tri(nx), b); :func:`tri_pack`), K as it is. P is symmetric and L's upper
     triangle zero, so nothing is lost; the solves read 21 entries of P a stage instead of 36
     (P's upper triangle was about a quarter of an accurate iteration's reads of the
     factorisation: docs/benchmark.md)."""
-    return tri_pack(L, 1), K, BPA, tri_pack(P, 1)
+    return tri_pack(L, 1), K, tri_pack(P, 1)
 
 
-def unpack(L, K, BPA, P):
-    """(L, K, BPA, P) as full matrices, batch last, from :func:`pack`'s storage (L's upper
+def unpack(L, K, P):
+    """(L, K, P) as full matrices, batch last, from :func:`pack`'s storage (L's upper
     triangle 0, P mirrored)."""
-    return tri_unpack(L, 1, False), K, BPA, tri_unpack(P, 1, True)
+    return tri_unpack(L, 1, False), K, tri_unpack(P, 1, True)
 
 
 def _tri_pairs(n):
@@ -519,8 +542,8 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x (their lower
-    triangles, :func:`_tri`) or (not factorise) L, K, BPA, P; then (with_rhs) g_u, g_x, rp;
-    outputs: (factorise) L, K, BPA, P; (with_rhs) du, dx, nu. The backward sweep keeps k_t
+    triangles, :func:`_tri`) or (not factorise) L, K, P; then (with_rhs) g_u, g_x, rp;
+    outputs: (factorise) L, K, P; (with_rhs) du, dx, nu. The backward sweep keeps k_t
     in du's rows and p_{t+1} in nu's rows until the forward sweep overwrites them. ``model``
     as :func:`_model_refs`;
     ``model_only``: with ``block_io``, the model alone in blocks, the rest entry by entry
@@ -535,17 +558,17 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
         Phu_ref, Phx_ref = refs[pos : pos + 2]
         pos += 2
     else:
-        L_in, K_in, BPA_in, P_in = refs[pos : pos + 4]
-        pos += 4
+        L_in, K_in, P_in = refs[pos : pos + 3]
+        pos += 3
     if with_rhs:
         gu_ref, gx_ref, rp_ref = refs[pos : pos + 3]
         pos += 3
     outs = refs[pos:]
     if factorise:
-        L_ref, K_ref, BPA_ref, P_ref = outs[:4]
-        outs = outs[4:]
+        L_ref, K_ref, P_ref = outs[:3]
+        outs = outs[3:]
     else:
-        L_ref, K_ref, BPA_ref, P_ref = L_in, K_in, BPA_in, P_in
+        L_ref, K_ref, P_ref = L_in, K_in, P_in
     if with_rhs:
         du_ref, dx_ref, nu_ref = outs
     dtype = (Phx_ref if factorise else P_ref).dtype
@@ -577,20 +600,23 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
                 Phx = _load(Phx_ref, prev, tri_size(nx))
                 return _untri([jnp.where(on, v, 0.0) for v in Phx], nx)
 
-            P_new, L, K, BPA = _factor_stage(P, M, Phu, Phx_prev)
+            P_new, L, K = _factor_stage(P, M, Phu, Phx_prev)
             _store(L_ref, t, list(_lower(L)))
             _store(K_ref, t, K)
-            _store(BPA_ref, t, BPA)
             new = (_tri(P_new),)
         else:
             L = _load_lower(L_ref, t, nu)
-            BPA = _load(BPA_ref, t, nu, nx)
             new = ()
         if with_rhs:
             prev = jnp.maximum(t - 1, 0)
             on = t > 0
             gx_prev = [jnp.where(on, v, 0.0) for v in _load(gx_ref, prev, nx)]
-            p_new, k = _backward_rhs_of(q, M, L, BPA, _load(gu_ref, t, nu), gx_prev)
+            gu = _load(gu_ref, t, nu)
+            if factorise:  # the gain is at hand
+                p_new, k = _backward_rhs_of(q, M, L, K, gu, gx_prev)
+            else:  # the stored P again (cached) instead of the gain from memory
+                P_of = functools.partial(_load_sym, P_ref, t, nx)
+                p_new, k = _backward_rhs_stored(q, M, L, P_of, gu, gx_prev)
             _store(du_ref, t, k)
             new = new + (tuple(p_new),)
         return new
@@ -638,13 +664,13 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
     iterative refinement against the KKT matrix (:func:`rvdjax.solver.kkt.kkt_refine`), whose
     residual is formed stage by stage inside the sweeps instead of in a pass of its own.
 
-    refs: M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
+    refs: M, L, K, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
     then the refined one), and k2, p2, rp2 (the correction's affine terms and its dynamics
     residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
     """
     refs = _model_refs(refs, model, block_io, padded)
-    M_ref, L_ref, K_ref, BPA_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:10]
-    du_ref, dx_ref, nu_ref, k2_ref, p2_ref, rp2_ref = refs[10:]
+    M_ref, L_ref, K_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:9]
+    du_ref, dx_ref, nu_ref, k2_ref, p2_ref, rp2_ref = refs[9:]
     zero = jnp.zeros((lanes,), Phx_ref.dtype)
 
     def backward(k_ref, p_ref, rhs, p0):
@@ -655,16 +681,9 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
             t = N - 1 - i
             M = _load(M_ref, t, nx, nu + nx)
             gu, r, gx_prev = rhs(t, M)
-            p_new, k = _backward_rhs(
-                list(p),
-                M,
-                _load_lower(L_ref, t, nu),
-                _load(BPA_ref, t, nu, nx),
-                _load_sym(P_ref, t, nx),
-                gu,
-                r,
-                gx_prev,
-            )
+            P_of = functools.partial(_load_sym, P_ref, t, nx)  # twice: read again, cached
+            q = _offset(list(p), P_of(), r)
+            p_new, k = _backward_rhs_stored(q, M, _load_lower(L_ref, t, nu), P_of, gu, gx_prev)
             _store(k_ref, t, k)
             _store(p_ref, t, p)
             return tuple(p_new)
@@ -777,7 +796,7 @@ def _call(
 
     out_shapes = []
     if factorise:  # L and P as their lower triangles (pack)
-        out_shapes += [(N, tri_size(nu)), (N, nu, nx), (N, nu, nx), (N, tri_size(nx))]
+        out_shapes += [(N, tri_size(nu)), (N, nu, nx), (N, tri_size(nx))]
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
     if refine:  # the correction's k, p and dynamics residual between its sweeps
@@ -840,7 +859,7 @@ def _flat(a, padded: bool = False):
 
 
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
-    """Backward Riccati factorisation: (L, K, BPA, P), each ``[stage][entry][problem]``, L
+    """Backward Riccati factorisation: (L, K, P), each ``[stage][entry][problem]``, L
     and P as their lower triangles (:func:`pack`; :func:`unpack` gives the matrices).
 
     Args:
@@ -856,25 +875,25 @@ def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
 
 def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
     """Factorisation and the step of one right-hand side in one kernel:
-    ((L, K, BPA, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b); ``M`` and
+    ((L, K, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b); ``M`` and
     ``index`` as :func:`factor`."""
     out = _call(cfg, True, True, M, [Phi_u, Phi_x], [g_u, g_x, rp], index=index)
-    return tuple(out[:4]), tuple(out[4:])
+    return tuple(out[:3]), tuple(out[3:])
 
 
-def apply(M, L, K, BPA, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
-    """The step (du, dx, nu) of one right-hand side with a stored factorisation (L, K, BPA,
+def apply(M, L, K, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation (L, K,
     P as :func:`factor` returns them, packed; ``M`` and ``index`` as :func:`factor`)."""
-    return tuple(_call(cfg, False, True, M, [L, K, BPA, P], [g_u, g_x, rp], index=index))
+    return tuple(_call(cfg, False, True, M, [L, K, P], [g_u, g_x, rp], index=index))
 
 
 def apply_refined(
-    M, L, K, BPA, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
+    M, L, K, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
 ):
     """The step (du, dx, nu) of one right-hand side with a stored factorisation (packed, as
     :func:`factor` returns it), plus one step of iterative refinement
     (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the residual needs the Hessian
     blocks Phi_u and Phi_x too, as :func:`factor` takes them (``M`` and ``index`` as
     :func:`factor`)."""
-    mats = [L, K, BPA, P, Phi_u, Phi_x]
+    mats = [L, K, P, Phi_u, Phi_x]
     return tuple(_call(cfg, False, True, M, mats, [g_u, g_x, rp], True, index=index))

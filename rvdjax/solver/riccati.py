@@ -72,8 +72,10 @@ class RiccatiFactor(NamedTuple):
     Attributes:
         M: (N, nx, nu + nx) the stage dynamics [B_t, A_t].
         L: (N, nu, nu) Cholesky factor of the reduced Hessian Phi_u + B^T P_{t+1} B.
-        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t.
-        BPA: (N, nu, nx) B_t^T P_{t+1} A_t.
+        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t. The solves' backward sweep
+            needs no other product of the factorisation (B^T P A), so none is stored: on a
+            GPU each sweep reads the factorisation from device memory
+            (:func:`_apply`).
         P: (N, nx, nx) cost-to-go Hessian P_{t+1} of x_{t+1}.
         Lp: (N, nu (nu + 1) / 2) L's lower triangle and ``Pp`` (N, nx (nx + 1) / 2) P's, as
             the GPU kernels store them (:func:`rvdjax.solver.lanes.pack`), or None (both or
@@ -87,7 +89,6 @@ class RiccatiFactor(NamedTuple):
     M: jnp.ndarray
     L: jnp.ndarray
     K: jnp.ndarray
-    BPA: jnp.ndarray
     P: jnp.ndarray
     Lp: Any = None
     Pp: Any = None
@@ -236,22 +237,28 @@ def _factor(A, B, Phi_u, Phi_x, ops: _Products) -> RiccatiFactor:
         PAcl = PM[:, nu:] + ops.mm(PM[:, :nu], K)
         Acl = A_t + ops.mm(B_t, K)
         P_new = Phx + _sym(ops.mtm(Acl, PAcl)) + _sym(ops.mtm(K, ops.mm(Phu, K)))
-        return P_new, (L, K, BPA, P)
+        return P_new, (L, K, P)
 
-    _, (L, K, BPA, P) = lax.scan(backward, Phi_x[-1], (M, Phi_u, _shift(Phi_x)), reverse=True)
-    return RiccatiFactor(M, L, K, BPA, P)
+    _, (L, K, P) = lax.scan(backward, Phi_x[-1], (M, Phi_u, _shift(Phi_x)), reverse=True)
+    return RiccatiFactor(M, L, K, P)
 
 
 def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
     nu = f.L.shape[1]
 
+    # p_t = g_x + A^T q + (B^T P A)^T k with k = -H^-1 v, v = g_u + B^T q, q = p - P r; as
+    # K = -H^-1 B^T P A, (B^T P A)^T k = K^T v: the gain the forward sweep reads anyway
+    # stands for B^T P A, which is then not stored (a GPU's sweeps read the factorisation
+    # from device memory; 18 entries a stage fewer written once and read twice an
+    # accurate-mode iteration, docs/solver.md).
     def backward(p, stage):
-        M_t, L, BPA, P, gu, r, gx = stage
+        M_t, L, K, P, gu, r, gx = stage
         Mp = ops.mtv(M_t, p - ops.mv(P, r))
-        k = -_chol_solve(L, gu + Mp[:nu])
-        return gx + Mp[nu:] + ops.mtv(BPA, k), (k, p)
+        v = gu + Mp[:nu]
+        k = -_chol_solve(L, v)
+        return gx + Mp[nu:] + ops.mtv(K, v), (k, p)
 
-    stages = (f.M, f.L, f.BPA, f.P, g_u, rp, _shift(g_x))
+    stages = (f.M, f.L, f.K, f.P, g_u, rp, _shift(g_x))
     _, (k, p_next) = lax.scan(backward, g_x[-1], stages, reverse=True)
 
     def forward(dx_t, stage):
@@ -342,8 +349,8 @@ def _xla_factor_rule(axis_size, in_batched, A, B, Phi_u, Phi_x):
     )
     m_batched = bool(bA or bB)
     M = _to_first(f.M) if m_batched else f.M[..., 0]
-    out = RiccatiFactor(M, *(_to_first(a) for a in f[1:5]))
-    return out, RiccatiFactor(m_batched, True, True, True, True)
+    out = RiccatiFactor(M, *(_to_first(a) for a in f[1:4]))
+    return out, RiccatiFactor(m_batched, True, True, True)
 
 
 def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
@@ -353,7 +360,7 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
     # every operand but M carries the batch
     f = RiccatiFactor(
         _to_last(f.M, fb.M),
-        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:5], fb[1:5], strict=True)),
+        *(_to_last(_full(axis_size, a, b)) for a, b in zip(f[1:4], fb[1:4], strict=True)),
     )
     g_u, g_x, rp = (_to_last(_full(axis_size, a, b)) for a, b in ((g_u, bu), (g_x, bx), (rp, br)))
     out = _apply(f, g_u, g_x, rp, _ELEMENTWISE)
@@ -444,19 +451,19 @@ def _lane_factor(impl, M, f) -> RiccatiFactor:
     if impl == "unrolled":
         return RiccatiFactor(M, *(_to_first(a) for a in f))
     whole = lanes.unpack(*f)
-    return RiccatiFactor(M, *(_to_first(a) for a in (*whole, f[0], f[3])))
+    return RiccatiFactor(M, *(_to_first(a) for a in (*whole, f[0], f[2])))
 
 
 def _lane_factor_mats(impl, axis_size, f: RiccatiFactor, fb: RiccatiFactor):
-    """The batch-last (L, K, BPA, P) a solve's kernel reads (packed, from the factor's
+    """The batch-last (L, K, P) a solve's kernel reads (packed, from the factor's
     storage for the kernels or from L and P), or the unrolled loops' (whole)."""
-    fields = list(zip(f[1:5], fb[1:5], strict=True))
+    fields = list(zip(f[1:4], fb[1:4], strict=True))
     if impl != "unrolled":
         if f.Lp is None:
             fields[0] = (lanes.tri_pack(f.L), fb.L)
-            fields[3] = (lanes.tri_pack(f.P), fb.P)
+            fields[2] = (lanes.tri_pack(f.P), fb.P)
         else:
-            fields[0], fields[3] = (f.Lp, fb.Lp), (f.Pp, fb.Pp)
+            fields[0], fields[2] = (f.Lp, fb.Lp), (f.Pp, fb.Pp)
     return [_to_last(_full(axis_size, a, b)) for a, b in fields]
 
 
@@ -534,7 +541,7 @@ def _factor_flags(in_batched) -> RiccatiFactor:
     M = [B, A], which is shared when A and B are (the batch engine's slots share one model,
     and the kernels then read it once per tile instead of a copy per problem)."""
     bA, bB = in_batched[:2]
-    return RiccatiFactor(bool(bA or bB), True, True, True, True)
+    return RiccatiFactor(bool(bA or bB), True, True, True)
 
 
 def _packed_flags(flags: RiccatiFactor) -> RiccatiFactor:

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from rvdjax.solver.lanes import _backward_rhs, _factor_stage, _forward
+from rvdjax.solver.lanes import _backward_rhs, _backward_rhs_of, _factor_stage, _forward, _offset
 from rvdjax.solver.stagewise import shift as _shift
 
 __all__ = ["factor", "factor_solve", "apply", "configured", "default_unroll"]
@@ -107,15 +107,14 @@ def _sweeps(M, Phi_u, Phi_x, rhs, unroll):
         P_arr, p_arr = carry
         M_t, Phu, Phx_prev = stage[:3]
         P = _mat(P_arr)
-        P_new, L, K, BPA = _factor_stage(P, _mat(M_t), _mat(Phu), lambda: _mat(Phx_prev))
-        out = (_stack(L, like), _stack(K, like), _stack(BPA, like), P_arr)
+        P_new, L, K = _factor_stage(P, _mat(M_t), _mat(Phu), lambda: _mat(Phx_prev))
+        out = (_stack(L, like), _stack(K, like), P_arr)
         new_P = _stack(P_new, like)
         if not with_rhs:
             return (new_P, p_arr), out
         gu, r, gx_prev = stage[3:]
-        p_new, k = _backward_rhs(
-            _vec(p_arr), _mat(M_t), L, BPA, P, _vec(gu), _vec(r), _vec(gx_prev)
-        )
+        q = _offset(_vec(p_arr), P, _vec(r))
+        p_new, k = _backward_rhs_of(q, _mat(M_t), L, K, _vec(gu), _vec(gx_prev))
         return (new_P, _stack(p_new, like)), (*out, _stack(k, like), p_arr)
 
     xs = (M, Phi_u, _shift(Phi_x))
@@ -125,11 +124,11 @@ def _sweeps(M, Phi_u, Phi_x, rhs, unroll):
         xs += (g_u, rp, _shift(g_x))
         p0 = g_x[-1]
     ys = _scan(backward, (Phi_x[-1], p0), xs, True, unroll)
-    factor = tuple(ys[:4])
+    factor = tuple(ys[:3])
     if not with_rhs:
         return factor, None
-    k, p_next = ys[4:]
-    return factor, _forward_sweep(M, factor[1], factor[3], k, p_next, rhs[2], unroll)
+    k, p_next = ys[3:]
+    return factor, _forward_sweep(M, factor[1], factor[2], k, p_next, rhs[2], unroll)
 
 
 def _forward_sweep(M, K, P, k, p_next, rp, unroll):
@@ -146,11 +145,11 @@ def _forward_sweep(M, K, P, k, p_next, rp, unroll):
     return tuple(_scan(forward, jnp.zeros_like(rp[0]), (M, K, k, rp, P, p_next), False, unroll))
 
 
-def _backward_apply(M, L, BPA, P, g_u, g_x, rp, unroll):
+def _backward_apply(M, L, P, g_u, g_x, rp, unroll):
     like = rp[0, 0]
 
     def backward(p_arr, stage):
-        M_t, L_t, BPA_t, P_t, gu, r, gx_prev = stage
+        M_t, L_t, P_t, gu, r, gx_prev = stage
         L_list = [
             [L_t[i, j] if j <= i else None for j in range(L_t.shape[1])]
             for i in range(L_t.shape[0])
@@ -159,7 +158,6 @@ def _backward_apply(M, L, BPA, P, g_u, g_x, rp, unroll):
             _vec(p_arr),
             _mat(M_t),
             L_list,
-            _mat(BPA_t),
             _mat(P_t),
             _vec(gu),
             _vec(r),
@@ -167,13 +165,13 @@ def _backward_apply(M, L, BPA, P, g_u, g_x, rp, unroll):
         )
         return _stack(p_new, like), (_stack(k, like), p_arr)
 
-    xs = (M, L, BPA, P, g_u, rp, _shift(g_x))
+    xs = (M, L, P, g_u, rp, _shift(g_x))
     k, p_next = _scan(backward, g_x[-1], xs, True, unroll)
     return k, p_next
 
 
 def factor(M, Phi_u, Phi_x, unroll: int | None = None):
-    """Backward Riccati factorisation: (L, K, BPA, P), each (N, entries..., b).
+    """Backward Riccati factorisation: (L, K, P), each (N, entries..., b).
 
     Args:
         M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared).
@@ -183,13 +181,13 @@ def factor(M, Phi_u, Phi_x, unroll: int | None = None):
 
 
 def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, unroll: int | None = None):
-    """Factorisation and the step of one right-hand side: ((L, K, BPA, P), (du, dx, nu));
+    """Factorisation and the step of one right-hand side: ((L, K, P), (du, dx, nu));
     g_u (N, nu, b), g_x and rp (N, nx, b)."""
     return _sweeps(M, Phi_u, Phi_x, (g_u, g_x, rp), unroll or default_unroll())
 
 
-def apply(M, L, K, BPA, P, g_u, g_x, rp, unroll: int | None = None):
+def apply(M, L, K, P, g_u, g_x, rp, unroll: int | None = None):
     """The step (du, dx, nu) of one right-hand side with a stored factorisation."""
     unroll = unroll or default_unroll()
-    k, p_next = _backward_apply(M, L, BPA, P, g_u, g_x, rp, unroll)
+    k, p_next = _backward_apply(M, L, P, g_u, g_x, rp, unroll)
     return _forward_sweep(M, K, P, k, p_next, rp, unroll)
