@@ -91,6 +91,15 @@ def _unpacked(out):
     return lanes.unpack(*f), s
 
 
+def _no_gain(f):
+    """(L, P) of the unrolled loops' (L, K, P): what the kernels store."""
+    return f[0], f[2]
+
+
+def _no_gain_solve(out):
+    return _no_gain(out[0]), out[1]
+
+
 def _plain_fns(part: str, cfg):
     """(kernel, XLA) forms, each f(M, Pu, Px, gu, gx, r); the kernel's also takes a table's
     ``index`` (M is then the table) and ``copy``, the copies of the problems' models."""
@@ -99,21 +108,24 @@ def _plain_fns(part: str, cfg):
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: lanes.unpack(
                 *lanes.factor(M, _tri(Pu), _tri(Px), cfg=cfg, index=index)
             ),
-            lambda M, Pu, Px, gu, gx, r: unrolled.factor(M, Pu, Px),
+            lambda M, Pu, Px, gu, gx, r: _no_gain(unrolled.factor(M, Pu, Px)),
         )
     if part == "factor_solve":
         return (
             lambda M, Pu, Px, gu, gx, r, index=None, copy=None: _unpacked(
                 lanes.factor_solve(M, _tri(Pu), _tri(Px), gu, gx, r, cfg=cfg, index=index)
             ),
-            lambda M, Pu, Px, gu, gx, r: unrolled.factor_solve(M, Pu, Px, gu, gx, r),
+            lambda M, Pu, Px, gu, gx, r: _no_gain_solve(
+                unrolled.factor_solve(M, Pu, Px, gu, gx, r)
+            ),
         )
 
     def stored(M, Pu, Px, copy=None):  # the apply kernels take a factorisation made before
         return unrolled.factor(M if copy is None else copy, Pu, Px)
 
-    def packed(M, Pu, Px, copy=None):  # ... in the kernels' storage (lanes.pack)
-        return lanes.pack(*stored(M, Pu, Px, copy))
+    def packed(M, Pu, Px, copy=None):  # ... in the kernels' storage (lanes.pack: L and P)
+        L, _, P = stored(M, Pu, Px, copy)
+        return lanes.pack(L, P)
 
     if part == "apply_refined":
 

@@ -171,17 +171,16 @@ def test_factor_storage_keeps_the_lower_triangles():
     X = rng.standard_normal((N, nx, nx, b))
     P = jnp.asarray(X + np.swapaxes(X, 1, 2))
     L = jnp.asarray(np.tril(rng.standard_normal((N, b, nu, nu))).transpose(0, 2, 3, 1))
-    K_ = jnp.asarray(rng.standard_normal((N, nu, nx, b)))
-    packed = lanes.pack(L, K_, P)
-    assert packed[0].shape == (N, 6, b) and packed[2].shape == (N, 21, b)
-    np.testing.assert_array_equal(np.asarray(packed[2][:, 4]), np.asarray(P[:, 2, 1]))
+    packed = lanes.pack(L, P)
+    assert packed[0].shape == (N, 6, b) and packed[1].shape == (N, 21, b)
+    np.testing.assert_array_equal(np.asarray(packed[1][:, 4]), np.asarray(P[:, 2, 1]))
     np.testing.assert_array_equal(np.asarray(packed[0][:, 5]), np.asarray(L[:, 2, 2]))
-    for got, want in zip(lanes.unpack(*packed), (L, K_, P), strict=True):
+    for got, want in zip(lanes.unpack(*packed), (L, P), strict=True):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
     first = lanes.tri_pack(jnp.moveaxis(P, -1, 0))  # (b, N, 21): the matrices' axes last
-    np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[2]), -1, 0))
+    np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[1]), -1, 0))
     # the kernels' reads of a stage (here from the arrays themselves)
-    P_t, L_t = lanes._load_sym(packed[2], 1, nx), lanes._load_lower(packed[0], 1, nu)
+    P_t, L_t = lanes._load_sym(packed[1], 1, nx), lanes._load_lower(packed[0], 1, nu)
     np.testing.assert_array_equal(np.stack([np.stack(r) for r in P_t]), np.asarray(P[1]))
     assert all(L_t[i][j] is None for i in range(nu) for j in range(i + 1, nu))
     for i in range(nu):
@@ -235,18 +234,20 @@ def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
     alone), the model
     per problem or shared by the batch, it gives XLA's two solves with the residual between
     them to 1e-12, and the dense solve to 1e-9, from a factorisation whose first step is
-    1e-7 off."""
+    about 1e-8 off."""
     batch = 11
     data = _problems(batch, seed=4)
     if shared:
         data = (data[0][:1].repeat(batch, 0), data[1][:1].repeat(batch, 0), *data[2:])
     kkt = jax.vmap(lambda A, B, Pu, Px: K.kkt_factor(A, B, Pu, Px, "riccati", "xla"))(*data[:4])
-    # A gain perturbed by 1e-7: the first step is then off by about that much and the
-    # refinement moves it (a kernel that skipped it would fail by 1e-7).
+    # The cost-to-go P perturbed by 1e-8 (symmetrically: the kernels read its lower triangle,
+    # XLA's loops all of it; the kernels' solves read no gain): every form's first step is
+    # then off by about that much and the refinement moves it (a kernel that skipped it would
+    # fail by 1e-8). P is in every stage of both sweeps: perturbed by 1e-7, one refinement
+    # step left the two forms 2e-12 apart, the square of a worse preconditioner.
     f = kkt.factor
-    kkt = kkt._replace(
-        factor=f._replace(K=f.K * (1 + 1e-7 * np.cos(np.arange(f.K.size)).reshape(f.K.shape)))
-    )
+    c = np.cos(np.arange(f.P.shape[-1]))
+    kkt = kkt._replace(factor=f._replace(P=f.P * (1 + 1e-8 * (c[:, None] + c[None, :]))))
     model = None if shared else 0
     if shared:  # one model for the batch, as the engine's slots share it
         kkt = kkt._replace(A=kkt.A[0], B=kkt.B[0], factor=kkt.factor._replace(M=kkt.factor.M[0]))
@@ -286,3 +287,28 @@ def test_the_refined_step_differentiates_as_its_dot_form():
         g = float(jax.grad(loss)(1.3, kernel))
         fd = (float(loss(1.3 + h, kernel)) - float(loss(1.3 - h, kernel))) / (2 * h)
         assert g == pytest.approx(fd, rel=1e-6), kernel
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_the_kernels_factor_carries_the_gain_they_do_not_store(shared):
+    """The kernels store L and P alone and solve without the gain; the factor they return
+    still carries K = -H^-1 B^T P A, formed from their storage, for any other use: XLA's
+    K (refined once against H), L and P to 1e-10, the model per problem or shared."""
+    batch = 5
+    A, B, Phi_u, Phi_x = _problems(batch, seed=8)[:4]
+    axes = (None, None, 0, 0) if shared else (0, 0, 0, 0)
+    if shared:
+        A, B = A[0], B[0]
+
+    def factor(kernel):
+        fn = lambda a, b, pu, px: K.riccati_factor(a, b, pu, px, kernel)  # noqa: E731
+        return jax.jit(jax.vmap(fn, in_axes=axes))(A, B, Phi_u, Phi_x)
+
+    with lanes.configured(block=8):
+        got = factor("pallas-entries")
+    want = factor("xla")
+    assert got.Lp is not None  # the kernels' storage came back with it
+    for name in ("K", "L", "P"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), rtol=1e-10, atol=1e-10
+        )

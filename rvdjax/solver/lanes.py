@@ -13,20 +13,24 @@ is one Pallas kernel (Triton lowering) per sweep, as the field's batched GPU sol
 * the 6x6, 6x3 and 3x3 algebra is written out entry by entry over those lane vectors
   (nested lists of ``(BLOCK,)`` vectors, no ``dot``: float64 MMA needs blocks of 16 and more);
   the cost-to-go P and the affine term p live in registers across the stage loop;
-* the factorisation L, K, P (and the backward sweep's k, p) is written once per stage and
-  read back by the later sweeps; P (symmetric) and the Cholesky factor L are stored as their
-  lower triangles (:func:`pack`), 21 and 6 entries a stage instead of 36 and 9, and the
-  kernels read the Hessian blocks Phi_x and Phi_u as theirs too (21 and 6 entries). A
-  solve's backward sweep takes B^T P A's part of p_t as K^T (g_u + B^T q)
-  (:func:`_backward_rhs_of`), so B^T P A is not stored: 45 entries a stage instead of 63.
+* the factorisation is stored as L and P alone, 27 entries a stage (the Cholesky factor
+  and the symmetric P as their lower triangles, :func:`pack`), written once and read back by
+  the solves' sweeps with the backward sweep's p; the kernels read the Hessian blocks Phi_x
+  and Phi_u as their triangles too (21 and 6 entries). No gain is stored: a backward sweep
+  forms p_t = g_x + A^T (q + P B k) (:func:`_backward_rhs_stored`) and a forward sweep solves
+  each stage again, du = -H^-1 (g_u + B^T (p + P (A dx - r))) (:func:`_forward_solved`),
+  where the textbook recursion stores K and B^T P A (36 more entries a stage, read in every
+  sweep: on a GPU each sweep reads them from device memory).
 
 Four kernels: :func:`factor_solve` (the backward factorisation together with the backward
 sweep of the first right-hand side, then its forward sweep), :func:`apply` (one more
 right-hand side with a stored factorisation), :func:`apply_refined` (that, then one step of
 iterative refinement with the residual formed inside the sweeps) and :func:`factor` (no
-right-hand side). They compute the recursion of :mod:`rvdjax.solver.riccati` in the same
-order (the Joseph form, the refined gain K), so their results agree with the XLA form to
-rounding; ``interpret=True`` runs them on the CPU for the tests. They run with
+right-hand side). The factorisation is :mod:`rvdjax.solver.riccati`'s recursion in the same
+order (the Joseph form, the gain K refined once against H, kept in registers); the solves
+are the same step written without the gain, so their results agree with the XLA form to
+rounding (tests: 1e-10 and the same iteration counts on fastmpc-3d and the random
+classes); ``interpret=True`` runs them on the CPU for the tests. They run with
 ``SolverSettings(kernel="pallas")`` (or another of the forms of
 :data:`rvdjax.solver.types.PALLAS_FORMS`, through :class:`KernelConfig`), and
 ``kernel="auto"`` runs ``"pallas-carried"`` when a program is compiled for a CUDA GPU: an
@@ -310,6 +314,20 @@ def _backward_rhs_stored(q, M, L, P_of, gu, gx_prev):
     return p_new, k
 
 
+def _forward_solved(dx, M, L, gu, r, P_of, p):
+    """(dx_{t+1}, du_t, nu_t) from dx_t, the stage solved again from L and P: with
+    y = p + P (A dx - r), du = -H^-1 (g_u + B^T y), nu_t = -(y + P B du) (= -(P dx_{t+1} + p)):
+    the same step as K dx + k, without the gain."""
+    nu = len(L)
+    A, B = _split(M, nu)
+    Adx_r = [v - ri for v, ri in zip(_mv(A, dx), r, strict=True)]
+    y = [a + b for a, b in zip(p, _mv(P_of(), Adx_r), strict=True)]
+    du = [-w for w in chol_solve(L, [g + m for g, m in zip(gu, _mtv(B, y), strict=True)])]
+    dx_next = [v - ri for v, ri in zip(_mv(M, du + dx), r, strict=True)]
+    nu_t = [-(a + b) for a, b in zip(y, _mv(P_of(), _mv(B, du)), strict=True)]
+    return dx_next, du, nu_t
+
+
 def _forward(dx, M, K, k, r, P, p):
     """(dx_{t+1}, du_t, nu_t) from dx_t: the forward stage of the step."""
     du = [a + b for a, b in zip(_mv(K, dx), k, strict=True)]
@@ -492,20 +510,20 @@ def tri_size(n: int) -> int:
     return n * (n + 1) // 2
 
 
-def pack(L, K, P):
-    """The kernels' storage of a factorisation from (L, K, P), batch last (L (N, nu,
+def pack(L, P):
+    """The kernels' storage of a factorisation from (L, P), batch last (L (N, nu,
     nu, b), P (N, nx, nx, b)): L's and P's lower triangles, row by row ((N, tri(nu), b),
-    (N, tri(nx), b); :func:`tri_pack`), K as it is. P is symmetric and L's upper
+    (N, tri(nx), b); :func:`tri_pack`). P is symmetric and L's upper
     triangle zero, so nothing is lost; the solves read 21 entries of P a stage instead of 36
     (P's upper triangle was about a quarter of an accurate iteration's reads of the
     factorisation: docs/benchmark.md)."""
-    return tri_pack(L, 1), K, tri_pack(P, 1)
+    return tri_pack(L, 1), tri_pack(P, 1)
 
 
-def unpack(L, K, P):
-    """(L, K, P) as full matrices, batch last, from :func:`pack`'s storage (L's upper
+def unpack(L, P):
+    """(L, P) as full matrices, batch last, from :func:`pack`'s storage (L's upper
     triangle 0, P mirrored)."""
-    return tri_unpack(L, 1, False), K, tri_unpack(P, 1, True)
+    return tri_unpack(L, 1, False), tri_unpack(P, 1, True)
 
 
 def _tri_pairs(n):
@@ -542,9 +560,9 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
     """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x (their lower
-    triangles, :func:`_tri`) or (not factorise) L, K, P; then (with_rhs) g_u, g_x, rp;
-    outputs: (factorise) L, K, P; (with_rhs) du, dx, nu. The backward sweep keeps k_t
-    in du's rows and p_{t+1} in nu's rows until the forward sweep overwrites them. ``model``
+    triangles, :func:`_tri`) or (not factorise) L, P; then (with_rhs) g_u, g_x, rp;
+    outputs: (factorise) L, P; (with_rhs) du, dx, nu. The backward sweep keeps p_{t+1} in
+    nu's rows until the forward sweep overwrites them. ``model``
     as :func:`_model_refs`;
     ``model_only``: with ``block_io``, the model alone in blocks, the rest entry by entry
     (:attr:`KernelConfig.model_blocks_only`).
@@ -558,17 +576,17 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
         Phu_ref, Phx_ref = refs[pos : pos + 2]
         pos += 2
     else:
-        L_in, K_in, P_in = refs[pos : pos + 3]
-        pos += 3
+        L_in, P_in = refs[pos : pos + 2]
+        pos += 2
     if with_rhs:
         gu_ref, gx_ref, rp_ref = refs[pos : pos + 3]
         pos += 3
     outs = refs[pos:]
     if factorise:
-        L_ref, K_ref, P_ref = outs[:3]
-        outs = outs[3:]
+        L_ref, P_ref = outs[:2]
+        outs = outs[2:]
     else:
-        L_ref, K_ref, P_ref = L_in, K_in, P_in
+        L_ref, P_ref = L_in, P_in
     if with_rhs:
         du_ref, dx_ref, nu_ref = outs
     dtype = (Phx_ref if factorise else P_ref).dtype
@@ -602,7 +620,6 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
 
             P_new, L, K = _factor_stage(P, M, Phu, Phx_prev)
             _store(L_ref, t, list(_lower(L)))
-            _store(K_ref, t, K)
             new = (_tri(P_new),)
         else:
             L = _load_lower(L_ref, t, nu)
@@ -613,11 +630,10 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
             gx_prev = [jnp.where(on, v, 0.0) for v in _load(gx_ref, prev, nx)]
             gu = _load(gu_ref, t, nu)
             if factorise:  # the gain is at hand
-                p_new, k = _backward_rhs_of(q, M, L, K, gu, gx_prev)
-            else:  # the stored P again (cached) instead of the gain from memory
+                p_new, _ = _backward_rhs_of(q, M, L, K, gu, gx_prev)
+            else:  # the stored P again (cached): no gain is stored
                 P_of = functools.partial(_load_sym, P_ref, t, nx)
-                p_new, k = _backward_rhs_stored(q, M, L, P_of, gu, gx_prev)
-            _store(du_ref, t, k)
+                p_new, _ = _backward_rhs_stored(q, M, L, P_of, gu, gx_prev)
             new = new + (tuple(p_new),)
         return new
 
@@ -631,23 +647,23 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
         return
 
     out = (du_ref, dx_ref, nu_ref)
-    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, du_ref, rp_ref, nu_ref, out)
+    _forward_sweep((N, nx, nu), zero, M_ref, L_ref, P_ref, gu_ref, rp_ref, nu_ref, out)
 
 
-def _forward_sweep(dims, zero, M_ref, K_ref, P_ref, k_ref, r_ref, p_ref, out, add=False):
+def _forward_sweep(dims, zero, M_ref, L_ref, P_ref, g_ref, r_ref, p_ref, out, add=False):
     """The forward sweep of one right-hand side, whose affine terms k, p and dynamics
     residual r are stored a stage each: (du, dx, nu) written to the refs ``out``, or (``add``)
     added to the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
     N, nx, nu = dims
 
     def stage(t, dx):
-        dx_next, du, nu_t = _forward(
+        dx_next, du, nu_t = _forward_solved(
             list(dx),
             _load(M_ref, t, nx, nu + nx),
-            _load(K_ref, t, nu, nx),
-            _load(k_ref, t, nu),
+            _load_lower(L_ref, t, nu),
+            _load(g_ref, t, nu),
             _load(r_ref, t, nx),
-            _load_sym(P_ref, t, nx),
+            functools.partial(_load_sym, P_ref, t, nx),
             _load(p_ref, t, nx),
         )
         for ref, v in zip(out, (du, dx_next, nu_t), strict=True):
@@ -664,18 +680,18 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
     iterative refinement against the KKT matrix (:func:`rvdjax.solver.kkt.kkt_refine`), whose
     residual is formed stage by stage inside the sweeps instead of in a pass of its own.
 
-    refs: M, L, K, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
+    refs: M, L, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
     then the refined one), and k2, p2, rp2 (the correction's affine terms and its dynamics
     residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
     """
     refs = _model_refs(refs, model, block_io, padded)
-    M_ref, L_ref, K_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:9]
-    du_ref, dx_ref, nu_ref, k2_ref, p2_ref, rp2_ref = refs[9:]
+    M_ref, L_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:8]
+    du_ref, dx_ref, nu_ref, g2_ref, p2_ref, rp2_ref = refs[8:]
     zero = jnp.zeros((lanes,), Phx_ref.dtype)
 
-    def backward(k_ref, p_ref, rhs, p0):
-        """The backward sweep of rhs(t, M_t) -> (g_u[t], r[t], g_x[t-1]): k_t, p_{t+1}
-        stored."""
+    def backward(g_ref, p_ref, rhs, p0):
+        """The backward sweep of rhs(t, M_t) -> (g_u[t], r[t], g_x[t-1]): p_{t+1} stored, and
+        g_u[t] where it is formed here (``g_ref`` not None), for the forward sweep."""
 
         def stage(i, p):
             t = N - 1 - i
@@ -683,8 +699,9 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
             gu, r, gx_prev = rhs(t, M)
             P_of = functools.partial(_load_sym, P_ref, t, nx)  # twice: read again, cached
             q = _offset(list(p), P_of(), r)
-            p_new, k = _backward_rhs_stored(q, M, _load_lower(L_ref, t, nu), P_of, gu, gx_prev)
-            _store(k_ref, t, k)
+            p_new, _ = _backward_rhs_stored(q, M, _load_lower(L_ref, t, nu), P_of, gu, gx_prev)
+            if g_ref is not None:
+                _store(g_ref, t, gu)
             _store(p_ref, t, p)
             return tuple(p_new)
 
@@ -695,10 +712,10 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
         gx_prev = _load(gx_ref, jnp.maximum(t - 1, 0), nx)
         return _load(gu_ref, t, nu), _load(rp_ref, t, nx), [jnp.where(on, v, 0.0) for v in gx_prev]
 
-    backward(du_ref, nu_ref, first_rhs, _load(gx_ref, N - 1, nx))
+    backward(None, nu_ref, first_rhs, _load(gx_ref, N - 1, nx))
 
     step = (du_ref, dx_ref, nu_ref)
-    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, du_ref, rp_ref, nu_ref, step)
+    _forward_sweep((N, nx, nu), zero, M_ref, L_ref, P_ref, gu_ref, rp_ref, nu_ref, step)
 
     # The residual K z + (g, rp) of the first step z (kkt.kkt_residual), stage by stage.
     def r_x(t, A_next=None):
@@ -734,9 +751,9 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
         _store(rp2_ref, t, r_p)
         return r_u, r_p, [jnp.where(on, v, 0.0) for v in r_x(prev, A)]  # A = A_{prev + 1}
 
-    backward(k2_ref, p2_ref, residual_rhs, r_x(N - 1))
+    backward(g2_ref, p2_ref, residual_rhs, r_x(N - 1))
 
-    _forward_sweep((N, nx, nu), zero, M_ref, K_ref, P_ref, k2_ref, rp2_ref, p2_ref, step, True)
+    _forward_sweep((N, nx, nu), zero, M_ref, L_ref, P_ref, g2_ref, rp2_ref, p2_ref, step, True)
 
 
 def _compiler_params(cfg: KernelConfig):
@@ -796,10 +813,10 @@ def _call(
 
     out_shapes = []
     if factorise:  # L and P as their lower triangles (pack)
-        out_shapes += [(N, tri_size(nu)), (N, nu, nx), (N, tri_size(nx))]
+        out_shapes += [(N, tri_size(nu)), (N, tri_size(nx))]
     if with_rhs:
         out_shapes += [(N, nu), (N, nx), (N, nx)]
-    if refine:  # the correction's k, p and dynamics residual between its sweeps
+    if refine:  # the correction's g_u, p and dynamics residual between its sweeps
         out_shapes += [(N, nu), (N, nx), (N, nx)]
     entries = [s[1:] for s in out_shapes]
     padded = cfg.padded_blocks
@@ -859,7 +876,7 @@ def _flat(a, padded: bool = False):
 
 
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
-    """Backward Riccati factorisation: (L, K, P), each ``[stage][entry][problem]``, L
+    """Backward Riccati factorisation: (L, P), each ``[stage][entry][problem]``, L
     and P as their lower triangles (:func:`pack`; :func:`unpack` gives the matrices).
 
     Args:
@@ -875,25 +892,25 @@ def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
 
 def factor_solve(M, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
     """Factorisation and the step of one right-hand side in one kernel:
-    ((L, K, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b); ``M`` and
+    ((L, P), (du, dx, nu)); g_u (N, nu, b), g_x and rp (N, nx, b); ``M`` and
     ``index`` as :func:`factor`."""
     out = _call(cfg, True, True, M, [Phi_u, Phi_x], [g_u, g_x, rp], index=index)
-    return tuple(out[:3]), tuple(out[3:])
+    return tuple(out[:2]), tuple(out[2:])
 
 
-def apply(M, L, K, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
-    """The step (du, dx, nu) of one right-hand side with a stored factorisation (L, K,
+def apply(M, L, P, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None):
+    """The step (du, dx, nu) of one right-hand side with a stored factorisation (L,
     P as :func:`factor` returns them, packed; ``M`` and ``index`` as :func:`factor`)."""
-    return tuple(_call(cfg, False, True, M, [L, K, P], [g_u, g_x, rp], index=index))
+    return tuple(_call(cfg, False, True, M, [L, P], [g_u, g_x, rp], index=index))
 
 
 def apply_refined(
-    M, L, K, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
+    M, L, P, Phi_u, Phi_x, g_u, g_x, rp, cfg: KernelConfig = KernelConfig(), index=None
 ):
     """The step (du, dx, nu) of one right-hand side with a stored factorisation (packed, as
     :func:`factor` returns it), plus one step of iterative refinement
     (:func:`rvdjax.solver.kkt.kkt_refine`) in the same kernel: the residual needs the Hessian
     blocks Phi_u and Phi_x too, as :func:`factor` takes them (``M`` and ``index`` as
     :func:`factor`)."""
-    mats = [L, K, P, Phi_u, Phi_x]
+    mats = [L, P, Phi_u, Phi_x]
     return tuple(_call(cfg, False, True, M, mats, [g_u, g_x, rp], True, index=index))

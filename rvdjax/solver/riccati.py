@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 from jax import lax
 
 from rvdjax.solver import lanes, unrolled
@@ -72,10 +73,10 @@ class RiccatiFactor(NamedTuple):
     Attributes:
         M: (N, nx, nu + nx) the stage dynamics [B_t, A_t].
         L: (N, nu, nu) Cholesky factor of the reduced Hessian Phi_u + B^T P_{t+1} B.
-        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t. The solves' backward sweep
-            needs no other product of the factorisation (B^T P A), so none is stored: on a
-            GPU each sweep reads the factorisation from device memory
-            (:func:`_apply`).
+        K: (N, nu, nx) feedback gain, du_t = K_t dx_t + k_t. No other product of the
+            factorisation (B^T P A) is stored (:func:`_apply`). The GPU kernels store only L
+            and P (``Lp``, ``Pp``) and solve without the gain; with their forms K is formed
+            from L and P, and is dead code where nothing else reads it.
         P: (N, nx, nx) cost-to-go Hessian P_{t+1} of x_{t+1}.
         Lp: (N, nu (nu + 1) / 2) L's lower triangle and ``Pp`` (N, nx (nx + 1) / 2) P's, as
             the GPU kernels store them (:func:`rvdjax.solver.lanes.pack`), or None (both or
@@ -248,9 +249,9 @@ def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
 
     # p_t = g_x + A^T q + (B^T P A)^T k with k = -H^-1 v, v = g_u + B^T q, q = p - P r; as
     # K = -H^-1 B^T P A, (B^T P A)^T k = K^T v: the gain the forward sweep reads anyway
-    # stands for B^T P A, which is then not stored (a GPU's sweeps read the factorisation
-    # from device memory; 18 entries a stage fewer written once and read twice an
-    # accurate-mode iteration, docs/solver.md).
+    # stands for B^T P A, which is then not stored. (The GPU kernels, whose sweeps read the
+    # factorisation from device memory, form the same step from L and P alone:
+    # rvdjax.solver.lanes._backward_rhs_stored, _forward_solved; docs/solver.md.)
     def backward(p, stage):
         M_t, L, K, P, gu, r, gx = stage
         Mp = ops.mtv(M_t, p - ops.mv(P, r))
@@ -372,7 +373,7 @@ def _xla_apply_rule(axis_size, in_batched, f, g_u, g_x, rp):
 # The kernels of :mod:`rvdjax.solver.lanes` take the batch as the minor axis. Under ``vmap``
 # the operands arrive batch first; they are moved last for the kernel and the results moved
 # back. Between a factorisation and its solves the two moves cancel (XLA folds a transpose of
-# a transpose), so the gains stay in the kernels' layout on the device.
+# a transpose), so the factorisation stays in the kernels' layout on the device.
 
 
 def _lane_ops(impl):
@@ -447,23 +448,31 @@ def _pallas_factor_rule(impl, axis_size, in_batched, A, B, Phi_u, Phi_x, *rhs, t
 
 def _lane_factor(impl, M, f) -> RiccatiFactor:
     """The factor, batch first, of a batch-last factorisation: the kernels' (L and P packed,
-    :func:`rvdjax.solver.lanes.pack`: both forms kept) or the unrolled loops'."""
+    :func:`rvdjax.solver.lanes.pack`: both forms kept, and the gain K formed from them, which
+    no kernel reads: dead code unless another use reads it) or the unrolled loops'."""
     if impl == "unrolled":
         return RiccatiFactor(M, *(_to_first(a) for a in f))
-    whole = lanes.unpack(*f)
-    return RiccatiFactor(M, *(_to_first(a) for a in (*whole, f[0], f[2])))
+    L, P = (_to_first(a) for a in lanes.unpack(*f))
+    return RiccatiFactor(M, L, _gain(M, L, P), P, *(_to_first(a) for a in f))
+
+
+def _gain(M, L, P):
+    """K = -H^-1 B^T P A of each stage, batch first, from [B, A] (batch first or shared), the
+    Cholesky factor L of H and P."""
+    nu = L.shape[-1]
+    BPA = jnp.einsum("...ji,...jk,...kl->...il", M[..., :nu], P, M[..., nu:])
+    return -jax.scipy.linalg.cho_solve((L, True), BPA)
 
 
 def _lane_factor_mats(impl, axis_size, f: RiccatiFactor, fb: RiccatiFactor):
-    """The batch-last (L, K, P) a solve's kernel reads (packed, from the factor's
-    storage for the kernels or from L and P), or the unrolled loops' (whole)."""
+    """The batch-last (L, P) a solve's kernel reads (packed, from the factor's storage
+    for the kernels or from L and P), or the unrolled loops' (L, K, P, whole)."""
     fields = list(zip(f[1:4], fb[1:4], strict=True))
     if impl != "unrolled":
         if f.Lp is None:
-            fields[0] = (lanes.tri_pack(f.L), fb.L)
-            fields[2] = (lanes.tri_pack(f.P), fb.P)
+            fields = [(lanes.tri_pack(f.L), fb.L), (lanes.tri_pack(f.P), fb.P)]
         else:
-            fields[0], fields[2] = (f.Lp, fb.Lp), (f.Pp, fb.Pp)
+            fields = [(f.Lp, fb.Lp), (f.Pp, fb.Pp)]
     return [_to_last(_full(axis_size, a, b)) for a, b in fields]
 
 
