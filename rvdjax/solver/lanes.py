@@ -651,9 +651,10 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
 
 
 def _forward_sweep(dims, zero, M_ref, L_ref, P_ref, g_ref, r_ref, p_ref, out, add=False):
-    """The forward sweep of one right-hand side, whose affine terms k, p and dynamics
-    residual r are stored a stage each: (du, dx, nu) written to the refs ``out``, or (``add``)
-    added to the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
+    """The forward sweep of one right-hand side, whose input gradient g_u, affine term p and
+    dynamics residual r are stored a stage each (each stage solved again,
+    :func:`_forward_solved`): (du, dx, nu) written to the refs ``out``, or (``add``) added to
+    the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
     N, nx, nu = dims
 
     def stage(t, dx):
@@ -681,8 +682,8 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
     residual is formed stage by stage inside the sweeps instead of in a pass of its own.
 
     refs: M, L, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
-    then the refined one), and k2, p2, rp2 (the correction's affine terms and its dynamics
-    residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
+    then the refined one), and g2, p2, rp2 (the correction's right-hand side g_u, its affine
+    term p and its dynamics residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
     """
     refs = _model_refs(refs, model, block_io, padded)
     M_ref, L_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:8]

@@ -458,7 +458,8 @@ def _lane_factor(impl, M, f) -> RiccatiFactor:
 
 def _gain(M, L, P):
     """K = -H^-1 B^T P A of each stage, batch first, from [B, A] (batch first or shared), the
-    Cholesky factor L of H and P."""
+    Cholesky factor L of H and P: one solve, where XLA's factorisation refines its gain once
+    against H (riccati._factor), so the two agree to H's conditioning times rounding."""
     nu = L.shape[-1]
     BPA = jnp.einsum("...ji,...jk,...kl->...il", M[..., :nu], P, M[..., nu:])
     return -jax.scipy.linalg.cho_solve((L, True), BPA)
