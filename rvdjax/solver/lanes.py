@@ -272,11 +272,11 @@ def _factor_stage(P, M, Phu, Phx_prev):
     return P_new, L, K
 
 
-def _backward_rhs(p, M, L, P, gu, r, gx_prev):
+def _backward_rhs(p, M, L, P_of, gu, r, gx_prev):
     """(p_t, k_t) from p_{t+1} with a stored factorisation:
     :func:`rvdjax.solver.riccati.riccati_apply`'s backward stage, from L and P alone
-    (:func:`_backward_rhs_stored`)."""
-    return _backward_rhs_stored(_offset(p, P, r), M, L, lambda: P, gu, gx_prev)
+    (:func:`_backward_rhs_stored`; ``P_of()`` gives P_{t+1}, called twice)."""
+    return _backward_rhs_stored(_offset(p, P_of(), r), M, L, P_of, gu, gx_prev)
 
 
 def _offset(p, P, r):
@@ -699,8 +699,7 @@ def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
             M = _load(M_ref, t, nx, nu + nx)
             gu, r, gx_prev = rhs(t, M)
             P_of = functools.partial(_load_sym, P_ref, t, nx)  # twice: read again, cached
-            q = _offset(list(p), P_of(), r)
-            p_new, _ = _backward_rhs_stored(q, M, _load_lower(L_ref, t, nu), P_of, gu, gx_prev)
+            p_new, _ = _backward_rhs(list(p), M, _load_lower(L_ref, t, nu), P_of, gu, r, gx_prev)
             if g_ref is not None:
                 _store(g_ref, t, gu)
             _store(p_ref, t, p)

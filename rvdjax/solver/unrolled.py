@@ -158,7 +158,7 @@ def _backward_apply(M, L, P, g_u, g_x, rp, unroll):
             _vec(p_arr),
             _mat(M_t),
             L_list,
-            _mat(P_t),
+            lambda: _mat(P_t),
             _vec(gu),
             _vec(r),
             _vec(gx_prev),
