@@ -333,7 +333,8 @@ def test_the_step_kernel_forms_the_next_newton_system(block_io):
     entries), and XLA's (primal_dual._system_xla) to 1e-12 relative: steps taken, one with a
     NaN and one stopped
     (both keep the iterate), and a batch sharing its cost and model (the dynamics' offset c
-    read as scalars)."""
+    read as scalars). The carried kernel forms the corrector's row products and the rows'
+    dual-residual terms again in its second sweep instead of storing them in its first."""
     from rvdjax.solver import primal_dual as pd
 
     def case(key, nan, stop, shared=None):
@@ -362,13 +363,14 @@ def test_the_step_kernel_forms_the_next_newton_system(block_io):
     assert _rel(out[1][0][3][0], out[-1][0]) > 1e-3  # the first step moved its iterate
     shared = _random_cost(jax.random.key(21))
     run = jax.vmap(lambda key: case(key, False, False, shared))
-    calls = [
-        str([v.aval for v in e.invars])
-        for e in _eqns(jax.make_jaxpr(run)(keys).jaxpr)
-        if e.primitive.name == "pallas_call"
-    ]
+    calls = [e for e in _eqns(jax.make_jaxpr(run)(keys).jaxpr) if e.primitive.name == "pallas_call"]
     # q, x_ref (and c, with the system) without a problem axis
-    assert [call.count("float64[5,6]") for call in calls[:2]] == [2, 3]
+    assert [str([v.aval for v in e.invars]).count("float64[5,6]") for e in calls[:2]] == [2, 3]
+    # the first sweep's row products Fu du, Fx dx and the rows' terms (U, X): written for the
+    # second sweep by the plain kernel (5 stages each), formed again by the carried one, whose
+    # outputs for them are (1, 1) placeholders
+    plain, carried = ([v.aval.shape[:2] for v in e.outvars[:4]] for e in calls[:2])
+    assert [s[0] for s in plain] == [5] * 4 and carried == [(1, 1)] * 4
     check(*jax.jit(run)(keys))
 
 

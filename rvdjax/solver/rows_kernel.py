@@ -459,7 +459,13 @@ def _step_kernel(dims, N, system, *refs):
     the new point, as :func:`_blocks_kernel` would from the stored iterate (the same
     arithmetic; the dynamics' residual carries the previous stage's new state): the next
     iteration starts with the factorisation, without the blocks' kernel and its reads of the
-    rows and the iterate."""
+    rows and the iterate. That sweep reads every row's constraint matrix anyway, so it also
+    forms the corrector's row products Fu du, Fx dx again (the first sweep's operations, the
+    same numbers) and the rows' terms of the dual residual at the new point, Fu^T wu lam and
+    Fx^T wx mu (as primal_dual._stopping_terms forms them), instead of the first sweep writing
+    the products and the terms' two parts (U, X) for it to read back: 12.5 KB a problem an
+    iteration less for fastmpc-3d's QPs (docs/benchmark.md); U, X, Fdu and Fdx are then
+    (1, 1) placeholders."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r = refs[11:19]
@@ -491,6 +497,8 @@ def _step_kernel(dims, N, system, *refs):
         for v in (*dx, *du, *_load(nun_r, t, nx)):  # 0 * v is NaN exactly where v is not finite
             alpha = alpha + 0.0 * v
         c0, c1, c2 = _sum_products(r.products(rows), c0, c1, c2)
+        if system:  # the second sweep forms the row products and the row terms again
+            return alpha, c0, c1, c2
         U = [_mtv(rows.Fu, weighted(rows.wu, rows.lam)), _mtv(rows.Fu, weighted(rows.wu, r.dlam))]
         X = [_mtv(rows.Fx, weighted(rows.wx, rows.mu)), _mtv(rows.Fx, weighted(rows.wx, r.dmu))]
         _store(Fdu_out, t, r.Fdu)
@@ -520,15 +528,18 @@ def _step_kernel(dims, N, system, *refs):
             r = _corrector(d_in, row, aff, _mv(row.Fu, du), [], alpha_a, kappa)
             alpha = _min_ratio(r.pairs(row), alpha, nan_if_not_finite=True)
             c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            if system:
+                return alpha, c0, c1, c2, U0, U1
             U0 = [a + b for a, b in zip(U0, _mtv(row.Fu, weighted(row.wu, row.lam)), strict=True)]
             U1 = [a + b for a, b in zip(U1, _mtv(row.Fu, weighted(row.wu, r.dlam)), strict=True)]
             Fdu_out.ref[t, i] = r.Fdu[0]
             return alpha, c0, c1, c2, U0, U1
 
-        zeros_u = [jnp.zeros_like(alpha_a)] * nu
+        zeros_u = [] if system else [jnp.zeros_like(alpha_a)] * nu
         acc = jax.lax.fori_loop(0, mu, inp, (alpha, c0, c1, c2, zeros_u, zeros_u))
         alpha, c0, c1, c2, U0, U1 = acc
-        _store(U_out, t, [U0, U1])
+        if not system:
+            _store(U_out, t, [U0, U1])
 
         def soft(i, acc):
             alpha, c0, c1, c2, X0, X1 = acc
@@ -537,15 +548,18 @@ def _step_kernel(dims, N, system, *refs):
             r = _corrector(d_row, row, aff, [], _mv(row.Fx, dx), alpha_a, kappa)
             alpha = _min_ratio(r.pairs(row), alpha, nan_if_not_finite=True)
             c0, c1, c2 = _sum_products(r.products(row), c0, c1, c2)
+            if system:
+                return alpha, c0, c1, c2, X0, X1
             X0 = [a + b for a, b in zip(X0, _mtv(row.Fx, weighted(row.wx, row.mu)), strict=True)]
             X1 = [a + b for a, b in zip(X1, _mtv(row.Fx, weighted(row.wx, r.dmu)), strict=True)]
             Fdx_out.ref[t, i] = r.Fdx[0]
             return alpha, c0, c1, c2, X0, X1
 
-        zeros = [jnp.zeros_like(alpha_a)] * nx
+        zeros = [] if system else [jnp.zeros_like(alpha_a)] * nx
         acc = jax.lax.fori_loop(0, mx, soft, (alpha, c0, c1, c2, zeros, zeros))
         alpha, c0, c1, c2, X0, X1 = acc
-        _store(X_out, t, [X0, X1])
+        if not system:
+            _store(X_out, t, [X0, X1])
         return alpha, c0, c1, c2
 
     if isinstance(row_refs[0], _Entries):
@@ -571,8 +585,11 @@ def _step_kernel(dims, N, system, *refs):
     def update(t, carry):
         rs, js, wr, ru, rx, gm, J, p_prev, *x_prev = carry
         rows = StageRows(dims, row_refs, t)
-        r = corrector(rows, t, _load(Fdu_out, t, mu), _load(Fdx_out, t, mx))
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
+        if system:  # the first sweep's products again (the same operations), not stored
+            r = corrector(rows, t, _mv(rows.Fu, du), _mv(rows.Fx, dx))
+        else:
+            r = corrector(rows, t, _load(Fdu_out, t, mu), _load(Fdx_out, t, mx))
         nu_old = _load(nu_r, t, nx)
         dnu = [a - b for a, b in zip(_load(nun_r, t, nx), nu_old, strict=True)]
         new = [
@@ -593,7 +610,11 @@ def _step_kernel(dims, N, system, *refs):
             rs = jnp.maximum(rs, jnp.abs(w * (rho - m - p)))
             js = js + w * rho * jnp.maximum(g, 0.0)
             wr = jnp.maximum(wr, w * rho)
-        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
+        terms = None
+        if system:  # the rows' terms at the new point
+            U = _mtv(rows.Fu, weighted(rows.wu, lam_n))
+            terms = (U, _mtv(rows.Fx, weighted(rows.wx, mu_n)))
+        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev), terms)
         if not system:
             return rs, js, wr, *carry
         Du = [w * lm / v for w, lm, v in zip(rows.wu, lam_n, su_n, strict=True)]
@@ -609,12 +630,15 @@ def _step_kernel(dims, N, system, *refs):
         )
         return rs, js, wr, *carry, x_n
 
-    def stopping(t, u_n, x_n, nu_n, carry):
+    def stopping(t, u_n, x_n, nu_n, carry, terms=None):
         """The stopping test (primal_dual._stopping_terms) at the new point u_n, x_n, nu_n
         of stage t: the dual residual's maxima, the gradient's, the objective and the state
         residual's part carried to the next stage; and the cost's gradient there (the next
-        Newton system's base_u, base_x) and the stage's model."""
+        Newton system's base_u, base_x) and the stage's model. ``terms``: the rows' terms
+        Fu^T wu lam, Fx^T wx mu at the new point, else U0 + alpha U1, X0 + alpha X1 from the
+        first sweep."""
         ru, rx, gm, J, p_prev = carry
+        U, X = terms if terms is not None else (row_terms(U_out, t, nu), row_terms(X_out, t, nx))
         e = [a - b for a, b in zip(x_n, _load_any(xref_r, t, nx), strict=True)]
         Ru, Qe = _mv(_load(R_r, t, nu, nu), u_n), _mv(_load(Q_r, t, nx, nx), e)
         q, r_lin = _load_any(q_r, t, nx), _load_any(r_r, t, nu)
@@ -622,13 +646,13 @@ def _step_kernel(dims, N, system, *refs):
         grad_u = [2.0 * a + b for a, b in zip(Ru, r_lin, strict=True)]
         grad_x = [2.0 * a + b for a, b in zip(Qe, q, strict=True)]
         Bt_nu = _mtv([row[:nu] for row in M], nu_n)
-        for g, f, b in zip(grad_u, row_terms(U_out, t, nu), Bt_nu, strict=True):
+        for g, f, b in zip(grad_u, U, Bt_nu, strict=True):
             ru = jnp.maximum(ru, jnp.abs((g + f) - b))
         # r_x of the previous stage: its part p_{t-1} less A_t^T nu_t (none before stage 0)
         At_nu = _mtv([row[nu:] for row in M], nu_n)
         for p, a in zip(p_prev, At_nu, strict=True):
             rx = jnp.where(t > 0, jnp.maximum(rx, jnp.abs(p - a)), rx)
-        p_t = [(g + f) + n for g, f, n in zip(grad_x, row_terms(X_out, t, nx), nu_n, strict=True)]
+        p_t = [(g + f) + n for g, f, n in zip(grad_x, X, nu_n, strict=True)]
         for g in (*grad_u, *grad_x):
             gm = jnp.maximum(gm, jnp.abs(g))
         for a, b in ((e, Qe), (u_n, Ru), (q, x_n), (r_lin, u_n)):
@@ -652,27 +676,33 @@ def _step_kernel(dims, N, system, *refs):
             _store(ref, t, v)
         d_in, d_row = (0, 1, nx, nu), (1, 0, nx, nu)
 
-        def inp(i, Pu):  # one input row (Pu: the next Phi_u's sum over the rows)
+        def inp(i, acc):  # one input row (the next Phi_u's sum over the rows, Fu^T wu lam)
             row = StageRows(dims, row_refs, t, ("input", i))
             aff = _affine(d_in, row, _row_entries(Fdua_r, t, i, 1), [])
-            r = _corrector(d_in, row, aff, _row_entries(Fdu_out, t, i, 1), [], alpha_a, kappa)
+            Fdu = _mv(row.Fu, du) if system else _row_entries(Fdu_out, t, i, 1)
+            r = _corrector(d_in, row, aff, Fdu, [], alpha_a, kappa)
             lam_n = upd(row.lam[0], r.dlam[0], row.wu[0])
             su_n = upd(row.su[0], r.dsu[0])
             lam_o.ref[t, i] = lam_n
             su_o.ref[t, i] = su_n
             if not system:
-                return Pu
-            Du, (F,) = row.wu[0] * lam_n / su_n, row.Fu
-            return [p + F[j] * (Du * F[k]) for p, (j, k) in zip(Pu, _pairs(nu), strict=True)]
+                return acc
+            (Pu, U), (w,), (F,) = acc, row.wu, row.Fu
+            Du = w * lam_n / su_n
+            Pu = [p + F[j] * (Du * F[k]) for p, (j, k) in zip(Pu, _pairs(nu), strict=True)]
+            return Pu, [a + b for a, b in zip(U, _mtv(row.Fu, [w * lam_n]), strict=True)]
 
         zero = jnp.zeros_like(x_n[0])
-        Pu = jax.lax.fori_loop(0, mu, inp, [zero] * len(_pairs(nu)) if system else 0)
+        if system:
+            Pu, U = jax.lax.fori_loop(0, mu, inp, ([zero] * len(_pairs(nu)), [zero] * nu))
+        else:
+            jax.lax.fori_loop(0, mu, inp, 0)
 
         def soft(i, acc):
             rs, js, wr, *sums = acc
             row = StageRows(dims, row_refs, t, i)
             aff = _affine(d_row, row, [], _row_entries(Fdxa_r, t, i, 1))
-            Fdx = _row_entries(Fdx_out, t, i, 1)
+            Fdx = _mv(row.Fx, dx) if system else _row_entries(Fdx_out, t, i, 1)
             r = _corrector(d_row, row, aff, [], Fdx, alpha_a, kappa)
             (w,), (rho,) = row.wx, row.rho
             s_n, mu_n, pi_n = (upd(v[0], d[0], w) for v, d in ((row.s, r.ds), (row.mu, r.dmu),
@@ -685,18 +715,21 @@ def _step_kernel(dims, N, system, *refs):
             wr = jnp.maximum(wr, w * rho)
             if not system:
                 return rs, js, wr
-            # the next Phi_x's and g_x's sums over the rows (_blocks_kernel's stage_by_row)
+            # the next Phi_x's and g_x's sums over the rows (_blocks_kernel's stage_by_row), and
+            # Fx^T wx mu at the new point
             (d,), (v,) = _soft_parts(row.wx, row.rho, [s_n], [g_n], [mu_n], [pi_n])
-            (F,), (P, g) = row.Fx, sums
+            (F,), (P, g, X) = row.Fx, sums
             P = [p + F[j] * (d * F[k]) for p, (j, k) in zip(P, _pairs(nx), strict=True)]
-            return rs, js, wr, P, [a + f * v for a, f in zip(g, F, strict=True)]
+            X = [a + b for a, b in zip(X, _mtv(row.Fx, [w * mu_n]), strict=True)]
+            return rs, js, wr, P, [a + f * v for a, f in zip(g, F, strict=True)], X
 
-        sums = ([zero] * len(_pairs(nx)), [zero] * nx) if system else ()
+        sums = ([zero] * len(_pairs(nx)), [zero] * nx, [zero] * nx) if system else ()
         rs, js, wr, *sums = jax.lax.fori_loop(0, mx, soft, (rs, js, wr, *sums))
-        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev))
+        terms = (U, sums[2]) if system else None
+        carry, (base_u, base_x, M) = stopping(t, u_n, x_n, nu_n, (ru, rx, gm, J, p_prev), terms)
         if not system:
             return rs, js, wr, *carry
-        (P, g), R, Q = sums, _load(R_r, t, nu, nu), _load(Q_r, t, nx, nx)
+        (P, g, _), R, Q = sums, _load(R_r, t, nu, nu), _load(Q_r, t, nx, nx)
         store_system(
             t,
             _twice_plus(R, Pu),
@@ -1017,7 +1050,9 @@ def pd_step_rows(
         "rvdjax_pd_step_rows" if system is None else "rvdjax_pd_step_system",
         [*rows, dx, du, nu_new, Fdx_a, Fdu_a, u, x, nu, *cost, *extra]
         + [a[None, None] for a in scalars],
-        [(N, 2 * n_u), (N, 2 * nx), (N, mu), (N, mx)]
+        # the first sweep's row products and row terms, read back by the second; forming the
+        # system, the second sweep forms them again from the rows it reads anyway (placeholders)
+        ([(N, 2 * n_u), (N, 2 * nx), (N, mu), (N, mx)] if system is None else [(1, 1)] * 4)
         + [(N, n_u), (N, nx), (N, nx), (N, mx), (N, mu), (N, mx), (N, mx), (N, mu), (N, mx)]
         + sys_shapes
         + [(1, 5)],
