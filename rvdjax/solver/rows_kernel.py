@@ -463,9 +463,8 @@ def _step_kernel(dims, N, system, *refs):
     forms the corrector's row products Fu du, Fx dx again (the first sweep's operations, the
     same numbers) and the rows' terms of the dual residual at the new point, Fu^T wu lam and
     Fx^T wx mu (as primal_dual._stopping_terms forms them), instead of the first sweep writing
-    the products and the terms' two parts (U, X) for it to read back: 12.5 KB a problem an
-    iteration less for fastmpc-3d's QPs (docs/benchmark.md); U, X, Fdu and Fdx are then
-    (1, 1) placeholders."""
+    the products and the terms' two parts (U, X) for it to read back (docs/benchmark.md);
+    U, X, Fdu and Fdx are then (1, 1) placeholders."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r = refs[11:19]
