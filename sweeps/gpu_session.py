@@ -1,0 +1,125 @@
+"""One GPU session's measurements in one command, in under 5 minutes, compile included: the
+QPs (today's Newton step against the form last measured on a GPU, in the same process), one
+maneuver alone on the GPU, and the batch engine's maneuvers per second.
+
+A lent GPU has about 15 minutes of device time in all, its start included; this runs the
+figures the two GPU issues ask for, each step in its own process under its own time limit,
+and writes every step's output as it goes (``OUT/<step>.log``, the steps' JSON lines under
+``OUT/<step>/``, and ``OUT/gpu_session.jsonl``: a row a step with its exit status and
+seconds). From the repository root, on a machine whose jax has GPU support (nothing to
+install):
+
+    PYTHONPATH=. python sweeps/gpu_session.py --out results/gpu-session
+    python sweeps/gpu_session.py --smoke     # tiny sizes on any device: the script's test
+    python sweeps/gpu_session.py --dry-run   # the commands it would run
+
+The steps:
+
+- ``qp``: ``sweeps/gpu_benchmark.py qp`` with ``kernel="auto"`` (on a CUDA GPU the kernels of
+  today) and ``"pallas-block-factor"`` (the default when a GPU last timed them, 2026-11-27) at
+  B = 1, 16 384 and 65 536, accurate and paper modes, and the largest batch with one model;
+- ``maneuver``: ``rvdjax run fastmpc-3d --device gpu --json`` (ms per MPC step on the GPU);
+- ``engine``: ``sweeps/gpu_study_benchmark.py --parts throughput``, thesis-vbar at 4 096 and
+  32 768 slots.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def steps(out: str, smoke: bool) -> list[tuple[str, list[str], int]]:
+    """(name, argv after the interpreter, time limit in seconds) of each step, in order."""
+    qp = [os.path.join(HERE, "gpu_benchmark.py"), "qp", "--out", os.path.join(out, "qp")]
+    engine = [os.path.join(HERE, "gpu_study_benchmark.py"), "--out", os.path.join(out, "engine")]
+    if smoke:
+        return [
+            ("qp", qp + ["--smoke", "--kernels", "auto", "--no-cpu"], 240),
+            ("maneuver", ["-m", "rvdjax.cli", "run", "fastmpc-3d", "--json"], 240),
+            ("engine", engine + ["--smoke", "--parts", "throughput"], 240),
+        ]
+    return [
+        (
+            "qp",
+            qp
+            + ["--kernels", "auto,pallas-block-factor", "--sizes", "1,16384,65536"]
+            + ["--no-cpu", "--shared-model", "--budget-s", "135"],
+            150,
+        ),
+        ("maneuver", ["-m", "rvdjax.cli", "run", "fastmpc-3d", "--device", "gpu", "--json"], 45),
+        (
+            "engine",
+            engine
+            + ["--parts", "throughput", "--scenarios", "thesis-vbar", "--slots", "4096,32768"]
+            + ["--budget-s", "85"],
+            95,
+        ),
+    ]
+
+
+def run_step(name: str, argv: list[str], limit_s: int, out: str) -> dict:
+    """Run one step in its own process, its output to ``OUT/<name>.log``; a row."""
+    # the steps import rvdjax from this checkout, installed or not
+    path = os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, PYTHONPATH=path)
+    t0 = time.perf_counter()
+    with open(os.path.join(out, f"{name}.log"), "w") as log:
+        try:
+            rc = subprocess.run(
+                [sys.executable, *argv],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                timeout=limit_s,
+                env=env,
+                cwd=ROOT,
+            ).returncode
+        except subprocess.TimeoutExpired:
+            rc = "timeout"
+    return dict(step=name, rc=rc, seconds=round(time.perf_counter() - t0, 1), argv=argv)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=os.path.join("results", "gpu-session"))
+    ap.add_argument("--smoke", action="store_true", help="tiny sizes on any device")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    args = ap.parse_args(argv)
+    args.out = os.path.abspath(args.out)
+    plan = steps(args.out, args.smoke)
+    if args.dry_run:
+        for name, step_argv, limit in plan:
+            print(f"{name} (at most {limit} s): python {' '.join(step_argv)}")
+        return 0
+    try:
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "gpu_session.jsonl"), "a"):
+            pass
+    except OSError as e:
+        print(f"--out: cannot write to {args.out!r} ({e.strerror})", file=sys.stderr)
+        return 2
+    rows = []
+    for name, step_argv, limit in plan:
+        print(f"[gpu_session] {name}: at most {limit} s", flush=True)
+        row = run_step(name, step_argv, limit, args.out)
+        rows.append(row)
+        with open(os.path.join(args.out, "gpu_session.jsonl"), "a") as f:
+            f.write(json.dumps(row) + "\n")
+        with open(os.path.join(args.out, f"{name}.log")) as f:
+            tail = f.read()[-4000:]
+        print(tail, flush=True)
+    print("| step | exit | seconds |\n| --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['step']} | {r['rc']} | {r['seconds']} |")
+    return 0 if all(r["rc"] == 0 for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
