@@ -361,6 +361,7 @@ def qp_part(
     hlo_dir=None,
     padded=False,
     shared=False,
+    modes=("accurate", "paper"),
 ) -> None:
     t_start = time.perf_counter()
     sizes = sizes or (SMOKE_SIZES if smoke else SIZES)
@@ -377,21 +378,21 @@ def qp_part(
     # asked for, last: on an H100 their Triton compile did not finish in 165 s (2026-11-26),
     # a compile no budget bounds.
     fast = [k for k in kernels if k != "pallas"]
-    plan = [("gpu", m, k, n) for m in ("accurate", "paper") for n in reversed(sizes) for k in fast]
+    plan = [("gpu", m, k, n) for m in modes for n in reversed(sizes) for k in fast]
     plan += [("unroll", u, sizes[-1]) for u in unrolls]
     if padded:  # the block kernels' arrays padded to a power of two of entries, as until 11-28
-        plan += [("padded", m, k, sizes[-1]) for m in ("accurate", "paper") for k in fast]
+        plan += [("padded", m, k, sizes[-1]) for m in modes for k in fast]
     if shared:  # one model for the batch (the engine's case): model reads leave the traffic
-        plan += [("shared", m, k, sizes[-1]) for m in ("accurate", "paper") for k in fast]
+        plan += [("shared", m, k, sizes[-1]) for m in modes for k in fast]
     if cpu:
-        plan += [("cpu", m, "xla", n) for m in ("accurate", "paper") for n in sizes[1:]]
+        plan += [("cpu", m, "xla", n) for m in modes for n in sizes[1:]]
     if "pallas" in kernels:  # accurate mode first: the default; block I/O first (compiles fast)
-        plan += [("blockio", m, sizes[-1]) for m in ("accurate", "paper")]
-        plan += [("gpu", m, "pallas", sizes[-1]) for m in ("accurate", "paper")]
+        plan += [("blockio", m, sizes[-1]) for m in modes]
+        plan += [("gpu", m, "pallas", sizes[-1]) for m in modes]
     plan += [("maneuver", gpu, k) for k in fast]
     if cpu:
         plan += [("maneuver", "cpu", "auto")]
-    plan += [("f32", "paper", k, sizes[-1]) for k in fast[:1]]
+    plan += [("f32", "paper", k, sizes[-1]) for k in fast[:1] if "paper" in modes]
     if "pallas" in kernels:
         # the kernels' launch configuration (rvdjax.solver.lanes.KernelConfig), with block
         # I/O: compiles of seconds
@@ -526,7 +527,16 @@ def main(argv=None) -> int:
         action="store_true",
         help="also each form at the largest batch with one model (A, B, c, Q, R) for every QP",
     )
+    ap.add_argument(
+        "--modes",
+        default="accurate,paper",
+        help="the solver's modes of the QP rows, comma-separated (accurate,paper)",
+    )
     args = ap.parse_args(argv)
+    modes = tuple(m for m in args.modes.split(",") if m)
+    if not modes or set(modes) - {"accurate", "paper"}:
+        print(f"--modes: accurate and/or paper, comma-separated; got {args.modes!r}")
+        return 2
     kernels = tuple(k for k in args.kernels.split(",") if k)
     from rvdjax.solver.types import KERNELS
 
@@ -570,6 +580,7 @@ def main(argv=None) -> int:
             hlo_dir=args.out if args.hlo else None,
             padded=args.padded_blocks,
             shared=args.shared_model,
+            modes=modes,
         )
     if args.part in ("study", "all"):
         sys.path.insert(0, os.path.dirname(__file__))

@@ -1,6 +1,6 @@
 """One GPU session's measurements in one command, in under 5 minutes, compile included: the
-QPs (today's Newton step against the form last measured on a GPU, in the same process), one
-maneuver alone on the GPU, and the batch engine's maneuvers per second.
+QPs with today's Newton step and with the form last timed on a GPU, one maneuver alone on the
+GPU, and the batch engine's maneuvers per second.
 
 A lent GPU has about 15 minutes of device time in all, its start included; this runs the
 figures the two GPU issues ask for, each step in its own process under its own time limit,
@@ -13,14 +13,18 @@ install):
     python sweeps/gpu_session.py --smoke     # tiny sizes on any device: the script's test
     python sweeps/gpu_session.py --dry-run   # the commands it would run
 
-The steps:
+The steps (accurate mode, the GPU's rows only):
 
-- ``qp``: ``sweeps/gpu_benchmark.py qp`` with ``kernel="auto"`` (on a CUDA GPU the kernels of
-  today) and ``"pallas-block-factor"`` (the default when a GPU last timed them, 2026-11-27) at
-  B = 1, 16 384 and 65 536, accurate and paper modes, and the largest batch with one model;
-- ``maneuver``: ``rvdjax run fastmpc-3d --device gpu --json`` (ms per MPC step on the GPU);
+- ``qp``: ``sweeps/gpu_benchmark.py qp`` with ``kernel="auto"`` (on a CUDA GPU, today's
+  kernels) at B = 65 536, 16 384 and 1, then 65 536 QPs with one model for the batch (the
+  engine's case, the one ``sweeps/gpu_traffic.py --shared-model`` counts), then one
+  fastmpc-3d maneuver alone (ms per MPC step);
+- ``qp-before``: the same with ``"pallas-block-factor"`` (the default when a GPU last timed
+  the kernels, 2026-11-27) at B = 65 536, in a process of its own;
 - ``engine``: ``sweeps/gpu_study_benchmark.py --parts throughput``, thesis-vbar at 4 096 and
   32 768 slots.
+
+Each benchmark skips what its budget no longer covers, in that order.
 """
 
 from __future__ import annotations
@@ -39,22 +43,27 @@ ROOT = os.path.dirname(HERE)
 def steps(out: str, smoke: bool) -> list[tuple[str, list[str], int]]:
     """(name, argv after the interpreter, time limit in seconds) of each step, in order."""
     qp = [os.path.join(HERE, "gpu_benchmark.py"), "qp", "--out", os.path.join(out, "qp")]
+    qp_before = qp[:-1] + [os.path.join(out, "qp-before")]
     engine = [os.path.join(HERE, "gpu_study_benchmark.py"), "--out", os.path.join(out, "engine")]
     if smoke:
         return [
             ("qp", qp + ["--smoke", "--kernels", "auto", "--no-cpu"], 240),
-            ("maneuver", ["-m", "rvdjax.cli", "run", "fastmpc-3d", "--json"], 240),
             ("engine", engine + ["--smoke", "--parts", "throughput"], 240),
         ]
+    accurate = ["--modes", "accurate", "--no-cpu", "--shared-model"]
     return [
-        (
+        (  # today's kernels: 65 536, 16 384 and one QP, one model for the batch, one maneuver
             "qp",
-            qp
-            + ["--kernels", "auto,pallas-block-factor", "--sizes", "1,16384,65536"]
-            + ["--no-cpu", "--shared-model", "--budget-s", "135"],
-            150,
+            qp + ["--kernels", "auto", "--sizes", "1,16384,65536", "--budget-s", "95"] + accurate,
+            110,
         ),
-        ("maneuver", ["-m", "rvdjax.cli", "run", "fastmpc-3d", "--device", "gpu", "--json"], 45),
+        (  # the form the GPU last timed, at the largest batch, in a process of its own
+            "qp-before",
+            qp_before
+            + ["--kernels", "pallas-block-factor", "--sizes", "65536", "--budget-s", "55"]
+            + accurate,
+            70,
+        ),
         (
             "engine",
             engine

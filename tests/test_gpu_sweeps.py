@@ -494,27 +494,30 @@ def test_registers_report_reads_ptxas_and_the_occupancy_follows(tmp_path):
 
 def test_gpu_session_plans_the_issues_figures_in_five_minutes(capsys, tmp_path):
     """sweeps/gpu_session.py: the GPU run's steps within 5 minutes in all, each with flags its
-    script takes (the CLI's parser; the sweeps' argparse calls), and an unwritable --out is one
-    line and status 2 before any step starts."""
+    script takes (the sweeps' argparse calls), and an unwritable --out is one line and status
+    2 before any step starts; gpu_benchmark.py's --modes refuses a mode it does not know."""
     import re
 
     gs = _import("gpu_session")
     plan = gs.steps(str(tmp_path), smoke=False)
-    assert [name for name, _, _ in plan] == ["qp", "maneuver", "engine"]
+    assert [name for name, _, _ in plan] == ["qp", "qp-before", "engine"]
     assert sum(limit for _, _, limit in plan) <= 300
-    argv = dict((name, a) for name, a, _ in plan)
-    qp = " ".join(argv["qp"])
-    assert "--kernels auto,pallas-block-factor" in qp and "--sizes 1,16384,65536" in qp
-    from rvdjax.cli import build_parser
-
-    cli = argv["maneuver"][argv["maneuver"].index("rvdjax.cli") + 1 :]
-    assert build_parser().parse_args(cli).device == "gpu"
-    for name in ("qp", "engine"):
-        script = argv[name][0]
-        source = open(script).read()
+    argv = {name: " ".join(a) for name, a, _ in plan}
+    assert "--kernels auto " in argv["qp"] and "--sizes 1,16384,65536" in argv["qp"]
+    assert "--kernels pallas-block-factor " in argv["qp-before"]
+    assert all(
+        "--shared-model" in argv[n] and "--modes accurate" in argv[n] for n in ("qp", "qp-before")
+    )
+    for name, step_argv, _ in plan:
+        source = open(step_argv[0]).read()
         taken = set(re.findall(r'add_argument\(\s*"(--[\w-]+)"', source))
-        flags = {a for a in argv[name] if a.startswith("--")}
+        flags = {a for a in step_argv if a.startswith("--")}
         assert flags <= taken, (name, flags - taken)
     assert gs.main(["--out", "/proc/no/such/dir"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("--out: cannot write") and err.count("\n") == 1
+    gb = _import("gpu_benchmark")
+    assert gb.main(["qp", "--modes", "accurate,fast", "--out", str(tmp_path / "o")]) == 2
+    out = capsys.readouterr().out
+    assert out.startswith("--modes: accurate and/or paper") and out.count("\n") == 1
+    assert not (tmp_path / "o").exists()
