@@ -95,6 +95,25 @@ def run_step(name: str, argv: list[str], limit_s: int, out: str) -> dict:
     return dict(step=name, rc=rc, seconds=round(time.perf_counter() - t0, 1), argv=argv)
 
 
+def _provenance(args) -> dict:
+    """The session's provenance block (the code, the machine, the options), with JAX on the CPU
+    alone: JAX takes most of a GPU's memory in the first process that uses the GPU, and that
+    must be the steps'. Each step's rows carry their own block, with the device they ran on."""
+    saved = os.environ.get("JAX_PLATFORMS")
+    os.environ["JAX_PLATFORMS"] = "cpu"
+    try:
+        if ROOT not in sys.path:
+            sys.path.insert(0, ROOT)
+        from rvdjax.provenance import benchmark_block
+
+        return benchmark_block("sweeps/gpu_session.py", vars(args), device="each step's own")
+    finally:  # the steps start with this process's environment as it was
+        if saved is None:
+            os.environ.pop("JAX_PLATFORMS", None)
+        else:
+            os.environ["JAX_PLATFORMS"] = saved
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=os.path.join("results", "gpu-session"))
@@ -114,13 +133,14 @@ def main(argv=None) -> int:
     except OSError as e:
         print(f"--out: cannot write to {args.out!r} ({e.strerror})", file=sys.stderr)
         return 2
+    provenance = _provenance(args)
     rows = []
     for name, step_argv, limit in plan:
         print(f"[gpu_session] {name}: at most {limit} s", flush=True)
         row = run_step(name, step_argv, limit, args.out)
         rows.append(row)
         with open(os.path.join(args.out, "gpu_session.jsonl"), "a") as f:
-            f.write(json.dumps(row) + "\n")
+            f.write(json.dumps(dict(row, provenance=provenance)) + "\n")
         with open(os.path.join(args.out, f"{name}.log")) as f:
             tail = f.read()[-4000:]
         print(tail, flush=True)
