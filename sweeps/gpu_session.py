@@ -3,10 +3,10 @@ QPs with today's Newton step and with the form last timed on a GPU, one maneuver
 GPU, and the batch engine's maneuvers per second.
 
 A lent GPU has about 15 minutes of device time in all, its start included; this runs the
-figures the two GPU issues ask for, each step in its own process under its own time limit,
-and writes every step's output as it goes (``OUT/<step>.log``, the steps' JSON lines under
-``OUT/<step>/``, and ``OUT/gpu_session.jsonl``: a row a step with its exit status and
-seconds). From the repository root, on a machine whose jax has GPU support (nothing to
+GPU figures the targets need (docs/benchmark.md), each step in its own process under its
+own time limit, and writes every step's output as it goes (``OUT/<step>.log``, the steps'
+JSON lines under ``OUT/<step>/``, and ``OUT/gpu_session.jsonl``: a row a step with its exit
+status and seconds). From the repository root, on a machine whose jax has GPU support (nothing to
 install):
 
     PYTHONPATH=. python sweeps/gpu_session.py --out results/gpu-session
