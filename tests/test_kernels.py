@@ -230,17 +230,18 @@ def _random_cost(key, N=5, nx=6, nu=3, model=None, cost=None):
 
 
 def _step_case(key, nan, stop, emphasis, shared=None):
-    """Arguments of primal_dual._step_xla (ocp, rows, st, su, sx, step, taus, h, stop) and the
-    predictor's (Fdu_a, Fdx_a, alpha_a, kappa) the step's kernel takes too: a random interior
-    iterate, the predictor's row products and a random corrector step, a NaN in the step's
-    multipliers (``nan``), stopped (``stop``); ``emphasis`` 0-3 scales one stage's model or
+    """Arguments of primal_dual._step_xla (ocp, rows, st, su, sx, step, taus, h, fraction) and
+    the predictor's (Fdu_a, Fdx_a, alpha_a, kappa) the step's kernel takes too: a random
+    interior iterate, the predictor's row products and a random corrector step, a NaN in the
+    step's multipliers (``nan``), a random step fraction in [0.99, 0.9999], 0 where ``stop``
+    (a stopped solve's); ``emphasis`` 0-3 scales one stage's model or
     multipliers by 1e3 (test_the_step_kernel_takes_the_xla_step); ``shared`` the cost and
     model instead of a random one."""
     from rvdjax.solver import primal_dual as pd
     from rvdjax.solver import stagewise as sw
 
     rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
-    k1, k2, k3 = jax.random.split(jax.random.fold_in(key, 7), 3)
+    k1, k2, k3, k4 = jax.random.split(jax.random.fold_in(key, 7), 4)
     ocp = _random_cost(k3) if shared is None else shared
     big = jnp.where(jnp.arange(4) == emphasis, 1e3, 1.0)
     # emphasis 2: the last stage's multipliers 1e3 larger, its model 1e3 smaller
@@ -259,7 +260,8 @@ def _step_case(key, nan, stop, emphasis, shared=None):
     taus = pd._targets(aff, alpha_a, kappa)
     h = pd._soft_h(rows, st, sx, taus[1], taus[2])
     step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
-    return (ocp, rows, st, su, sx, step, taus, h, stop), (Fdu_a, Fdx_a, alpha_a, kappa)
+    fraction = jnp.where(stop, 0.0, jax.random.uniform(k4, (), jnp.float64, 0.99, 0.9999))
+    return (ocp, rows, st, su, sx, step, taus, h, fraction), (Fdu_a, Fdx_a, alpha_a, kappa)
 
 
 @ROW_IO

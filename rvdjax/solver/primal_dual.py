@@ -42,13 +42,32 @@ from rvdjax.solver.riccati import (
 from rvdjax.solver.start import drift
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
-__all__ = ["PDState", "pd_start", "pd_iteration", "carries_system", "pd_system", "pd_drift"]
+__all__ = [
+    "PDState",
+    "pd_start",
+    "pd_iteration",
+    "carries_system",
+    "pd_system",
+    "pd_drift",
+    "step_fraction",
+]
 
 # sigma >= SIGMA_FLOOR while the relative dual residual exceeds SIGMA_FLOOR_RES (chosen on the
 # closed loops of paper 003: 0.2 / 0.3 / 0.5 gave 29.5 / 24.8 / 22.0 iterations per solve on
 # thesis-vbar-lp and 12.3 / 12.6 / 14.4 on thesis-vbar; docs/solver.md).
 SIGMA_FLOOR = 0.3
 SIGMA_FLOOR_RES = 10.0
+
+# The corrector's step goes a fraction eta of the way to the boundary, eta = 1 - sigma clipped
+# to [0.99, 0.9999] (step_fraction): Nocedal & Wright, Numerical Optimization (2006) Sec. 14.2
+# and Alg. 16.4, take eta_k in [0.9, 1) and let it tend to 1 as the iterates converge. A fixed
+# 0.99 caps the complementarity's fall at 100x an iteration, which set the last iterations of
+# every warm-started solve; a fixed 0.9999 jammed fastmpc-3d's solves on the boundary (5 of 141
+# steps at the iteration cap) where the corrector was still centring. Iterations per MPC step,
+# 0.99 -> 1 - sigma: fastmpc-3d 5.48 -> 3.75, rotating-target-b 5.40 -> 3.48, thesis-vbar
+# 15.27 -> 14.48, with the same statuses and answers (docs/solver.md).
+STEP_FRACTION_MIN = 0.99
+STEP_FRACTION_MAX = 0.9999
 
 
 class PDState(NamedTuple):
@@ -348,8 +367,17 @@ def _drift_in_kernel(ocp, u, interpret, block_io=True):
     return rows_kernel.drift_batched(interpret, block_io)(ocp.A, ocp.B, ocp.c, u, ocp.x0)
 
 
-def _step_xla(ocp, rows, st: PDState, su, sx, step, taus, h, stop):
-    """The corrector's step taken: (the new u, x, nu, s, lam, mu, pi, su, g; the
+def step_fraction(kappa, gap, m_eff):
+    """The fraction eta of the way to the boundary that the corrector's step goes: 1 - sigma
+    (sigma = kappa m / gap, the centring weight of :func:`_corrector_rhs`) clipped to
+    [STEP_FRACTION_MIN, STEP_FRACTION_MAX]; NaN where kappa is."""
+    sigma = kappa * jnp.maximum(m_eff, 1.0) / jnp.maximum(gap, 1e-300)
+    return jnp.clip(1.0 - sigma, STEP_FRACTION_MIN, STEP_FRACTION_MAX)
+
+
+def _step_xla(ocp, rows, st: PDState, su, sx, step, taus, h, fraction):
+    """The corrector's step taken, ``fraction`` (:func:`step_fraction`, 0 where the solve is
+    stopped) of the way to the boundary: (the new u, x, nu, s, lam, mu, pi, su, g; the
     complementarity there; whether the step was finite; the stopping test's relative dual
     residual and objective there, :func:`_stopping_terms`)."""
     step, ds, dlam, dmu, dpi, dsu, dsx, Fdx = _pd_unpack(rows, st, step, su, sx, *taus, h)
@@ -359,7 +387,8 @@ def _step_xla(ocp, rows, st: PDState, su, sx, step, taus, h, stop):
     alpha = _max_step(
         ((su, sx, st.s, st.lam, st.mu, st.pi), (dsu, dsx, ds, dlam, dmu, dpi)), wmask, True
     )
-    finite, alpha, new = _updated(rows, st, su, step, alpha, stop, (ds, dlam, dmu, dpi, dsu, Fdx))
+    row_steps = (ds, dlam, dmu, dpi, dsu, Fdx)
+    finite, alpha, new = _updated(rows, st, su, step, alpha, fraction, row_steps)
     u, x, nu, s_new, lam, mu, pi, su_n, g_n = new
     sx_n = s_new - g_n
     gap_n = jnp.sum(rows.wu * su_n * lam) + jnp.sum(rows.wx * (sx_n * mu + s_new * pi))
@@ -397,15 +426,14 @@ def _soft_terms(rows, mu, pi, g):
     return jnp.max(jnp.abs(r_s)), jnp.sum(rows.wx * rows.rho * jnp.maximum(g, 0.0))
 
 
-def _updated(rows, st: PDState, su, step, alpha, stop, row_steps):
+def _updated(rows, st: PDState, su, step, alpha, fraction, row_steps):
     """(finite, the step length taken, the new u, x, nu, s, lam, mu, pi, su, g) from the ratio
     test's ``alpha`` (NaN where a row's step is not finite) and the rows' steps (ds, dlam,
-    dmu, dpi, dsu, Fdx): 0.99 of the way to the boundary, at most 1; a step of length zero
-    where it is not finite or the solve is stopped."""
+    dmu, dpi, dsu, Fdx): ``fraction`` of the way to the boundary, at most 1; a step of length
+    zero where it is not finite or ``fraction`` is not positive (a stopped solve's 0; NaN)."""
     ds, dlam, dmu, dpi, dsu, Fdx = row_steps
     finite = all_finite(step) & ~jnp.isnan(alpha)
-    alpha = jnp.minimum(1.0, 0.99 * alpha)
-    alpha = jnp.where(finite & ~stop, alpha, 0.0)
+    alpha = jnp.where(finite & (fraction > 0.0), jnp.minimum(1.0, fraction * alpha), 0.0)
 
     def upd(v, dv, w=1.0):
         return v + alpha * jnp.where(finite & (w > 0), dv, 0.0)  # padding rows stay put
@@ -428,7 +456,7 @@ def _step_in_kernel(
     step,
     taus,
     h,
-    stop,
+    fraction,
     aff,
     interpret,
     table=None,
@@ -464,7 +492,7 @@ def _step_in_kernel(
         *extra,
         alpha_a,
         kappa,
-        jnp.asarray(stop, kappa.dtype),
+        fraction,
         *tables,
     )
     new, sc, finite = out[:3]
@@ -472,10 +500,10 @@ def _step_in_kernel(
     return (new, gap_n, finite, (rel_d, J), *out[3:])
 
 
-def _step_xla_system(ocp, rows, st: PDState, su, sx, step, taus, h, stop):
+def _step_xla_system(ocp, rows, st: PDState, su, sx, step, taus, h, fraction):
     """:func:`_step_xla`'s results and the Newton system at the new point
     (:func:`_system_xla`): XLA's form of the step kernel that carries the system."""
-    new, gap_n, finite, terms = _step_xla(ocp, rows, st, su, sx, step, taus, h, stop)
+    new, gap_n, finite, terms = _step_xla(ocp, rows, st, su, sx, step, taus, h, fraction)
     u, x, nu, s, lam, mu, pi, su_n, g_n = new
     at = st._replace(u=u, x=x, nu=nu, s=s, lam=lam, mu=mu, pi=pi, su=su_n, g=g_n)
     return new, gap_n, finite, terms, _system_xla(ocp, rows, at, su_n, s - g_n)
@@ -552,7 +580,11 @@ def pd_iteration(
     # residual depends on how XLA contracts its products (riccati.py): with loops compiled
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
-    args = (ocp, rows, st, su, sx, step, taus, h, stop)
+    if settings.step_fraction == "adaptive":
+        fraction = jnp.where(stop, 0.0, step_fraction(kappa, st.gap, m_eff))
+    else:
+        fraction = jnp.where(stop, 0.0, STEP_FRACTION_MIN)
+    args = (ocp, rows, st, su, sx, step, taus, h, fraction)
     in_kernel = functools.partial(
         _step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa), table=table, system=carried
     )

@@ -436,7 +436,7 @@ def _step_kernel(dims, N, system, *refs):
     predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, the cost blocks Q, R, the
     model [B, A], the linear costs q, r, the reference x_ref (these three per problem or
     :class:`_Shared`), with ``system`` the dynamics' offset c (the same) and the initial
-    state x0 (1, nx), the scalars alpha_a, kappa, stop (1, 1) each; outputs U (N, 2, nu),
+    state x0 (1, nx), the scalars alpha_a, kappa, fraction (1, 1) each; outputs U (N, 2, nu),
     X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g, with ``system`` the
     next iteration's Newton system at the new point (:func:`pd_blocks`'s six outputs), and
     (alpha, gap, relative dual residual, objective, finite).
@@ -471,7 +471,7 @@ def _step_kernel(dims, N, system, *refs):
     Q_r, R_r, M_r, q_r, r_r, xref_r = refs[19:25]
     n_in = 27 if system else 25
     c_r, x0_r = refs[25:27] if system else (None, None)
-    alpha_a, kappa, stop = _scalars(refs[n_in : n_in + 3])
+    alpha_a, kappa, fraction = _scalars(refs[n_in : n_in + 3])
     U_out, X_out, Fdu_out, Fdx_out, *outs = refs[n_in + 3 :]
     new_out, sys_out, sc_out = outs[:9], outs[9:-1], outs[-1]
 
@@ -566,11 +566,11 @@ def _step_kernel(dims, N, system, *refs):
 
     zero = 0.0 * kappa
     alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
-    # primal_dual._updated: 0.99 of the way to the boundary, at most 1; zero where the step
-    # is not finite (alpha NaN) or the solve is stopped
+    # primal_dual._updated: ``fraction`` of the way to the boundary, at most 1; zero where the
+    # step is not finite (alpha NaN) or the solve is stopped (fraction 0)
     finite = ~jnp.isnan(alpha)
-    take = finite & (stop == 0.0)
-    alpha = jnp.where(take, jnp.minimum(1.0, 0.99 * jnp.minimum(1.0, alpha)), 0.0)
+    take = finite & (fraction > 0.0)
+    alpha = jnp.where(take, jnp.minimum(1.0, fraction * jnp.minimum(1.0, alpha)), 0.0)
     gap = jnp.where(finite, c0 + alpha * (c1 + alpha * c2), c0)
 
     def upd(v, dv, w=None):
@@ -1019,11 +1019,12 @@ def pd_step_rows(
     model (:class:`rvdjax.ocp.OCP`'s), q, r and x_ref without the problem axis where the
     batch shares them; scalars: three (b,) arrays, the predictor's step length alpha_a, the
     corrector's barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's
-    steps) and whether the solve is stopped (1) or not (0).
+    steps) and the fraction of the way to the boundary that the step goes
+    (primal_dual.step_fraction; 0 where the solve is stopped).
 
     Returns:
         new: the new u, x, nu, s, lam, mu, pi, su, g (as the inputs);
-        sc (4, b): the step length taken alpha (0.99 of the way to the boundary, at most 1;
+        sc (4, b): the step length taken alpha (``fraction`` of the way to the boundary, at most 1;
         NaN in no case: whether the step was finite is ``finite``), the complementarity at the
         new point, the relative dual residual and the objective there
         (primal_dual._stopping_terms);

@@ -21,6 +21,7 @@ MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
 BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
 PAPER_STARTS = ("feasible", "warm", "track")
+STEP_FRACTIONS = ("adaptive", "fixed")
 
 
 class KernelForm(NamedTuple):
@@ -154,6 +155,13 @@ class SolverSettings:
             kernels' entry-by-entry algebra as XLA loops (:mod:`rvdjax.solver.unrolled`). They
             give the same iterates to rounding. The measurements behind "auto" are in
             docs/solver.md.
+        step_fraction: how far to the boundary the accurate mode's corrector steps:
+            "adaptive" (default), 1 - sigma of the way, between 0.99 and 0.9999 (fewer
+            iterations: Nocedal & Wright 2006, Sec. 14.2); "fixed", 0.99 of the way. A solve
+            under differentiation (``jax.grad``, ``jax.vjp``) runs "fixed" whatever this says:
+            its iterates stay near the central path, where the implicit derivative, which holds
+            each row's complementarity product fixed, is accurate (docs/solver.md). Both stop
+            at the same tolerances.
     """
 
     mode: str = "accurate"
@@ -164,6 +172,7 @@ class SolverSettings:
     backend: str = "rvdjax"
     paper_start: str = "feasible"
     kernel: str = "auto"
+    step_fraction: str = "adaptive"
 
     def __post_init__(self):
         for name, allowed in (
@@ -172,6 +181,7 @@ class SolverSettings:
             ("backend", BACKENDS),
             ("paper_start", PAPER_STARTS),
             ("kernel", KERNELS),
+            ("step_fraction", STEP_FRACTIONS),
         ):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
