@@ -510,6 +510,7 @@ def test_make_ocp_rejects_bad_inputs(change, word):
         (dict(line_search_batch=0), "line_search_batch"),
         (dict(paper_start="cold"), "paper_start"),
         (dict(backend="osqp"), "backend"),
+        (dict(step_fraction="full"), "step_fraction"),
     ],
 )
 def test_settings_reject_bad_values(kw, word):
@@ -557,6 +558,46 @@ def test_warm_start_next_step(fastmpc_pair, fastmpc_accurate, clarabel_solve):
     print(f"\n[warm start] iterations warm {int(warm.iterations)} cold {int(cold.iterations)}; {m}")
     assert not failures, "\n".join(failures)
     assert abs(float(warm.objective) - float(cold.objective)) <= 1e-8 * abs(float(cold.objective))
+
+
+def test_the_adaptive_step_length_and_the_differentiated_solve(clarabel_solve):
+    """The corrector's step length (docs/solver.md). fastmpc-3d's first 20 MPC steps, each
+    warm-started from the previous plan shifted (the state moves along the plan): steps 13-20,
+    where the warm start is close, take fewer iterations stepping 1 - sigma of the way to the
+    boundary than 0.99 of the way ("fixed"), and both end at Clarabel's optimum (their states
+    drift apart by the plans' 1e-6 differences). A solve
+    under differentiation steps 0.99 of the way whatever the settings say: value_and_grad's
+    plan is the fixed solve's (to rounding), not the adaptive one's (2e-6 apart here)."""
+    fixed = SolverSettings(step_fraction="fixed")
+    iterations, last = {}, {}
+    for settings in (ACCURATE, fixed):
+        sol = solve(fastmpc3d_first_step(), settings)
+        its = []
+        for k in range(1, 21):
+            ocp = fastmpc3d_step(np.asarray(sol.x[0]), k * FASTMPC3D["ts"])
+            sol = solve(ocp, settings, init=shift_solution(sol))
+            its.append(int(sol.iterations))
+        iterations[settings.step_fraction], last[settings.step_fraction] = its, (ocp, sol)
+    assert sum(iterations["adaptive"][12:]) < sum(iterations["fixed"][12:]), iterations
+    for name, (ocp, sol) in last.items():  # states 2e-4 apart by now: each its own reference
+        _, failures = _check(ocp, sol, _reference(ocp, clarabel_solve), f"step 20, {name}")
+        assert not failures, "\n".join(failures)
+
+    prev = solve(fastmpc3d_first_step(), ACCURATE)
+    ocp = fastmpc3d_step(np.asarray(prev.x[0]), FASTMPC3D["ts"])
+    init = shift_solution(prev)
+
+    def plan(x0, settings=ACCURATE):
+        u = solve(ocp._replace(x0=x0), settings, init=init).u
+        return jnp.sum(u), u
+
+    (_, u_grad), g = jax.value_and_grad(plan, has_aux=True)(ocp.x0)
+    assert np.all(np.isfinite(np.asarray(g)))
+    u_fixed = np.asarray(plan(ocp.x0, fixed)[1])
+    u_adaptive = np.asarray(plan(ocp.x0)[1])
+    scale = np.max(np.abs(u_fixed))
+    assert np.max(np.abs(np.asarray(u_grad) - u_fixed)) <= 1e-12 * scale
+    assert np.max(np.abs(np.asarray(u_grad) - u_adaptive)) > 1e-9 * scale
 
 
 def test_paper_start_feasible_keeps_the_dynamics(fastmpc_pair, fastmpc_accurate):

@@ -65,7 +65,7 @@ SIGMA_FLOOR_RES = 10.0
 # every warm-started solve; a fixed 0.9999 jammed fastmpc-3d's solves on the boundary (5 of 141
 # steps at the iteration cap) where the corrector was still centring. Iterations per MPC step,
 # 0.99 -> 1 - sigma: fastmpc-3d 5.48 -> 3.75, rotating-target-b 5.40 -> 3.48, thesis-vbar
-# 15.27 -> 14.48, with the same statuses and answers (docs/solver.md).
+# 15.27 -> 14.49, with the same statuses and answers (docs/solver.md).
 STEP_FRACTION_MIN = 0.99
 STEP_FRACTION_MAX = 0.9999
 
