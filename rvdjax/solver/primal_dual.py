@@ -580,10 +580,10 @@ def pd_iteration(
     # residual depends on how XLA contracts its products (riccati.py): with loops compiled
     # whole, 4 of 32 random N = 60 problems ended NONFINITE without the refinement step.
     step = kkt_solve_refined(kkt, g_u, g_x, rp, method, kernel)
+    eta = STEP_FRACTION_MIN
     if settings.step_fraction == "adaptive":
-        fraction = jnp.where(stop, 0.0, step_fraction(kappa, st.gap, m_eff))
-    else:
-        fraction = jnp.where(stop, 0.0, STEP_FRACTION_MIN)
+        eta = step_fraction(kappa, st.gap, m_eff)
+    fraction = jnp.where(stop, 0.0, eta)
     args = (ocp, rows, st, su, sx, step, taus, h, fraction)
     in_kernel = functools.partial(
         _step_in_kernel, aff=(Fdu_a, Fdx_a, alpha_a, kappa), table=table, system=carried
