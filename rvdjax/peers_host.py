@@ -26,6 +26,9 @@ __all__ = [
 # Tolerances of Clarabel's "reference" mode.
 REFERENCE_TOL = 1e-10
 
+# A solved QP's status as each peer spells it (Clarabel, PIQP, DAQP, OSQP, qpax).
+SOLVED = ("Solved", "PIQP_SOLVED", "EXIT_OPTIMAL", "solved", "converged")
+
 
 class PeerResult(NamedTuple):
     """Result of one peer solve.
@@ -34,7 +37,7 @@ class PeerResult(NamedTuple):
         z: (nz,) primal solution in the variables of the original QP.
         objective: 1/2 z'Pz + q'z + const, evaluated on the original QP.
         iterations: iterations reported by the solver.
-        status: the solver's status string (e.g. "Solved", "solved", "EXIT_OPTIMAL").
+        status: the solver's status string (a solved QP's: one of :data:`SOLVED`).
         solve_ms: wall-clock time of the solve call only [ms].
         setup_ms: wall-clock time of the solver set-up [ms].
     """

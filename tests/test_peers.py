@@ -159,3 +159,20 @@ def test_qpax_batch(problems):
         assert qp_objective(qp, zi) == pytest.approx(ref.objective, rel=1e-5)
     with pytest.raises(ValueError, match="same shapes"):
         peers.qpax_batch_solver([problems["hard"], problems["soft"]])
+
+
+@pytest.mark.parametrize("backend", ["clarabel", "piqp", "daqp", "daqp-condensed"])
+def test_peer_backend_reports_a_solved_qp_as_converged(backend):
+    """SolverSettings(backend=...) solves the OCP with a host peer inside the jitted solve; a
+    QP the peer solved is reported as converged, at rvdjax's optimum (PIQP's "PIQP_SOLVED"
+    was reported as max_iter until 2026-12-06)."""
+    pytest.importorskip(peers._MODULE.get(backend, backend))
+    from rvdjax.problems import fastmpc3d_first_step
+    from rvdjax.solver import SolverSettings, Status, solve
+
+    ocp = fastmpc3d_first_step()
+    sol = solve(ocp, SolverSettings(backend=backend))
+    ref = solve(ocp)
+    assert int(sol.status) == Status.CONVERGED, Status.name(int(sol.status))
+    assert int(sol.iterations) > 0
+    assert float(sol.objective) == pytest.approx(float(ref.objective), rel=1e-6)

@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from rvdjax.peers import PEERS, available_peers, qpax_batch_solver
+from rvdjax.peers_host import SOLVED
 from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
 from rvdjax.qp import to_qp
 from rvdjax.solver import SolverSettings, max_violation, solve, solve_batch
@@ -44,10 +45,6 @@ class BenchConfig:
     repeats: int = 3
     seed: int = 0
     obstacles: bool = True
-
-
-# Success statuses as each peer spells them (see rvdjax.peers).
-_SOLVED = ("Solved", "PIQP_SOLVED", "EXIT_OPTIMAL", "solved", "converged")
 
 
 def _rss_mb() -> float:
@@ -207,7 +204,7 @@ def _peer_rows(qps, J_ref, names, N, progress):
             clarabel_ms = med_ms
         gaps = [(r.objective - J) / abs(J) for r, J in zip(results, J_ref, strict=False)]
         viol = max(_qp_violation(qp, r.z) for qp, r in zip(qps, results, strict=False))
-        bad = sum(r.status not in _SOLVED for r in results)
+        bad = sum(r.status not in SOLVED for r in results)
         rows.append(
             _row(
                 name,

@@ -17,12 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax.ocp import OCP
+from rvdjax.peers_host import SOLVED
 from rvdjax.solver.types import Solution, Status
 
 __all__ = ["solve_clarabel_backend"]
-
-
-_OK = {"Solved", "solved", "EXIT_OPTIMAL"}
 
 
 def _host_solve(name: str, qp):
@@ -42,7 +40,7 @@ def _clarabel_host(*leaves, solver: str = "clarabel"):
         res = _host_solve(solver, to_qp(ocp, soft=True))
         u, x = split_solution(res.z, N, nx, nu)
         ok = np.all(np.isfinite(u)) and np.all(np.isfinite(x))
-        status = Status.CONVERGED if res.status in _OK else Status.MAX_ITER
+        status = Status.CONVERGED if res.status in SOLVED else Status.MAX_ITER
         if "Infeasible" in res.status:
             status = Status.INFEASIBLE
         its = res.iterations
