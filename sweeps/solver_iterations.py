@@ -7,10 +7,14 @@ solver change that lowers the iterations can be seen not to change the answers).
 ``--disturbed K`` the disturbed rows fly K PRNG keys of ``thesis-vbar`` (with the navigation
 filter) and ``rotating-target-b``. With ``--vary NAME=V1,V2,...`` each scenario flies once
 per value of a solver parameter instead, its delta-v and applied inputs compared with the
-first value's.
+first value's. With ``--peers clarabel,piqp`` each scenario flies its maneuver one MPC step
+at a time and every step's QP (the OCP rvdjax solved, soft rows as their exact penalty) is
+solved again from a cold start by rvdjax and by each peer: their iterations per MPC step
+beside rvdjax's warm-started ones, on the same QPs.
 
     python sweeps/solver_iterations.py [--scenarios a,b,...] [--disturbed 8] [--json]
     python sweeps/solver_iterations.py --scenarios thesis-vbar,fastmpc-3d --vary tol=1e-9,1e-6
+    python sweeps/solver_iterations.py --scenarios thesis-vbar,fastmpc-3d --peers clarabel,piqp
 """
 
 from __future__ import annotations
@@ -71,6 +75,63 @@ def disturbed(name: str, nav_filter: bool, runs: int) -> dict:
     return _row(label, infos, m, runs)
 
 
+def _stats(v) -> str:
+    v = np.asarray(v)
+    return f"{v.mean():6.2f} (p90 {np.percentile(v, 90):3.0f}, max {v.max():3d})"
+
+
+def against_peers(name: str, peers: list[str]) -> dict:
+    """One maneuver flown a step at a time (as ``kernel.fly`` flies it): rvdjax's iterations
+    per MPC step, warm-started as it flies and cold, and each peer's on the same step's QP,
+    cold, with the peer's failures counted."""
+    from jax import lax
+
+    from rvdjax.loop.kernel import advance, init, prepare
+    from rvdjax.solver import solve
+    from rvdjax.solver.clarabel import solve_clarabel_backend
+    from rvdjax.solver.driver import finish, finished, iterate, start
+    from rvdjax.solver.types import Status
+
+    sc = get_scenario(name)
+    flight = sc.flight(FlightOptions(mode="accurate"))
+    params, loop = flight.params, flight.loop
+    sp = sc.solver_params("accurate")
+    settings = loop.config.settings
+
+    @jax.jit
+    def step(state):
+        prep = prepare(loop, params, state)
+        ocp, s = start(prep.ocp, settings, sp, prep.warm)
+        s = lax.while_loop(
+            lambda s: ~finished(settings, s), lambda s: iterate(ocp, settings, sp, s), s
+        )
+        return prep, ocp, s
+
+    @jax.jit
+    def fly_on(state, prep, ocp, s):
+        return advance(loop, params, sp, state, prep, finish(ocp, settings, sp, s))[0]
+
+    @jax.jit
+    def cold(ocp):
+        return solve(ocp, settings, sp).iterations
+
+    state = init(loop, params, jnp.asarray(flight.x0), jax.random.key(0))
+    its = {"rvdjax": [], "rvdjax, cold": [], **{p: [] for p in peers}}
+    failed = dict.fromkeys(peers, 0)
+    for _ in range(loop.config.n_steps):
+        if not bool(state.active):
+            break
+        prep, ocp, s = step(state)
+        its["rvdjax"].append(int(s.core.it))
+        its["rvdjax, cold"].append(int(cold(ocp)))
+        for p in peers:
+            sol = solve_clarabel_backend(ocp, p)
+            its[p].append(int(sol.iterations))
+            failed[p] += int(sol.status) not in (Status.CONVERGED, Status.INFEASIBLE)
+        state = fly_on(state, prep, ocp, s)
+    return {"scenario": name, "steps": len(its["rvdjax"]), "iterations": its, "failed": failed}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated names")
@@ -83,10 +144,31 @@ def main(argv=None) -> None:
         "nominal rows per value, with the delta-v and the applied inputs compared with the "
         "first value's",
     )
+    ap.add_argument(
+        "--peers",
+        metavar="NAME,...",
+        help="solve every MPC step's QP again with these host solvers, cold (clarabel, piqp, "
+        "daqp, daqp-condensed), and print their iterations per step beside rvdjax's",
+    )
     args = ap.parse_args(argv)
     names = [n for n in args.scenarios.split(",") if n]
     for n in names:
         get_scenario(n)  # unknown names fail before anything compiles
+    if args.peers:
+        from rvdjax.peers import PEERS
+
+        peers = [p for p in args.peers.split(",") if p]
+        for p in peers:
+            if p not in PEERS:
+                ap.exit(2, f"--peers: {p!r} is not one of {', '.join(PEERS)}\n")
+        for n in names:
+            r = against_peers(n, peers)
+            print(f"{n:<26} {r['steps']:4d} MPC steps, iterations per step:")
+            for solver, v in r["iterations"].items():
+                note = f"  failed {r['failed'][solver]}" if solver in r["failed"] else ""
+                start = {"rvdjax": " (warm)", "rvdjax, cold": ""}.get(solver, " (cold)")
+                print(f"    {solver + start:<20} {_stats(v)}{note}")
+        return
     if args.vary:
         field, _, values = args.vary.partition("=")
         values = [float(v) for v in values.split(",")]
