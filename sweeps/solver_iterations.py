@@ -147,20 +147,21 @@ def main(argv=None) -> None:
     ap.add_argument(
         "--peers",
         metavar="NAME,...",
-        help="solve every MPC step's QP again with these host solvers, cold (clarabel, piqp, "
-        "daqp, daqp-condensed), and print their iterations per step beside rvdjax's",
+        help="solve every MPC step's QP again with these peers, cold (those installed of "
+        "clarabel, piqp, daqp, daqp-condensed, osqp, qpax), and print their iterations per "
+        "step beside rvdjax's",
     )
     args = ap.parse_args(argv)
     names = [n for n in args.scenarios.split(",") if n]
     for n in names:
         get_scenario(n)  # unknown names fail before anything compiles
     if args.peers:
-        from rvdjax.peers import PEERS
+        from rvdjax.peers import available_peers
 
         peers = [p for p in args.peers.split(",") if p]
         for p in peers:
-            if p not in PEERS:
-                ap.exit(2, f"--peers: {p!r} is not one of {', '.join(PEERS)}\n")
+            if p not in available_peers():
+                ap.exit(2, f"--peers: {p!r} is not one of {', '.join(available_peers())}\n")
         for n in names:
             r = against_peers(n, peers)
             print(f"{n:<26} {r['steps']:4d} MPC steps, iterations per step:")
