@@ -49,7 +49,7 @@ from rvdjax.solver.primal_dual import (
     pd_system,
 )
 from rvdjax.solver.riccati import traces_cuda
-from rvdjax.solver.start import pull_inside, track_plan
+from rvdjax.solver.start import lift_inside, pull_inside, track_plan
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
 __all__ = [
@@ -150,6 +150,8 @@ def start(
     if x_start is not None and settings.mode == "paper" and settings.paper_start == "track":
         u0 = track_plan(ocp, u0, x_start, settings.method, settings.kernel)
     u0 = pull_inside(rows, u0)
+    if settings.mode == "accurate":  # the primal-dual start's multipliers are kappa0 / slack
+        u0 = lift_inside(rows, u0)
     # The accurate mode is a feasible-start method; so is paper mode by default (``paper_start
     # = "feasible"``): a run cut at max_iter then still flies a plan that obeys the dynamics.
     # Algorithm 1's literal infeasible start keeps the warm start's states (``"warm"``).

@@ -15,12 +15,30 @@ from jax import lax
 
 from rvdjax.ocp import OCP
 from rvdjax.solver import stagewise as sw
-from rvdjax.solver.barrier import Rows
+from rvdjax.solver.barrier import Rows, u_slack
 from rvdjax.solver.kkt import KKT_SOLVERS
 from rvdjax.solver.riccati import cuda_or_default
 from rvdjax.solver.types import Plan, Solution, SolverSettings
 
-__all__ = ["drift", "drift_plan", "pull_inside", "shift_solution", "track_plan", "warm_start"]
+__all__ = [
+    "drift",
+    "drift_plan",
+    "input_anchor",
+    "lift_inside",
+    "pull_inside",
+    "shift_solution",
+    "track_plan",
+    "warm_start",
+]
+
+# lift_inside: an input row whose start slack is below LIFT_BELOW of its slack at the stage's
+# anchor is lifted to LIFT_TO of it. LIFT_BELOW sits under pull_inside's 1 % margin, so that
+# starts it leaves are left alone (a warm start at a saturated thruster: lifting those to 0.1
+# cost fastmpc-3d 3.75 -> 4.23 iterations a step, thesis-vbar 14.49 -> 16.33); 1e-3 / 1e-2 /
+# 0.1 as the lifted slack gave thesis-vbar-lp 22.6 / 19.6 / 17.8 iterations a step
+# (docs/benchmark.md, "Against the peers").
+LIFT_BELOW = 1e-3
+LIFT_TO = 0.1
 
 
 def _stage_scan(make_step, x0, xs, length=None):
@@ -120,6 +138,48 @@ def pull_inside(rows: Rows, u, margin=0.99):
     ratio = jnp.where((rows.wu > 0) & (Fu_u > 0), rows.fu / jnp.where(Fu_u > 0, Fu_u, 1.0), 2.0)
     theta = jnp.minimum(1.0, margin * jnp.min(ratio, axis=-1))
     return u * theta[:, None]
+
+
+def input_anchor(rows: Rows):
+    """A point inside each stage's input rows, away from any row that u = 0 lies close to: one
+    step of Newton's method on the rows' log barrier from u = 0, its Hessian taken by its
+    diagonal (exact for bounds on single inputs), moved half way to the first row it heads
+    for. For rows symmetric about 0 it is 0 itself; for bounds 0 <= u <= u_max (0 a hair
+    inside), u_max / 2 where one input is bounded; a direction no row bounds takes the plain
+    step. Needs u = 0 strictly inside (``validate_ocp``: fu > 0). Returns the anchor and the
+    rows' slacks there."""
+    Fu, s, wu = rows.Fu, rows.fu, rows.wu
+    w = wu / jnp.where(s > 0, s, 1.0)  # the barrier's gradient at 0 is sum_i w_i Fu_i
+    g = sw.mtv(Fu, w)
+    h = sw.mtv(Fu * Fu, w / jnp.where(s > 0, s, 1.0))
+    d = jnp.where(h > 0, -g / jnp.where(h > 0, h, 1.0), 0.0)
+    Fd = sw.mv(Fu, d)
+    shrink = (wu > 0) & (Fd > 0)
+    reach = jnp.min(jnp.where(shrink, s / jnp.where(shrink, Fd, 1.0), jnp.inf), axis=-1)
+    step = jnp.where(jnp.isfinite(reach), 0.5 * reach, 1.0)[..., None]
+    return step * d, s - step * Fd
+
+
+def lift_inside(rows: Rows, u):
+    """``u`` moved towards :func:`input_anchor`, stage by stage, as far as lifts every input row
+    whose slack is below LIFT_BELOW of its slack at the anchor to LIFT_TO of it; stages with
+    no such row are returned as they are (to the bit).
+
+    A start a hair from a row puts that row's multiplier at kappa0 / slack: the LP cost's
+    split inputs (paper 003's fuel-optimal rendezvous) are bounded 1.8e-8 m/s below zero
+    (``rvdjax.families.phases_inputs.LP_EPS``), and from u = 0 the multipliers of 1e13 held
+    a solve's gap for 250 iterations (docs/benchmark.md). Slacks are affine in the move, so
+    every row stays feasible where the anchor is strictly inside them all."""
+    anchor, s_a = input_anchor(rows)
+    on = rows.wu > 0
+    s_u = u_slack(rows, u)
+    low = on & (s_u < LIFT_BELOW * s_a)
+    gain = jnp.where(low, s_a - s_u, 1.0)
+    need = jnp.where(low, (LIFT_TO * s_a - s_u) / gain, 0.0)
+    theta = jnp.clip(jnp.max(need, axis=-1), 0.0, 1.0)
+    inside = jnp.all(jnp.where(on, s_a > 0, True), axis=-1)
+    lift = (theta > 0) & inside
+    return jnp.where(lift[..., None], u + theta[..., None] * (anchor - u), u)
 
 
 def track_plan(ocp: OCP, u_prev, x_prev, method: str, kernel: str = "auto"):
