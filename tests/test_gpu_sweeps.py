@@ -401,6 +401,7 @@ def test_gpu_traffic_counts_one_branch_of_a_conditional():
     assert (t["launches"], t["read"], t["written"]) == (2, 2 * 256, 2 * 256)
 
 
+@pytest.mark.users_compiler  # bit for bit: XLA's default emitters (tests/conftest.py)
 def test_shared_model_rows_solve_the_same_qps():
     """gpu_benchmark's --shared-model rows: one copy of the fastmpc-3d model (A, B, c, Q, R)
     under vmap, the rest per problem, gives vmap(solve)'s solutions, with the model left

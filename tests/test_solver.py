@@ -560,6 +560,7 @@ def test_warm_start_next_step(fastmpc_pair, fastmpc_accurate, clarabel_solve):
     assert abs(float(warm.objective) - float(cold.objective)) <= 1e-8 * abs(float(cold.objective))
 
 
+@pytest.mark.users_compiler  # two programs to 1e-12: XLA's default emitters (conftest.py)
 def test_the_adaptive_step_length_and_the_differentiated_solve(clarabel_solve):
     """The corrector's step length (docs/solver.md). fastmpc-3d's first 20 MPC steps, each
     warm-started from the previous plan shifted (the state moves along the plan): steps 13-20,

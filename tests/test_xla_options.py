@@ -127,11 +127,11 @@ FLY = textwrap.dedent(
 )
 
 
-@pytest.mark.slow  # 11 s; `pytest -m slow`
 def test_the_suites_optimisation_level_flies_what_users_fly():
-    """The suite compiles at XLA's backend optimisation level 0 (tests/conftest.py); a user's
-    program compiles at the default level. The default scenario flown at the default level in
-    a fresh interpreter equals the same flight in this process."""
+    """The suite compiles at XLA's backend optimisation level 0 and, with jaxlib 0.10, with
+    XLA's older CPU loop emitters (tests/conftest.py); a user's program compiles at the default
+    level with the default emitters. The default scenario flown with the users' options in a
+    fresh interpreter equals the same flight in this process."""
     child = _run(FLY)  # XLA_FLAGS cleared: rvdjax's options at XLA's default optimisation
     assert child.returncode == 0, child.stderr[-2000:]
     effort, time_s, steps = child.stdout.split()
@@ -143,3 +143,14 @@ def test_the_suites_optimisation_level_flies_what_users_fly():
     )
     assert int(steps) == mine_steps and float(time_s) == mine_time
     assert abs(float(effort) - mine_effort) <= 1e-9 * mine_effort
+
+
+@pytest.mark.users_compiler
+def test_a_users_compiler_test_runs_with_xlas_default_emitters():
+    """A ``users_compiler`` test runs where XLA compiles with its default CPU emitters (a child
+    interpreter when the suite uses the older ones, tests/conftest.py) and the suite's other
+    options kept."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    assert "--xla_cpu_use_fusion_emitters" not in flags
+    if os.environ.get("RVDJAX_TEST_XLA_OPT") != "default":
+        assert "--xla_backend_optimization_level=0" in flags
