@@ -107,7 +107,7 @@ def clarabel_solve():
 # ones last to fill the gaps.
 FILE_COST_S = {
     "test_notebooks.py": 102,
-    "test_kernels.py": 89,
+    "test_kernels.py": 106,
     "test_solver.py": 60,
     "test_phases.py": 53,
     "test_engine.py": 53,
