@@ -149,9 +149,10 @@ def input_anchor(rows: Rows):
     step. Needs u = 0 strictly inside (``validate_ocp``: fu > 0). Returns the anchor and the
     rows' slacks there."""
     Fu, s, wu = rows.Fu, rows.fu, rows.wu
-    w = wu / jnp.where(s > 0, s, 1.0)  # the barrier's gradient at 0 is sum_i w_i Fu_i
+    s_safe = jnp.where(s > 0, s, 1.0)
+    w = wu / s_safe  # the barrier's gradient at 0 is sum_i w_i Fu_i
     g = sw.mtv(Fu, w)
-    h = sw.mtv(Fu * Fu, w / jnp.where(s > 0, s, 1.0))
+    h = sw.mtv(Fu * Fu, w / s_safe)
     d = jnp.where(h > 0, -g / jnp.where(h > 0, h, 1.0), 0.0)
     Fd = sw.mv(Fu, d)
     shrink = (wu > 0) & (Fd > 0)
