@@ -406,13 +406,16 @@ def test_shared_model_rows_solve_the_same_qps():
     """gpu_benchmark's --shared-model rows: one copy of the fastmpc-3d model (A, B, c, Q, R)
     under vmap, the rest per problem, gives vmap(solve)'s solutions, with the model left
     unbatched (not broadcast back to one copy per problem). Bit for bit where XLA contracts
-    multiplies and adds into FMAs (x86-64 CPUs with FMA); without FMA the two programs round
-    differently (``XLA_FLAGS=--xla_cpu_max_isa=SSE4_2``: the plans 8e-12 apart relative to
-    the largest input, the objectives 2e-16, the same statuses and iterations), and they are
-    held to the 1e-10 of the tests' other differently-rounded forms."""
+    multiplies and adds into FMAs (x86-64 CPUs with FMA). Without FMA the two programs round
+    differently, and a converged solve's last, ill-conditioned Newton steps carry that into
+    the plan: with ``XLA_FLAGS=--xla_cpu_max_isa=SSE4_2`` (2026-12-07) the plans were 3.4e-10
+    apart relative to the largest input, the states 1.7e-11, the objectives 1.6e-14, with the
+    same statuses and iterations, while each plan was 1.4e-4 from the optimum (a solve to a
+    tolerance of 1e-13). There the two must agree to a thousandth of the solver's own
+    distance to the optimum (a fixed 1e-10, set from an earlier 8e-12, failed)."""
     import jax
 
-    from rvdjax.solver import SolverSettings, solve
+    from rvdjax.solver import SolverParams, SolverSettings, Status, solve
 
     gb = _import("gpu_benchmark")
     ocps = gb._ocps(3)
@@ -431,13 +434,18 @@ def test_shared_model_rows_solve_the_same_qps():
     got = fn(one)
     for name in ("status", "iterations"):
         np.testing.assert_array_equal(np.asarray(getattr(got, name)), getattr(want, name))
-    exact = _xla_cpu_contracts_fma()
+    if _xla_cpu_contracts_fma():
+        for name in ("u", "x", "nu", "objective"):
+            np.testing.assert_array_equal(
+                np.asarray(getattr(got, name)), np.asarray(getattr(want, name))
+            )
+        return
+    tight = jax.jit(jax.vmap(lambda o: solve(o, settings, SolverParams(tol=1e-13))))(ocps)
+    assert np.all(np.asarray(tight.status) == int(Status.CONVERGED))
     for name in ("u", "x", "nu", "objective"):
-        a, b = np.asarray(getattr(got, name)), np.asarray(getattr(want, name))
-        if exact:
-            np.testing.assert_array_equal(a, b)
-        else:
-            assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b)), name
+        a, b, c = (np.asarray(getattr(r, name)) for r in (got, want, tight))
+        apart, off = np.max(np.abs(a - b)), np.max(np.abs(b - c))
+        assert apart <= 1e-3 * off, f"{name}: {apart:.3e} apart, {off:.3e} from the optimum"
 
 
 def _xla_cpu_contracts_fma() -> bool:
