@@ -20,13 +20,8 @@ import inspect
 import math
 import os
 import re
-import sys
+import tomllib
 from typing import Any
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 from rvdjax.actuators.thrusters import MODULATORS, ThrusterSet
 from rvdjax.families import FAMILIES

@@ -7,12 +7,6 @@ import dataclasses
 import json
 import math
 import re
-import sys
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover - Python 3.10
-    pass
 
 from rvdjax.actuators.thrusters import ThrusterSet
 from rvdjax.families import FAMILIES
