@@ -8,6 +8,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTED_EXTRAS = ("test", "peers", "nmpc")  # the README's test command installs these
+# ruff lints in CI with its newest release (its rules and format move between releases); the
+# suite does not run it, so the floor does not pin it
+UNPINNED = {"ruff"}
 
 
 def _minimums() -> dict[str, str]:
@@ -35,8 +38,8 @@ def _floor() -> dict[str, str]:
 
 def test_the_minimum_versions_are_the_tested_floor():
     minimums, floor = _minimums(), _floor()
-    untested = {n: v for n, v in minimums.items() if n != "ruff" and floor.get(n) != v}
+    untested = {n: v for n, v in minimums.items() if n not in UNPINNED and floor.get(n) != v}
     assert not untested, f"minimums not in .ci/floor.txt as tested: {untested}"
     # jaxlib is jax's own dependency, pinned with it; nothing else in the floor is unlisted
     assert floor.pop("jaxlib") == floor["jax"]
-    assert set(floor) == set(minimums) - {"ruff"}
+    assert set(floor) == set(minimums) - UNPINNED
