@@ -78,6 +78,15 @@ def _compiled(kernel):
 FORMS = {k: _compiled(k) for k in ("xla", "pallas-block-factor")}
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _small_tiles():
+    """Every kernel of this module traced with tiles of 8 lanes. Set once for the module: a
+    change of the launch configuration clears JAX's caches, and with them every program the
+    module (and the library's setup code) compiled before it."""
+    with lanes.configured(block=8):
+        yield
+
+
 @pytest.mark.parametrize(
     "kernel, batch", [("xla", 3), ("xla", BATCH_LAST_MAX + 5), ("pallas-block-factor", 11)]
 )
@@ -90,8 +99,7 @@ def test_every_form_solves_the_kkt_system(kernel, batch):
     gives the same steps as the model repeated per problem."""
     SOLVE, SOLVE_BATCH, SOLVE_SHARED = FORMS[kernel]
     data = _problems(batch)
-    with lanes.configured(block=8):  # two tiles of 8 lanes, the last padded
-        out = SOLVE_BATCH(*data)
+    out = SOLVE_BATCH(*data)  # the kernels: two tiles of 8 lanes, the last padded
     for i in (0, batch - 1):
         ref = _dense_kkt(*(a[i] for a in data))
         one = SOLVE(*(a[i] for a in data))
@@ -253,10 +261,9 @@ def test_the_corrector_step_and_its_refinement_in_one_kernel(shared):
         kkt = kkt._replace(A=kkt.A[0], B=kkt.B[0], factor=kkt.factor._replace(M=kkt.factor.M[0]))
     axes = K.KKT(model, model, 0, 0, K.RiccatiFactor(model, 0, 0, 0))
     rhs = data[4:]
-    with lanes.configured(block=8):
-        got = _refined("pallas-rows", axes)(kkt, *rhs)
-        first = jax.tree.map(lambda a, x: a if x is None else a[x], kkt, axes)
-        alone = _refined("pallas-rows")(first, *(r[0] for r in rhs))
+    got = _refined("pallas-rows", axes)(kkt, *rhs)
+    first = jax.tree.map(lambda a, x: a if x is None else a[x], kkt, axes)
+    alone = _refined("pallas-rows")(first, *(r[0] for r in rhs))
     want = _refined("xla", axes)(kkt, *rhs)
     plain = jax.vmap(
         functools.partial(K.kkt_solve, method="riccati", kernel="xla"), (axes, 0, 0, 0)
@@ -304,8 +311,7 @@ def test_the_kernels_factor_carries_the_gain_they_do_not_store(shared):
         fn = lambda a, b, pu, px: K.riccati_factor(a, b, pu, px, kernel)  # noqa: E731
         return jax.jit(jax.vmap(fn, in_axes=axes))(A, B, Phi_u, Phi_x)
 
-    with lanes.configured(block=8):
-        got = factor("pallas-entries")
+    got = factor("pallas-entries")
     want = factor("xla")
     assert got.Lp is not None  # the kernels' storage came back with it
     for name in ("K", "L", "P"):
