@@ -362,40 +362,82 @@ def _triton_entries(text: str, kernel: str, side: str) -> list[int]:
     return [int(m.group(1)) for m in re.finditer(r"tensor<\d+x(\d+)x\d+xf64>", types)]
 
 
-def test_programs_compiled_side_by_side_are_the_ones_later_calls_run():
-    """The devices' programs compiled ahead, in threads (several devices on a host with cores
-    to spare) or one after another, are found by the later calls: no compile at the call
-    (whose time the engine counts as the device's), the same result."""
-    from jax import monitoring
+DEVICE_PROGRAMS_CHILD = """
+import jax, jax.numpy as jnp, numpy as np
+from jax import monitoring
+import rvdjax  # float64, the package's XLA options
+from rvdjax.loop.engine.device_programs import DevicePrograms
+from rvdjax.loop.engine.stream import compile_side_by_side
 
-    from rvdjax.loop.engine.stream import compile_side_by_side, compile_threads
+compiles = []
+monitoring.register_event_duration_secs_listener(
+    lambda e, d, **_: compiles.append(d) if e.endswith("backend_compile_duration") else None)
+
+def f(x, k):
+    return jax.lax.fori_loop(0, k, lambda i, y: jnp.sin(y) @ y.T / 8 + x, x)
+
+devices = jax.devices()
+assert len(devices) == 3, devices
+for threads in (1, 2):
+    program = DevicePrograms(jax.jit(f))
+    n = 7 + threads  # a program of its own shape
+    per_device = [(jax.device_put(jnp.full((n, n), 0.1 * (d.id + 1)), d), jnp.int32(3))
+                  for d in devices]
+    before = len(compiles)
+    assert compile_side_by_side(program, per_device, threads=threads) == threads
+    ahead = len(compiles)
+    out = [program(*a) for a in per_device]
+    assert program.compiles == 1 and ahead == before + 1, (program.compiles, ahead - before)
+    assert len(compiles) == ahead  # no compile at the calls
+    for d, a, o in zip(devices, per_device, out):
+        assert o.devices() == {d}, (o.devices(), d)
+        np.testing.assert_array_equal(o, jax.jit(f)(*a))  # jit's own program for the device
+    try:  # a device's program takes that device's buffers only
+        program.compiled(*per_device[1])(*per_device[2])
+    except ValueError:
+        pass
+    else:
+        raise AssertionError("device 1's program ran on device 2's buffers")
+
+# a program that loads but refuses the device's buffers at its first call (what a JAX whose
+# deserialisation kept the first device's assignment would give): the device compiles its own
+import rvdjax.loop.engine.device_programs as dp
+dp.load_on = lambda compiled, device: compiled
+program = DevicePrograms(jax.jit(f))
+per_device = [(jax.device_put(jnp.full((5, 5), 0.1 * (d.id + 1)), d), jnp.int32(3))
+              for d in devices]
+out = [program(*a) for a in per_device]
+assert program.compiles == 3, program.compiles
+for d, a, o in zip(devices, per_device, out):
+    assert o.devices() == {d}
+    np.testing.assert_array_equal(o, jax.jit(f)(*a))
+print("ok")
+"""
+
+
+def test_a_program_compiles_once_and_loads_onto_the_other_devices():
+    """The engine's per-device programs (three host devices in a child process): compiled
+    for the first device, loaded onto the others, one after another (this VM) or side by
+    side; the later calls compile nothing, run on their own device, and give the bits of
+    ``jax.jit``'s own program for that device. A loaded program that refuses its device's
+    buffers at its first call is replaced by the device's own compile."""
+    import os
+    import subprocess
+    import sys
+
+    from rvdjax.loop.engine.stream import compile_threads
 
     assert compile_threads(4, cores=2) == 1  # the 2-core VM: one after another
     assert compile_threads(16, cores=16) == 8 and compile_threads(2, cores=16) == 2
-
-    def f(x, k):
-        return jax.lax.fori_loop(0, k, lambda i, y: jnp.sin(y) @ y.T / 8 + x, x)
-
-    compiles = []
-
-    def count(event, duration, **_):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(duration)
-
-    monitoring.register_event_duration_secs_listener(count)
-    try:
-        for threads in (1, 2):  # one after another (this VM), side by side
-            program = jax.jit(f)
-            n = 7 + threads  # a program of its own shape: none in jit's cache yet
-            per_device = [(jnp.full((n, n), v), jnp.int32(3)) for v in (0.1, 0.2)]
-            before = len(compiles)
-            assert compile_side_by_side(program, per_device, threads=threads) == threads
-            ahead = len(compiles)
-            out = [program(*a) for a in per_device]
-            assert ahead > before and len(compiles) == ahead, threads  # none at the calls
-            np.testing.assert_array_equal(out[1], jax.jit(f)(*per_device[1]))
-    finally:
-        monitoring.unregister_event_duration_listener(count)
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=3"
+    r = subprocess.run(
+        [sys.executable, "-c", DEVICE_PROGRAMS_CHILD],
+        env={**os.environ, "XLA_FLAGS": flags.strip()},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-3000:]
 
 
 def test_slots_stored_last_fly_the_same_bits(monkeypatch, any_slot):

@@ -44,8 +44,9 @@ on an accelerator the slots from its memory, one chunk, the compacted refresh); 
 
 The modules: :mod:`.config` (the settings and their defaults per device), :mod:`.slots`
 (the slots, the engine's state and the queue's inputs), :mod:`.segment` (the ticks of a
-segment on a device), :mod:`.program` (the compiled programs) and :mod:`.stream` (the host's
-loop around them).
+segment on a device), :mod:`.program` (the compiled programs), :mod:`.device_programs` (a
+program compiled once and loaded onto every device) and :mod:`.stream` (the host's loop
+around them).
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from rvdjax.loop.engine.config import EngineConfig
+from rvdjax.loop.engine.device_programs import DevicePrograms
 from rvdjax.loop.engine.segment import _segment
 from rvdjax.loop.engine.slots import EngineState
 from rvdjax.loop.kernel import Loop
@@ -26,14 +27,13 @@ def _build_one(loop: Loop, cfg: EngineConfig, source_fn):
     """The jitted segment function of one device (cached: one trace per loop, engine
     configuration of a device and queue function, whatever the data). Several devices run
     it each on its own slots and share of the queue, with no communication: the same
-    program, and so the same bits as on one device. (``jax.jit`` keys its executables on the
-    device, so XLA compiles the program once per device: the compile time grows with
-    ``devices``; :func:`~rvdjax.loop.engine.stream.compile_side_by_side` overlaps those
-    compiles on a host with cores to spare.)
+    program, and so the same bits as on one device. It is compiled once and loaded onto the
+    further devices (:class:`~rvdjax.loop.engine.device_programs.DevicePrograms`), not
+    compiled per device as ``jax.jit`` alone would.
     (A ``shard_map`` over the devices was partitioned by XLA:
     one of the solver's shared-model products took another layout, and the last bits of
     some runs differed from one device's.)"""
-    return jax.jit(_segment(loop, cfg, source_fn))
+    return DevicePrograms(jax.jit(_segment(loop, cfg, source_fn)))
 
 
 def segment_program(loop: Loop, cfg: EngineConfig, source_fn):
@@ -61,7 +61,7 @@ def _compact(cfg: EngineConfig):
 
 @functools.lru_cache(maxsize=16)
 def _compact_jit(cfg: EngineConfig):
-    return jax.jit(_compact(cfg.per_device))
+    return DevicePrograms(jax.jit(_compact(cfg.per_device)))
 
 
 @functools.lru_cache(maxsize=64)

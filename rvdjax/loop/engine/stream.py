@@ -254,8 +254,9 @@ def run_stream(
 
 
 def compile_threads(devices: int, cores: int | None = None) -> int:
-    """Threads that compile the devices' programs side by side: one per device, at most half
-    the host's cores (``cores``: those this process may run on), since one XLA compile of
+    """Threads that compile the devices' programs side by side where a device cannot load the
+    first device's program (:func:`compile_side_by_side`): one per device, at most half the
+    host's cores (``cores``: those this process may run on), since one XLA compile of
     thesis-vbar's segment already keeps 1.5 of the 2-core VM's cores busy (11.1 s of CPU in
     7.4 s). 1: one device after another."""
     if cores is None:
@@ -264,29 +265,29 @@ def compile_threads(devices: int, cores: int | None = None) -> int:
 
 
 def compile_side_by_side(segment, per_device, pack=None, threads: int | None = None) -> int:
-    """Compile the segment program (and the packing program) for every device before the
-    first dispatch, :func:`compile_threads` at a time; returns the threads used (1: one device
-    after another). ``jax.jit`` keeps one executable per device, so dispatched one device
-    after another the programs compile one after another:
-    thesis-vbar's segment took 7.0, 12.9 and 30.4 s to compile for 1, 2 and 4 host devices
-    on the 2-core VM, where side by side gained nothing (12.9 and 31.8 s, the cores already
-    busy). XLA compiles without the interpreter lock, so on a host with more cores the
-    compiles overlap. The later calls find these executables in jit's cache: the same
-    program, so the same bits, and no compile inside a call (whose time the engine counts as
-    the device's)."""
+    """Make the segment program (and the packing program) of every device before the first
+    dispatch: compiled for the first device and loaded onto the others
+    (:class:`~rvdjax.loop.engine.device_programs.DevicePrograms`: thesis-vbar's segment took
+    7.0, 12.9 and 30.4 s to compile for 1, 2 and 4 host devices on the 2-core VM, one compile
+    per device, before the devices loaded the first one's). A device that cannot load it
+    compiles its own, :func:`compile_threads` at a time (XLA compiles without the interpreter
+    lock). Returns the threads used (1: one device after another). The later calls find these
+    executables: the same program, so the same bits, and no compile inside a call (whose time
+    the engine counts as the device's)."""
     threads = compile_threads(len(per_device)) if threads is None else threads
 
     def one(args):
-        segment.lower(*args).compile()
+        segment.compiled(*args)
         if pack is not None:
-            pack.lower(args[0]).compile()
+            pack.compiled(args[0])
 
+    one(per_device[0])
     if threads <= 1:
-        for args in per_device:
+        for args in per_device[1:]:
             one(args)
         return 1
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        list(pool.map(one, per_device))
+        list(pool.map(one, per_device[1:]))
     return threads
 
 
@@ -407,24 +408,20 @@ def _compile_segment(loop, source, params, solver_params, config):
     eng = _initial_state(loop, config, source, params, sp)[0]
     put = lambda tree: jax.device_put(tree, device)  # noqa: E731
     limit = jnp.ones(config.lanes, jnp.int32)
-    compiled = (
-        _build(loop, config, source.fn)
-        .lower(
-            eng,
-            put(source.data),
-            jnp.int32(0),
-            limit,
-            jnp.asarray(False),
-            put(params),
-            put(sp),
-            jnp.asarray(config.ticks_per_segment, jnp.int32),
-            jnp.int32(0),
-            jnp.int32(config.devices),
-        )
-        .compile()
+    compiled = _build(loop, config, source.fn).compiled(
+        eng,
+        put(source.data),
+        jnp.int32(0),
+        limit,
+        jnp.asarray(False),
+        put(params),
+        put(sp),
+        jnp.asarray(config.ticks_per_segment, jnp.int32),
+        jnp.int32(0),
+        jnp.int32(config.devices),
     )
     if config.n_chunks > 1:  # the packing of the live slots once the queue is empty
-        _compact_jit(config).lower(eng).compile()
+        _compact_jit(config).compiled(eng)
     return compiled
 
 
