@@ -15,6 +15,7 @@ refuses), the device compiles its own, as ``jax.jit`` would.
 from __future__ import annotations
 
 import io
+import pickle
 import threading
 
 import jax
@@ -40,41 +41,47 @@ def _key(args):
     return (tree, avals), device or default_device()
 
 
+class _OnDevice(pickle.Unpickler):
+    """Reads what ``jax.experimental.serialize_executable.serialize`` wrote (a pickle whose
+    persistent ids stand for the executable, its devices and its client) for ``device``:
+    every device as ``device``, and the executable deserialised with ``device``'s assignment
+    (the public ``deserialize_and_load`` keeps the source's, and the program would then
+    refuse the device's buffers)."""
+
+    def __init__(self, file, device):
+        from jaxlib import xla_client
+
+        super().__init__(file)
+        self.device = device
+        self.devices = xla_client.DeviceList((device,))
+        self.options = xla_client.CompileOptions()
+        self.options.num_replicas = self.options.num_partitions = 1
+        self.options.device_assignment = xla_client.DeviceAssignment.create(np.array([[device.id]]))
+
+    def persistent_load(self, pid):
+        kind = pid[0]
+        if kind == "exec":
+            return self.device.client.deserialize_executable(pid[1], self.devices, self.options)
+        if kind == "device":
+            return self.device
+        if kind == "client":
+            return self.device.client
+        raise pickle.UnpicklingError(f"unknown persistent id {kind!r}")
+
+
 def load_on(compiled: jax.stages.Compiled, device) -> jax.stages.Compiled | None:
     """``compiled`` (a one-device program) loaded onto ``device`` of the same platform without
-    compiling it again, or None where this JAX or backend cannot (the caller compiles).
-
-    Uses JAX's executable serialisation (``jax.experimental.serialize_executable``) with the
-    source device's id mapped to ``device`` and the executable deserialised with ``device``'s
-    assignment: the public ``deserialize_and_load`` keeps the source's assignment, and the
-    program would then refuse the device's buffers."""
+    compiling it again, or None where this JAX or backend cannot (the caller compiles)."""
     try:
-        from jax._src import compiler
-        from jax.experimental import serialize_executable as se
+        from jax.experimental import serialize_executable
 
         (source,) = compiled.runtime_executable().local_devices()
         if source == device:
             return compiled
         if source.platform != device.platform:
             return None
-        payload, in_tree, out_tree = se.serialize(compiled)
-        options = compiler.get_compile_options(
-            num_replicas=1, num_partitions=1, device_assignment=np.array([[device]])
-        )
-
-        class _OnDevice(se._JaxPjrtUnpickler):
-            def __init__(self, file):
-                super().__init__(file, device.client, [device])
-                self.devices_by_id = {source.id: device, device.id: device}
-
-            def persistent_load(self, pid):
-                if pid[0] == "exec":
-                    return self.backend.deserialize_executable(
-                        pid[1], self.execution_devices, options
-                    )
-                return super().persistent_load(pid)
-
-        unloaded, args_info, no_kwargs = _OnDevice(io.BytesIO(payload)).load()
+        payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+        unloaded, args_info, no_kwargs = _OnDevice(io.BytesIO(payload), device).load()
         return jax.stages.Compiled(
             unloaded.load(), [], in_tree.unflatten(args_info), out_tree, no_kwargs=no_kwargs
         )
