@@ -109,12 +109,14 @@ class DevicePrograms:
         return self.jitted.trace(*args, **kwargs)
 
     def compiled(self, *args) -> jax.stages.Compiled:
-        key = _key(args)
+        return self._executable(_key(args), args)
+
+    def _executable(self, key, args) -> jax.stages.Compiled:
         with self._lock:
             exe = self._executables.get(key)
+            if exe is not None:
+                return exe
             source = next((e for (s, _), e in self._executables.items() if s == key[0]), None)
-        if exe is not None:
-            return exe
         exe = None if source is None else load_on(source, key[1])
         if exe is None:
             return self._compile(key, args)
@@ -131,7 +133,8 @@ class DevicePrograms:
         return exe
 
     def __call__(self, *args):
-        exe = self.compiled(*args)
+        key = _key(args)
+        exe = self._executable(key, args)
         if id(exe) not in self._loaded:
             return exe(*args)
         # A loaded program's first call proves it runs on the device (XLA checks the
@@ -140,6 +143,6 @@ class DevicePrograms:
         try:
             out = exe(*args)
         except Exception:
-            return self._compile(_key(args), args)(*args)
+            return self._compile(key, args)(*args)
         self._loaded.discard(id(exe))
         return out
