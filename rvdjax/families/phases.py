@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 
+import jax
 import jax.numpy as jnp
 
 from rvdjax.actuators.thrusters import Thrusters
@@ -378,15 +379,16 @@ def row_weights(p: Params, fc: Config):
     phase alone, so :func:`ocp` of any state gives them. The batch engine gathers them by the
     phase instead of reading two (N, m) arrays of every slot in each pass over the rows (on a
     GPU, 6 % of a thesis-vbar tick's bytes, docs/benchmark.md)."""
-    dtype = p.A.dtype
-    x = jnp.ones(6, dtype)  # any state
+    x = jnp.ones(6, p.A.dtype)  # any state
     g0 = init(p, fc, x)
-    masks, rhos = [], []
-    for phase in range(3):
-        rows, _ = ocp(p, fc, g0._replace(phase=jnp.asarray(phase, jnp.int32)), x, 0.0, None)
-        masks.append(rows.x_mask)
-        rhos.append(jnp.where(rows.x_mask > 0, rows.rho, 1.0))
-    return jnp.stack(masks), jnp.stack(rhos)
+
+    def weights(phase):
+        rows, _ = ocp(p, fc, g0._replace(phase=phase), x, 0.0, None)
+        return rows.x_mask, jnp.where(rows.x_mask > 0, rows.rho, 1.0)
+
+    # the three phases' QPs traced once, as a batch over the phase (the batch engine's
+    # segment calls this five times: 15 traces of the whole QP became 5)
+    return jax.vmap(weights)(jnp.arange(3, dtype=jnp.int32))
 
 
 def _coast_back(Ac, ts):

@@ -32,6 +32,7 @@ from jax import lax
 
 from rvdjax.actuators.modulation import Pulses
 from rvdjax.actuators.thrusters import Actuation
+from rvdjax.batching import varying_like
 from rvdjax.constraints import hard_mask, margins
 from rvdjax.disturbances import gm_init, measure
 from rvdjax.loop.actuation import actuate, truth_path
@@ -468,7 +469,7 @@ def fly(
         (StepInfo with a leading step axis, Metrics).
     """
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
-    state = init(loop, params, x0, key)
+    state = varying_like(init(loop, params, x0, key), x0)  # vmap: one pass (rvdjax.batching)
 
     def one(s):
         return step(loop, params, sp, s)

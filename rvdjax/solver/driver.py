@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from rvdjax.batching import varying_like
 from rvdjax.ocp import OCP
 from rvdjax.solver.barrier import (
     all_finite,
@@ -317,6 +318,7 @@ def _while(ocp_safe, params, state, settings: SolverSettings):
     def body(st):
         return iterate(ocp_safe, settings, params, st)
 
+    state = varying_like(state, ocp_safe.x0)  # vmap: one pass (rvdjax.batching)
     return lax.while_loop(lambda st: ~finished(settings, st), body, state)
 
 
