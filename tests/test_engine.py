@@ -324,6 +324,30 @@ def test_the_fields_a_family_rebuilds_are_its_ocps(name):
     assert np.ndim(stripped.Fx) == 3 and np.ndim(stripped.u_mask) == 2  # stored
 
 
+def test_the_engine_state_is_built_as_one_program():
+    """The engine's initial state (its empty slots, the ring, the counters) is one compiled
+    program, not a program for each leaf's broadcast, and every leaf is strongly typed (the
+    segment's outputs have its inputs' types, so every segment after the first reuses the
+    first one's program)."""
+    cfg = EngineConfig(slots=11, chunk=11)  # shapes no other test builds
+    source = arrays_source(X0S)
+    compiles = []
+
+    def listen(event, *_, **__):
+        if event.endswith("backend_compile_duration"):
+            compiles.append(__.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        eng = E.slots._initial_state(LOOP, cfg, source, PARAMS, SP)[0]
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiles == ["jit(build)"], compiles
+    assert not [a for a in jax.tree.leaves(eng) if jax.typeof(a).weak_type]
+    assert {a.shape[0] for a in jax.tree.leaves(eng.slots)} == {11}
+    assert {a.shape[0] for a in jax.tree.leaves(eng.ring)} == {cfg.ring_size}
+
+
 def test_the_segment_program_lowers_for_a_gpu():
     """jax.export lowers the engine's segment for CUDA on this CPU-only machine (a GPU
     lowering error would show here), with the accelerator settings (one chunk, compacted,

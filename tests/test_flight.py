@@ -107,3 +107,48 @@ def test_no_private_jax_imports():
     root = pathlib.Path(__file__).parents[1] / "rvdjax"
     offenders = [p for p in root.rglob("*.py") if "jax._src" in p.read_text()]
     assert offenders == []
+
+
+def test_a_flight_builds_its_truth_blocks_for_their_names_once_per_shapes():
+    """The names and kinds of a family's truth blocks (what a flight's empty accumulator and
+    its metrics need) come from one abstract trace per family, configuration and argument
+    shapes (rvdjax.loop.metrics.truth_kinds): tracing a flight builds the blocks twice, for
+    their names and in the step; tracing it again with the same shapes per run, batched this
+    time, builds them once, in the step (three times each without the shared trace). The
+    kinds still judge the hard blocks, and the batched flight's figures are the single
+    one's (to rounding)."""
+    import dataclasses
+
+    sc = SCENARIOS["poseidyn-lqmpc"]
+    loop = sc.loop("paper", n_steps=3)
+    calls, hook = [], loop.family.truth_blocks
+
+    def counted(*args):
+        calls.append(1)
+        return hook(*args)
+
+    # a hook of its own: nothing cached by another test
+    law = dataclasses.replace(loop.family.law, truth_blocks=counted)
+    loop = dataclasses.replace(loop, family=dataclasses.replace(loop.family, law=law))
+    params, x0 = sc.build()
+    sp = sc.solver_params("paper")
+
+    def one(x, k):
+        return fly(loop, params, x, k, sp)[1]
+
+    single = jax.jit(one).trace(x0, jax.random.key(0))
+    assert len(calls) == 2
+    xs, keys = np.stack([x0, x0]), jax.random.split(jax.random.key(0), 2)
+    batched = jax.jit(jax.vmap(one)).trace(xs, keys)
+    assert len(calls) == 3
+    m1 = single.lower().compile()(x0, jax.random.key(0))
+    m2 = batched.lower().compile()(xs, keys)
+    fc = loop.config.family_config
+    blocks = counted(params, fc, loop.family.init(params, fc, x0), x0, 0.0)  # eagerly
+    kinds = {b.name: b.kind for b in blocks}
+    assert set(m1.margins_m) == set(kinds) and "monitor" in kinds.values()
+    hard = min(float(m1.margins_m[n]) for n, kind in kinds.items() if kind == "hard")
+    assert float(m1.max_violation_m) == max(0.0, -hard)
+    for a, b in zip(jax.tree.leaves(m1), jax.tree.leaves(m2), strict=True):
+        # (a batched program rounds some sums in another order: 1 ulp here and there)
+        np.testing.assert_allclose(np.asarray(b)[0], np.asarray(a), rtol=1e-12, atol=0)

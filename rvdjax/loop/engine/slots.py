@@ -28,11 +28,18 @@ from rvdjax.solver.driver import MODEL_FIELDS
 from rvdjax.solver.riccati import ModelTable, traces_cuda
 
 
+def probe_run(source_fn, data):
+    """The shapes of a run the source gives (its index given as a shape: nothing is
+    computed, so nothing compiles)."""
+    index = jax.ShapeDtypeStruct((), jnp.result_type(int), weak_type=True)
+    return jax.eval_shape(functools.partial(source_fn, data), index)
+
+
 def slot_bytes(loop: Loop, source: Source, params=None, solver_params=None) -> int:
     """Bytes of one slot's state for this loop and queue (from shapes only: nothing is
     compiled or run)."""
     sp = SolverParams.for_settings(loop.config.settings) if solver_params is None else solver_params
-    probe = jax.eval_shape(functools.partial(source.fn, source.data), jnp.asarray(0))
+    probe = probe_run(source.fn, source.data)
     shape = jax.eval_shape(
         lambda data, p, s: _empty_slot(
             loop,
@@ -243,12 +250,29 @@ def _devices(cfg: EngineConfig) -> list:
 
 
 @functools.lru_cache(maxsize=64)
-def _slot_builder(loop: Loop, source_fn, per_run_params: bool, per_run_solver: bool):
+def _state_builder(
+    loop: Loop, source_fn, per_run_params: bool, per_run_solver: bool, B: int, R: int, lanes: int
+):
+    """The engine's state of ``B`` empty slots and a ring of ``R`` as one program (built
+    eagerly, each slot and ring leaf's broadcast was a program of its own, compiled on its
+    first use: 25 of a study's start)."""
+
     def build(data, params, sp):
         src = functools.partial(source_fn, data)
         slot = _empty_slot(loop, params, sp, src, per_run_params, per_run_solver)
         ring0 = metrics(loop, slot.params if per_run_params else params, slot.state)
-        return slot, ring0
+        # strong types: the segment's outputs must have exactly the types of its inputs, or
+        # every segment after the first would trace and compile again
+        slot = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), slot)
+        return EngineState(
+            slots=jax.tree.map(lambda a: jnp.broadcast_to(a, (B, *a.shape)), slot),
+            next_seq=jnp.arange(lanes, dtype=jnp.int32),
+            ring_run=jnp.full(R, -1, jnp.int32),
+            ring_done=jnp.zeros(R, bool),
+            ring=jax.tree.map(lambda a: jnp.zeros((R, *a.shape), a.dtype), ring0),
+            ticks=jnp.asarray(0, jnp.int32),
+            stalled=jnp.asarray(False),
+        )
 
     return jax.jit(build)
 
@@ -260,19 +284,14 @@ def _initial_state(loop, config: EngineConfig, source: Source, params, sp) -> li
 
 
 def _initial_state_one(loop, config: EngineConfig, source: Source, params, sp):
-    probe = jax.eval_shape(functools.partial(source.fn, source.data), jnp.asarray(0))
-    build = _slot_builder(loop, source.fn, probe.params is not None, probe.solver is not None)
-    slot0, res0 = build(source.data, params, sp)
-    B, R = config.n_slots, config.ring_size
-    # strong types: the segment's outputs must have exactly the types of its inputs, or every
-    # segment after the first would trace and compile again
-    slot0 = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), slot0)
-    return EngineState(
-        slots=jax.tree.map(lambda a: jnp.broadcast_to(a, (B, *a.shape)), slot0),
-        next_seq=jnp.arange(config.lanes, dtype=jnp.int32),
-        ring_run=jnp.full(R, -1, jnp.int32),
-        ring_done=jnp.zeros(R, bool),
-        ring=jax.tree.map(lambda a: jnp.zeros((R, *a.shape), a.dtype), res0),
-        ticks=jnp.asarray(0, jnp.int32),
-        stalled=jnp.asarray(False),
+    probe = probe_run(source.fn, source.data)
+    build = _state_builder(
+        loop,
+        source.fn,
+        probe.params is not None,
+        probe.solver is not None,
+        config.n_slots,
+        config.ring_size,
+        config.lanes,
     )
+    return build(source.data, params, sp)

@@ -5,7 +5,6 @@ programs compiled or exported ahead of a run."""
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -25,6 +24,7 @@ from rvdjax.loop.engine.slots import (
     _initial_state,
     _initial_state_one,
     arrays_source,
+    probe_run,
     slot_bytes,
 )
 from rvdjax.loop.kernel import (
@@ -126,7 +126,7 @@ def run_stream(
     block = next(blocks)
     if block.start != 0:
         raise ValueError("the first block of a queue starts at position 0")
-    probe = jax.eval_shape(functools.partial(source_fn, block.data), jnp.asarray(0))
+    probe = probe_run(source_fn, block.data)
     if probe.params is None and params is None:
         raise ValueError("params must be given when the source gives no per-run parameters")
     cfg = _resolve(loop, config, Source(source_fn, block.data), params, sp, n_runs)
