@@ -333,9 +333,9 @@ def test_the_engine_state_is_built_as_one_program():
     source = arrays_source(X0S)
     compiles = []
 
-    def listen(event, *_, **__):
+    def listen(event, *_, **kw):
         if event.endswith("backend_compile_duration"):
-            compiles.append(__.get("fun_name"))
+            compiles.append(kw.get("fun_name"))
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:

@@ -111,12 +111,12 @@ def test_no_private_jax_imports():
 
 def test_a_flight_builds_its_truth_blocks_for_their_names_once_per_shapes():
     """The names and kinds of a family's truth blocks (what a flight's empty accumulator and
-    its metrics need) come from one abstract trace per family, configuration and argument
-    shapes (rvdjax.loop.metrics.truth_kinds): tracing a flight builds the blocks twice, for
-    their names and in the step; tracing it again with the same shapes per run, batched this
-    time, builds them once, in the step (three times each without the shared trace). The
-    kinds still judge the hard blocks, and the batched flight's figures are the single
-    one's (to rounding)."""
+    its metrics need) come from one abstract trace per hook, family configuration and
+    argument shapes (rvdjax.loop.metrics.truth_kinds): tracing a flight builds the blocks
+    twice, for their names and in the step; tracing it again with the same shapes per run,
+    batched this time, builds them once, in the step (three times each without the shared
+    trace). The kinds still judge the hard blocks, and the batched flight's figures are the
+    single one's (to rounding)."""
     import dataclasses
 
     sc = SCENARIOS["poseidyn-lqmpc"]
