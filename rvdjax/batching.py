@@ -1,4 +1,5 @@
-"""Batching helpers for ``jax.vmap`` of the package's loops."""
+"""Helpers for tracing the package's loops: their abstract arguments, and their state's
+batching under ``jax.vmap``."""
 
 from __future__ import annotations
 
@@ -20,3 +21,10 @@ def varying_like(tree, x):
     x = jnp.asarray(x).reshape(-1)[0]
     same = x == x
     return jax.tree.map(lambda a: jnp.where(same, a, a), tree)
+
+
+def shapes_of(tree):
+    """``tree`` with each leaf (an array, a tracer or a Python number) replaced by its shape
+    and dtype (:class:`jax.ShapeDtypeStruct`): arguments for ``jax.eval_shape`` or a
+    lowering that compute nothing, and hashable."""
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), tree)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rvdjax.actuators.thrusters import G0
+from rvdjax.batching import shapes_of
 from rvdjax.solver import Status
 
 if TYPE_CHECKING:
@@ -195,9 +196,9 @@ def truth_kinds(loop: Loop, params, g, x, t) -> dict:
     its empty accumulator and its metrics, and every later trace of the same loop asks again;
     building the blocks only for their names made 7 % of the Python calls of tracing a
     vmapped thesis-vbar flight)."""
-    leaves, tree = jax.tree.flatten((params, g, x, t))
-    avals = tuple(jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in leaves)
-    return dict(_truth_kinds(loop.family.truth_blocks, loop.config.family_config, tree, avals))
+    avals, tree = jax.tree.flatten(shapes_of((params, g, x, t)))
+    fc = loop.config.family_config
+    return dict(_truth_kinds(loop.family.truth_blocks, fc, tree, tuple(avals)))
 
 
 @functools.lru_cache(maxsize=256)

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rvdjax.batching import shapes_of
 from rvdjax.loop.engine.config import EngineConfig, auto_config
 from rvdjax.loop.engine.program import _build, _compact_jit, _gather, segment_program
 from rvdjax.loop.engine.segment import _block_limit, _local_end, _positions
@@ -367,17 +368,14 @@ def _abstract_args(loop, config: EngineConfig, source: Source, params, sp):
     """The segment's arguments as shapes."""
     eng = jax.eval_shape(lambda: _initial_state_one(loop, config.per_device, source, params, sp))
     scalar = lambda dtype: jax.ShapeDtypeStruct((), dtype)  # noqa: E731
-    shape = lambda tree: jax.tree.map(  # noqa: E731
-        lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), tree
-    )
     return (
         eng,
-        shape(source.data),
+        shapes_of(source.data),
         scalar(jnp.int32),
         jax.ShapeDtypeStruct((config.lanes,), jnp.int32),
         scalar(jnp.bool_),
-        shape(params),
-        shape(sp),
+        shapes_of(params),
+        shapes_of(sp),
         scalar(jnp.int32),
         scalar(jnp.int32),
         scalar(jnp.int32),
