@@ -304,7 +304,7 @@ def _corrector_rhs(rows, st: PDState, base_u, base_x, su, sx, step, h, m_eff):
 
 
 def _kernel_rows(rows, st: PDState, su):
-    """The row arrays the row kernels read (rvdjax.solver.rows_kernel.StageRows)."""
+    """The row arrays the row kernels read (rvdjax.solver.rows_kernel.stage.StageRows)."""
     return (rows.Fx, rows.Fu, st.s, st.g, st.mu, st.pi, rows.wx, rows.rho, su, st.lam, rows.wu)
 
 
