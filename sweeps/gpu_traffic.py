@@ -132,6 +132,19 @@ def _section(hlo: str, name: str) -> list[str]:
     return parts[1].split("\n\n")[0].splitlines() if len(parts) > 1 else []
 
 
+#: the small-product helpers the solver's lines call (a source is the line that called them)
+HELPERS = ("stagewise.py", "lanes/")
+
+
+def _name(path: str) -> str:
+    """A source file's name as the tables print it: its base name, with its package's for the
+    Riccati kernels' modules (rows_kernel and lanes both have a stage.py)."""
+    parts = path.replace(os.sep, "/").split("/")
+    if len(parts) > 1 and parts[-2] in ("lanes", "rows_kernel"):
+        return "/".join(parts[-2:])
+    return parts[-1]
+
+
 def _source_lines(hlo: str, keep=("solver/",)):
     """stack_frame_id -> "file:line function" of the innermost frame whose file is in the
     package's solver (else the innermost frame), from the HLO's stack-frame tables."""
@@ -160,11 +173,11 @@ def _source_lines(hlo: str, keep=("solver/",)):
             loc, fid = frames[fid]
             chain.append(locs[loc])
         for f, fn, line in chain:
-            if any(k in f for k in keep) and not f.endswith(("stagewise.py", "lanes.py")):
-                return f"{os.path.basename(f)}:{line} {fn}"
+            if any(k in f for k in keep) and not _name(f).startswith(HELPERS):
+                return f"{_name(f)}:{line} {fn}"
         if chain:
             f, fn, line = chain[0]
-            return f"{os.path.basename(f)}:{line} {fn}"
+            return f"{_name(f)}:{line} {fn}"
         return "?"
 
     return where
@@ -384,7 +397,7 @@ def traffic(hlo: str, start: str | None = None, key=None, kernels: dict | None =
             return "(no source)"
         # the solver's own lines before the small-product helpers they call, where both appear
         ranked = collections.Counter(where(int(f)) for f in frames).most_common()
-        own = [s for s, _ in ranked if not s.startswith(("stagewise.py", "lanes.py"))]
+        own = [s for s, _ in ranked if not s.startswith(HELPERS)]
         return own[0] if own else ranked[0][0]
 
     def walk(comp: str, times: int):

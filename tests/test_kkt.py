@@ -158,11 +158,11 @@ def test_residual_and_refinement_against_the_dense_system():
 
 def test_block_chunks_cover_every_entry():
     """The block kernels read and write a stage of E entries as they are, in at most two
-    overlapping power-of-two chunks (lanes._chunks): every entry covered, none past the end.
+    overlapping power-of-two chunks (lanes.refs._chunks): every entry covered, none past the end.
     The solver's iterates with these kernels are test_kernels.py's; the same numbers as the
     padded form, to the bit, the slow test below."""
     for e in range(1, 70):
-        chunks = lanes._chunks(e)
+        chunks = lanes.refs._chunks(e)
         assert len(chunks) <= 2
         assert all(s & (s - 1) == 0 and 0 <= o and o + s <= e for o, s in chunks)
         assert set().union(*(range(o, o + s) for o, s in chunks)) == set(range(e))
@@ -188,7 +188,7 @@ def test_factor_storage_keeps_the_lower_triangles():
     first = lanes.tri_pack(jnp.moveaxis(P, -1, 0))  # (b, N, 21): the matrices' axes last
     np.testing.assert_array_equal(np.asarray(first), np.moveaxis(np.asarray(packed[1]), -1, 0))
     # the kernels' reads of a stage (here from the arrays themselves)
-    P_t, L_t = lanes._load_sym(packed[1], 1, nx), lanes._load_lower(packed[0], 1, nu)
+    P_t, L_t = lanes.refs._load_sym(packed[1], 1, nx), lanes.refs._load_lower(packed[0], 1, nu)
     np.testing.assert_array_equal(np.stack([np.stack(r) for r in P_t]), np.asarray(P[1]))
     assert all(L_t[i][j] is None for i in range(nu) for j in range(i + 1, nu))
     for i in range(nu):

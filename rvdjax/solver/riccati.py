@@ -251,7 +251,7 @@ def _apply(f: RiccatiFactor, g_u, g_x, rp, ops: _Products) -> NewtonStep:
     # K = -H^-1 B^T P A, (B^T P A)^T k = K^T v: the gain the forward sweep reads anyway
     # stands for B^T P A, which is then not stored. (The GPU kernels, whose sweeps read the
     # factorisation from device memory, form the same step from L and P alone:
-    # rvdjax.solver.lanes._backward_rhs_stored, _forward_solved; docs/solver.md.)
+    # rvdjax.solver.lanes.stage._backward_rhs_stored, _forward_solved; docs/solver.md.)
     def backward(p, stage):
         M_t, L, K, P, gu, r, gx = stage
         Mp = ops.mtv(M_t, p - ops.mv(P, r))

@@ -29,7 +29,13 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from rvdjax.solver.lanes import _backward_rhs, _backward_rhs_of, _factor_stage, _forward, _offset
+from rvdjax.solver.lanes.stage import (
+    _backward_rhs,
+    _backward_rhs_of,
+    _factor_stage,
+    _forward,
+    _offset,
+)
 from rvdjax.solver.stagewise import shift as _shift
 
 __all__ = ["factor", "factor_solve", "apply", "configured", "default_unroll"]

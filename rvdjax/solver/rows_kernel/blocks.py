@@ -7,14 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rvdjax.solver.lanes import (
-    _Entries,
-    _load,
-    _mtv,
-    _mv,
-    _store,
-    _tri,
-)
+from rvdjax.solver.lanes.algebra import _mtv, _mv
+from rvdjax.solver.lanes.refs import _Entries, _load, _store, _tri
 from rvdjax.solver.rows_kernel.stage import (
     StageRows,
     _hessian_block,
@@ -71,9 +65,9 @@ def _blocks_kernel(dims, N, *refs):
         """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
         entry), as the step's kernel does (:func:`_step_kernel`): F^T diag(d) F (its lower
         triangle) and F^T v summed row by row in the order of
-        :func:`rvdjax.solver.lanes._mtm`. The input rows stay unrolled: in a loop of their own
-        they took the kernel from 168 to 204 registers with 65 536 QPs of a model each (the
-        cost block R then lives through the loop; ptxas for sm_90a)."""
+        :func:`rvdjax.solver.lanes.algebra._mtm`. The input rows stay unrolled: in a loop of
+        their own they took the kernel from 168 to 204 registers with 65 536 QPs of a model
+        each (the cost block R then lives through the loop; ptxas for sm_90a)."""
         inputs = StageRows(dims, row_refs, t, "inputs")
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         _store(Pu_out, t, list(_tri(_hessian_block(R, inputs.Fu, inputs.Du))))

@@ -10,14 +10,9 @@ import jax
 import jax.numpy as jnp
 
 from rvdjax.solver import lanes
-from rvdjax.solver.lanes import (
-    _Block,
-    _compiler_params,
-    _Entries,
-    _Gathered,
-    _pad,
-    tri_size,
-)
+from rvdjax.solver.lanes import tri_size
+from rvdjax.solver.lanes.calls import _compiler_params, _pad
+from rvdjax.solver.lanes.refs import _Block, _Entries, _Gathered
 from rvdjax.solver.rows_kernel.blocks import _blocks_kernel
 from rvdjax.solver.rows_kernel.predictor import _rows_kernel
 from rvdjax.solver.rows_kernel.stage import (
@@ -37,8 +32,8 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
     ``shared``: positions of inputs that may come without the problem axis, shared by the
     batch (:class:`_Shared`): those given with one dimension less than the problem's (N, e).
     ``block_io``: the per-problem arrays and the tables read and written a stage's block at
-    a time (:class:`rvdjax.solver.lanes._Block`), else entry by entry
-    (:class:`rvdjax.solver.lanes._Entries`)."""
+    a time (:class:`rvdjax.solver.lanes.refs._Block`), else entry by entry
+    (:class:`rvdjax.solver.lanes.refs._Entries`)."""
     from jax.experimental import pallas as pl
 
     b = ins[0].shape[-1]

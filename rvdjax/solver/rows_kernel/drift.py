@@ -8,11 +8,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from rvdjax.solver.lanes import (
-    _load,
-    _mv,
-    _store,
-)
+from rvdjax.solver.lanes.algebra import _mv
+from rvdjax.solver.lanes.refs import _load, _store
 from rvdjax.solver.rows_kernel.calls import _launch
 from rvdjax.solver.rows_kernel.stage import _load_any
 

@@ -6,13 +6,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rvdjax.solver.lanes import (
-    _Entries,
-    _load,
-    _mtv,
-    _mv,
-    _store,
-)
+from rvdjax.solver.lanes.algebra import _mtv, _mv
+from rvdjax.solver.lanes.refs import _Entries, _load, _store
 from rvdjax.solver.rows_kernel.stage import (
     SigmaRule,
     StageRows,

@@ -8,14 +8,8 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from rvdjax.solver.lanes import (
-    _add,
-    _Entries,
-    _Gathered,
-    _load,
-    _mtm,
-    _mv,
-)
+from rvdjax.solver.lanes.algebra import _add, _mtm, _mv
+from rvdjax.solver.lanes.refs import _Entries, _Gathered, _load
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +48,7 @@ class StageRows:
     """Stage t's rows of one tile (lists of lane vectors): refs Fx, Fu, s, g, mu, pi, wx, rho,
     su, lam, wu (the first 11 of a kernel's inputs), and sx = s - g, a = mu / sx, c = pi / s,
     Du = wu lam / su. Fu, wx and rho may be read from tables at each lane's index
-    (:class:`rvdjax.solver.lanes._Gathered`); the table's input rows are those before the
+    (:class:`rvdjax.solver.lanes.refs._Gathered`); the table's input rows are those before the
     problem's mask neutralises them, so the rows whose mask wu is off are zeroed here, as
     ``barrier.rows_of`` zeroes them."""
 
@@ -102,8 +96,8 @@ class StageRows:
 
 def _row_entries(ref, t, i, n):
     """Entries i n ... i n + n - 1 of stage t (row i of n entries, ``i`` traced) of a ref read
-    entry by entry (:class:`rvdjax.solver.lanes._Entries`) or of a flattened table read at
-    each lane's index (:class:`rvdjax.solver.lanes._Gathered` without blocks)."""
+    entry by entry (:class:`rvdjax.solver.lanes.refs._Entries`) or of a flattened table read at
+    each lane's index (:class:`rvdjax.solver.lanes.refs._Gathered` without blocks)."""
     if isinstance(ref, _Entries):
         return [ref.ref[t, i * n + j] for j in range(n)]
     return [ref.ref[ref.index, t, i * n + j] for j in range(n)]
@@ -249,7 +243,7 @@ def _residual(M, nu, x, x_prev, u, c):
 
 
 def _pairs(n):
-    """(j, k) of a symmetric n x n matrix's lower triangle, in :func:`lanes._tri`'s order."""
+    """(j, k) of a symmetric n x n matrix's lower triangle, in :func:`lanes.refs._tri`'s order."""
     return [(j, k) for j in range(n) for k in range(j + 1)]
 
 

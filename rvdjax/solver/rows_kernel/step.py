@@ -7,15 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rvdjax.solver.lanes import (
-    _dot,
-    _Entries,
-    _load,
-    _mtv,
-    _mv,
-    _store,
-    _tri,
-)
+from rvdjax.solver.lanes.algebra import _dot, _mtv, _mv
+from rvdjax.solver.lanes.refs import _Entries, _load, _store, _tri
 from rvdjax.solver.rows_kernel.stage import (
     StageRows,
     _affine,
