@@ -130,10 +130,11 @@ def _plain_fns(part: str, cfg):
     if part == "apply_refined":
 
         def xla_refined(M, Pu, Px, gu, gx, r):
+            rec = riccati.recursion  # XLA's form of the step with its refinement
             f = riccati.RiccatiFactor(M, *stored(M, Pu, Px))
             m_axis = -1 if M.ndim == 4 else None  # copies per problem, or one shared model
             one = jax.vmap(  # batch-last arrays: one problem a lane
-                lambda f, *a: riccati._apply_refined(f, *a, riccati._ELEMENTWISE),
+                lambda f, *a: rec._apply_refined(f, *a, rec._ELEMENTWISE),
                 in_axes=(riccati.RiccatiFactor(m_axis, -1, -1, -1), -1, -1, -1, -1, -1),
                 out_axes=-1,
             )

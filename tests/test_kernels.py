@@ -27,7 +27,7 @@ from rvdjax.solver import (
     start,
     tracing_for_cuda,
 )
-from rvdjax.solver.riccati import AUTO_ON_CUDA
+from rvdjax.solver.platform import AUTO_ON_CUDA
 
 # Problems are padded to a tile of ``block`` lanes: a small tile keeps the interpreter cheap.
 BLOCK = 8
@@ -891,7 +891,7 @@ def test_kernel_on_names_the_form_auto_runs_on_a_device():
     and XLA's loops elsewhere; a chosen form is itself."""
     from types import SimpleNamespace
 
-    from rvdjax.solver.riccati import kernel_on
+    from rvdjax.solver.platform import kernel_on
 
     def fake(platform, version):
         return SimpleNamespace(platform=platform, client=SimpleNamespace(platform_version=version))

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
         )
         with devices.placed(args.device, COMMAND_WORK.get(args.command, "single")) as dev:
             args.device_used = devices.describe(dev)
-            from rvdjax.solver.riccati import kernel_on
+            from rvdjax.solver.platform import kernel_on
 
             form = kernel_on(dev)  # the scenarios' default Newton step on this device
             if form != "xla":

@@ -77,7 +77,8 @@ from rvdjax.loop.family import Family, Hooks, Tuning, lazy
 from rvdjax.ocp import OCP
 from rvdjax.solver import drift_plan
 from rvdjax.solver import stagewise as sw
-from rvdjax.solver.riccati import ModelTable, cuda_or_default
+from rvdjax.solver.platform import cuda_or_default
+from rvdjax.solver.riccati import ModelTable
 
 __all__ = [
     "Params",

@@ -52,8 +52,8 @@ from rvdjax.solver.driver import (
     with_objective,
     with_system,
 )
+from rvdjax.solver.platform import tracing_for_cuda
 from rvdjax.solver.primal_dual import carries_system
-from rvdjax.solver.riccati import tracing_for_cuda
 from rvdjax.solver.start import drift_plan, shift_solution, warm_start
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 

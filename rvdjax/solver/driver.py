@@ -41,6 +41,7 @@ from rvdjax.solver.dual import solve_dual
 from rvdjax.solver.implicit import implicit_bwd, kkt_at
 from rvdjax.solver.kkt import kkt_solve
 from rvdjax.solver.newton import NewtonState, newton_iteration
+from rvdjax.solver.platform import traces_cuda
 from rvdjax.solver.primal_dual import (
     PDState,
     carries_system,
@@ -49,7 +50,6 @@ from rvdjax.solver.primal_dual import (
     pd_start,
     pd_system,
 )
-from rvdjax.solver.riccati import traces_cuda
 from rvdjax.solver.start import lift_inside, pull_inside, track_plan
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 
@@ -297,7 +297,7 @@ def _forward_state(ocp, params, init, settings, trusted_model: bool = False):
 def _until_finished(ocp_safe, params, state, settings: SolverSettings):
     """:func:`iterate` until :func:`finished` (a ``while`` loop).
 
-    In a process that lowers for a CUDA GPU (:func:`~rvdjax.solver.riccati.traces_cuda`), a
+    In a process that lowers for a CUDA GPU (:func:`~rvdjax.solver.platform.traces_cuda`), a
     batched (vmapped) solve's loop runs while any problem of the batch is unfinished and takes
     every problem's iteration, finished or not: :func:`iterate` leaves a finished state as it
     is (a step of length zero; its counters kept). vmap's own rule for a loop whose condition

@@ -28,23 +28,21 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from rvdjax.solver.platform import AUTO_ON_CUDA, cuda_or_default
 from rvdjax.solver.riccati import (  # noqa: F401  (KERNELS and the Riccati names: re-exported)
-    AUTO_ON_CUDA,
     KERNELS,
     REFINED_IN_KERNEL,
     ModelTable,
     NewtonStep,
     RiccatiFactor,
-    _shift,
-    cuda_or_default,
     newton_residual,
     riccati_apply,
     riccati_apply_refined,
     riccati_factor,
     riccati_factor_solve,
     riccati_solve,
-    whole,
 )
+from rvdjax.solver.riccati.recursion import whole
 
 __all__ = [
     "dense_solve",

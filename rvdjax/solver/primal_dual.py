@@ -30,15 +30,8 @@ from rvdjax.solver.barrier import (
 )
 from rvdjax.solver.kkt import kkt_factor_solve, kkt_solve_refined
 from rvdjax.solver.lanes import tri_pack, tri_unpack
-from rvdjax.solver.riccati import (
-    AUTO_ON_CUDA,
-    ROWS_BLOCK_IO,
-    ROWS_IN_KERNEL,
-    SYSTEM_CARRIED,
-    SymStored,
-    cuda_or_default,
-    traces_cuda,
-)
+from rvdjax.solver.platform import AUTO_ON_CUDA, cuda_or_default, traces_cuda
+from rvdjax.solver.riccati import ROWS_BLOCK_IO, ROWS_IN_KERNEL, SYSTEM_CARRIED, SymStored
 from rvdjax.solver.start import drift
 from rvdjax.solver.types import SolverParams, SolverSettings, Status
 
@@ -205,7 +198,7 @@ def carries_system(settings: SolverSettings) -> bool:
     """Whether the solve's state carries the Newton system (:attr:`PDState.system`): the
     accurate mode with a form of :data:`rvdjax.solver.riccati.SYSTEM_CARRIED`, or with
     ``"auto"`` where that is what it runs on a CUDA GPU and the program keeps the CUDA form
-    (:func:`rvdjax.solver.riccati.traces_cuda`; on a CPU-only process, never)."""
+    (:func:`rvdjax.solver.platform.traces_cuda`; on a CPU-only process, never)."""
     if settings.mode != "accurate":
         return False
     if settings.kernel == "auto":
@@ -340,7 +333,7 @@ def _rows_in_kernel(
 def _by_kernel(args, kernel: str, xla, in_kernel):
     """``xla(*args)``, or ``in_kernel(*args, interpret=...)`` where the Newton step runs on
     the GPU kernels of :data:`ROWS_IN_KERNEL` (compiled on a CUDA GPU, interpreted elsewhere,
-    as riccati._by_platform chooses; ``kernel="auto"``: compiled on a CUDA GPU, XLA's form
+    as riccati.ops._by_platform chooses; ``kernel="auto"``: compiled on a CUDA GPU, XLA's form
     elsewhere)."""
     on_cuda = AUTO_ON_CUDA if kernel == "auto" else kernel
     # the row kernels' loads and stores: a stage's blocks in the block form's name

@@ -17,7 +17,7 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import stagewise as sw
 from rvdjax.solver.barrier import Rows, u_slack
 from rvdjax.solver.kkt import KKT_SOLVERS
-from rvdjax.solver.riccati import cuda_or_default
+from rvdjax.solver.platform import cuda_or_default
 from rvdjax.solver.types import Plan, Solution, SolverSettings
 
 __all__ = [

@@ -31,7 +31,7 @@ from rvdjax.loop.kernel import (
     prepare,
 )
 from rvdjax.solver import carries_system, finish, finished, freeze, iterate, start, with_system
-from rvdjax.solver.riccati import cuda_or_default
+from rvdjax.solver.platform import cuda_or_default
 
 
 def _where(c, a, b):

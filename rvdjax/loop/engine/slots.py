@@ -25,7 +25,8 @@ from rvdjax.ocp import OCP
 from rvdjax.solver import SolverParams, SolveState, freeze, start
 from rvdjax.solver.barrier import rows_of
 from rvdjax.solver.driver import MODEL_FIELDS
-from rvdjax.solver.riccati import ModelTable, traces_cuda
+from rvdjax.solver.platform import traces_cuda
+from rvdjax.solver.riccati import ModelTable
 
 
 def probe_run(source_fn, data):
@@ -173,7 +174,7 @@ def model_of(loop: Loop, params, guidance) -> dict | None:
 
 def table_of(model) -> ModelTable | None:
     """The model table of a family's rebuilt fields (:func:`model_of`) where the program
-    traced now has the GPU kernels that read it (:func:`rvdjax.solver.riccati.traces_cuda`),
+    traced now has the GPU kernels that read it (:func:`rvdjax.solver.platform.traces_cuda`),
     else None: a CPU-only process's programs are the same with or without a table, and
     without one they carry no unused tables through their loops."""
     table = None if model is None else model.get("table")

@@ -34,7 +34,7 @@ def _factor_stage(P, M, Phu, Phx_prev):
     L = chol(H)
     BPA = [row[nu:] for row in BPM]
     K = [[-v for v in row] for row in _chol_solve_mat(L, BPA)]
-    # one refinement of K against H (the reason is in rvdjax.solver.riccati._factor)
+    # one refinement of K against H (the reason is in rvdjax.solver.riccati.recursion._factor)
     E = _chol_solve_mat(L, _add(_mm(H, K), BPA))
     K = [[k - e for k, e in zip(rk, re, strict=True)] for rk, re in zip(K, E, strict=True)]
     PAcl = _add([row[nu:] for row in PM], _mm([row[:nu] for row in PM], K))
@@ -61,7 +61,7 @@ def _backward_rhs_of(q, M, L, K, gu, gx_prev):
     """(p_t, k_t) from :func:`_offset`'s q = p - P r, with the stage's gain K at hand (the
     factorisation's own sweep): with v = g_u + B^T q, k = -H^-1 v and p_t = g_x + A^T q +
     K^T v, which is g_x + A^T q + (B^T P A)^T k as K = -H^-1 B^T P A
-    (:func:`rvdjax.solver.riccati._apply`)."""
+    (:func:`rvdjax.solver.riccati.recursion._apply`)."""
     nu = len(L)
     Mp = _mtv(M, q)
     v = [g + m for g, m in zip(gu, Mp[:nu], strict=True)]
