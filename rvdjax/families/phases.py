@@ -38,7 +38,6 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from rvdjax.actuators.thrusters import Thrusters
 from rvdjax.constraints import (
     approach_cone,
     approach_cone_penalty,
@@ -58,6 +57,18 @@ from rvdjax.families.common import (
     smooth_excess,
     smooth_norm,
     weight_tunables,
+)
+from rvdjax.families.phases_burns import (  # noqa: F401  (tests read them here)
+    SUBSAMPLES,
+    _coast_back,
+    axis_thrust,
+    finite_burn,
+)
+from rvdjax.families.phases_geometry import (  # noqa: F401  (tests read them here)
+    _in_cone,
+    _plane_normals,
+    _turn,
+    target_state,
 )
 from rvdjax.families.phases_inputs import (  # noqa: F401  (the family's inputs, re-exported)
     LAYOUT,
@@ -90,77 +101,6 @@ __all__ = [
     "LP_EPS",
     "LP_REG",
 ]
-
-
-# --------------------------------------------------------------------------- geometry
-
-
-def _rot_z(angle):
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    z, o = jnp.zeros_like(angle), jnp.ones_like(angle)
-    return jnp.stack(
-        [jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2
-    )
-
-
-def target_state(p: Params, times):
-    """Port position, port velocity and unit approach axis (..., 3) at the given times."""
-    Rz = _rot_z(p.target_angle0 + p.target_rate * times)
-    port = Rz @ p.port_body
-    axis = Rz @ p.axis_body
-    omega = jnp.array([0.0, 0.0, 1.0]) * p.target_rate
-    return port, jnp.cross(jnp.broadcast_to(omega, port.shape), port), axis
-
-
-def _turn(r0, a_final, n_real, ts, rate_max, v0, turn=None):
-    """The keep-out planes' turn from the bearing of r0 towards a_final (paper 003
-    Sec. 3.1.3): (u0, w, delta, fits), the unit bearing, the unit direction the normal leaves
-    it in, the angle to turn [rad] and whether that fits in the horizon at rate_max.
-
-    When the rotation fits in the horizon at the capped rate it follows the shortest great
-    circle; otherwise "in the direction most closely aligned with the natural relative orbit
-    motion" — here the sense in which the chaser's bearing turns, r0 x v0 (the long way round
-    if that is the sense of motion). ``turn`` (``Config.latch_turn``): a latched rotation
-    axis (zero: undecided); while it is set and the rotation does not fit, the planes keep
-    turning about it instead. Antipodal bearings fall back to the plane through the radial
-    axis.
-    """
-    u0 = r0 / jnp.maximum(jnp.linalg.norm(r0), 1e-12)
-    cosd = jnp.clip(jnp.dot(u0, a_final), -1.0, 1.0)
-    delta = jnp.arccos(cosd)
-    w = a_final - cosd * u0
-    alt = jnp.array([1.0, 0.0, 0.0]) - jnp.dot(u0, jnp.array([1.0, 0.0, 0.0])) * u0
-    w = jnp.where(jnp.linalg.norm(w) > 1e-9, w, alt)
-    w = w / jnp.maximum(jnp.linalg.norm(w), 1e-12)
-    fits = delta <= rate_max * ts * n_real
-    # bearing rate direction: the tangential part of v0; against w means the long way
-    against = jnp.dot(v0 - jnp.dot(v0, u0) * u0, w) < 0.0
-    if turn is not None:
-        # latched: the long way when the shortest turn's axis u0 x w opposes the latched one
-        latched = jnp.dot(turn, turn) > 0.0
-        against = jnp.where(latched, jnp.dot(jnp.cross(u0, w), turn) < 0.0, against)
-    long_way = ~fits & against
-    w = jnp.where(long_way, -w, w)
-    delta = jnp.where(long_way, 2.0 * jnp.pi - delta, delta)
-    return u0, w, delta, fits
-
-
-def _plane_normals(r0, a_final, N_max, n_real, ts, rate_max, v0, turn=None):
-    """Keep-out plane normals (N_max, 3) rotating from the bearing of r0 towards a_final
-    (paper 003 Eq. 3.6): equal angles over the real horizon, at most rate_max ts per stage,
-    in the sense of :func:`_turn`."""
-    u0, w, delta, _ = _turn(r0, a_final, n_real, ts, rate_max, v0, turn)
-    step = jnp.minimum(delta / n_real, rate_max * ts)
-    i = jnp.minimum(jnp.arange(1, N_max + 1), n_real)
-    ang = jnp.minimum(delta, step * i)
-    return jnp.cos(ang)[:, None] * u0 + jnp.sin(ang)[:, None] * w
-
-
-def _in_cone(p: Params, r, t, n_faces):
-    """Smallest approach-cone row slack of position r at time t (>= 0: inside)."""
-    _, _, axis = target_state(p, t)
-    b = approach_cone(jnp.zeros((1, 3)), axis[None], p.half_angle[0], n_faces, 6, POS)
-    return jnp.min(b.f[0] - b.F[0, :, :3] @ r)
 
 
 # --------------------------------------------------------------------------- the family
@@ -392,82 +332,12 @@ def row_weights(p: Params, fc: Config):
     return jax.vmap(weights)(jnp.arange(3, dtype=jnp.int32))
 
 
-def _coast_back(Ac, ts):
-    """(..., SUBSAMPLES - 1, 6, 6) e^{-Ac (ts - tau_j)} for tau_j = j ts / SUBSAMPLES, for
-    sample times ``ts`` (...): the state at tau_j from the state at ts when nothing fires in
-    between (power series; n ts <= 0.1). :func:`ocp` takes every phase's and indexes it by
-    the phase: with parameters shared by a batch, one small product for all slots instead
-    of a chain of 12 per slot (on a GPU, 23 launches of a thesis-vbar refresh's 208)."""
-    s = ts[..., None] * (1.0 - jnp.arange(1, SUBSAMPLES, dtype=Ac.dtype) / SUBSAMPLES)
-    eye = jnp.eye(Ac.shape[0], dtype=Ac.dtype)
-    M = -s[..., None, None] * Ac
-
-    def horner(M, mm):
-        out = jnp.broadcast_to(eye, M.shape)
-        for k in range(12, 0, -1):  # Horner: I + M (I + M / 2 (I + M / 3 (...)))
-            out = eye + mm(M / k, out)
-        return out
-
-    # on a GPU the products as multiplies and sums, which XLA fuses (12 launches fewer a tick)
-    return cuda_or_default(
-        M, cuda=lambda M: horner(M, _mm_sum), default=lambda M: horner(M, jnp.matmul)
-    )
-
-
-def _mm_sum(X, Y):
-    """X @ Y of stacks of small matrices as a multiply and a sum."""
-    return jnp.sum(X[..., :, :, None] * Y[..., None, :, :], axis=-2)
-
-
 def _plan_dv(fc: Config, g: Guidance, plan):
     """(N, 3) the delta-v of each stage of a plan (the LP's split inputs recombined)."""
     u = plan.u
     if fc.rendezvous_cost == "lp":
         return u[:, :3] - jnp.where(g.phase == 0, u[:, 3:], 0.0)
     return u
-
-
-def axis_thrust(thr: Thrusters):
-    """(3,), (3,) thrust [N] along +x, +y, +z and -x, -y, -z of a set whose body axes are the
-    model's (``frame="fixed"``): each direction's thrusters fire together on a demand along
-    it (the least-thrust allocation), so a delta-v dv_j takes m |dv_j| / F_j seconds."""
-    d = thr.direction  # (T, 3)
-    plus = jnp.sum(thr.thrust[:, None] * jnp.maximum(d, 0.0), axis=0)
-    minus = jnp.sum(thr.thrust[:, None] * jnp.maximum(-d, 0.0), axis=0)
-    return plus, minus
-
-
-def finite_burn(p: Params, A, ts, dv_bar):
-    """The impulsive model (paper 003 Eq. 3.1) with the thrusters' finite burns, linearised
-    about the delta-v of the previous plan: (B (N, 6, 3), c (N, 6)) per stage.
-
-    A delta-v dv_j on axis j is a burn of w_j = m |dv_j| / F_j seconds from the period's start
-    (PWM aligned to the start; the thesis' on-time bound u_max keeps w_j <= 5 s). Its effect
-    at the period's end is A (1 / w) int_0^w e^{-Ac s} ds b_j dv_j
-    = A (I - w/2 Ac + w^2/6 Ac^2) b_j dv_j + O(w^3) (b_j the unit delta-v column): for the
-    double integrator the position lags the impulse's by m dv_j |dv_j| / (2 F_j). That is
-    nonlinear in dv_j; its tangent at the previous plan's delta-v dv_bar (shifted one stage) is
-
-        B_t = A (b - Ac b diag(w) + Ac^2 b diag(w^2) / 2),
-        c_t = A (Ac b (w / 2 * dv_bar) - Ac^2 b (w^2 / 3 * dv_bar))
-
-    with w = w(dv_bar): exact where the plan keeps its delta-v (the error is
-    m (|dv| - |dv_bar|)^2 / (2 F) per axis otherwise). With ideal impulses (no thrusters)
-    the family keeps Eq. 3.1 exactly.
-    """
-    plus, minus = axis_thrust(p.plant.thrusters)
-    F = jnp.where(dv_bar >= 0.0, plus, minus)
-    w = jnp.minimum(p.plant.mass * jnp.abs(dv_bar) / jnp.maximum(F, 1e-12), ts)  # (N, 3)
-    b = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3)]).astype(A.dtype)  # unit delta-v columns
-    Ab = p.plant.Ac @ b  # (6, 3)
-    AAb = p.plant.Ac @ Ab
-    B = jnp.einsum(
-        "ij,tjk->tik", A, b[None] - Ab[None] * w[:, None, :] + 0.5 * AAb[None] * (w**2)[:, None, :]
-    )
-    c = jnp.einsum("ij,tj->ti", A @ Ab, 0.5 * w * dv_bar) - jnp.einsum(
-        "ij,tj->ti", A @ AAb, (w**2 / 3.0) * dv_bar
-    )
-    return B, c
 
 
 def control(p, fc: Config, g: Guidance, sol):
@@ -513,9 +383,6 @@ def update(p: Params, fc: Config, g: Guidance, x, u, x_next, t, ts, samples):
         k = k / jnp.maximum(jnp.linalg.norm(k), 1e-12)
         turn = jnp.where(fits | (phase != 0), 0.0, k)
     return Guidance(phase=phase, entered=entered, turn=turn), docked, ts, judged
-
-
-SUBSAMPLES = 8  # intervals a step is cut into for the truth between samples
 
 
 def subsamples(p: Params, fc: Config, x, u, dt):
