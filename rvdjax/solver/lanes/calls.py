@@ -142,13 +142,14 @@ def _flat(a, padded: bool = False):
 
 def factor(M, Phi_u, Phi_x, cfg: KernelConfig = KernelConfig(), index=None):
     """Backward Riccati factorisation: (L, P), each ``[stage][entry][problem]``, L
-    and P as their lower triangles (:func:`pack`; :func:`unpack` gives the matrices).
+    and P as their lower triangles (:func:`~rvdjax.solver.lanes.packing.pack`;
+    :func:`~rvdjax.solver.lanes.packing.unpack` gives the matrices).
 
     Args:
         M: (N, nx, nu + nx[, b]) the stages' [B_t, A_t] (no batch axis: shared), or with
             ``index`` a table (K, N, nx, nu + nx) of K models.
         Phi_u: (N, tri(nu), b), Phi_x: (N, tri(nx), b) the Hessian blocks' lower triangles
-            (:func:`tri_pack`; symmetric, so nothing is lost).
+            (:func:`~rvdjax.solver.lanes.packing.tri_pack`; symmetric, so nothing is lost).
         index: (b,) int, the model of each problem in the table ``M`` (the same arithmetic
             as ``M[index]`` moved batch last, without that copy).
     """

@@ -37,15 +37,14 @@ from rvdjax.solver.lanes.stage import (
 
 
 def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, model_only, *refs):
-    """One program: the sweeps for a tile of ``lanes`` problems (module docstring).
+    """One program: the sweeps for a tile of ``lanes`` problems (:mod:`rvdjax.solver.lanes`).
 
     refs: M = [B, A] (N, nx, nu + nx[, lanes]), then (factorise) Phi_u, Phi_x (their lower
-    triangles, :func:`_tri`) or (not factorise) L, P; then (with_rhs) g_u, g_x, rp;
-    outputs: (factorise) L, P; (with_rhs) du, dx, nu. The backward sweep keeps p_{t+1} in
-    nu's rows until the forward sweep overwrites them. ``model``
-    as :func:`_model_refs`;
-    ``model_only``: with ``block_io``, the model alone in blocks, the rest entry by entry
-    (:attr:`KernelConfig.model_blocks_only`).
+    triangles, :func:`~rvdjax.solver.lanes.refs._tri`) or (not factorise) L, P; then (with_rhs) g_u,
+    g_x, rp; outputs: (factorise) L, P; (with_rhs) du, dx, nu. The backward sweep keeps p_{t+1} in
+    nu's rows until the forward sweep overwrites them. ``model`` as
+    :func:`~rvdjax.solver.lanes.refs._model_refs`; ``model_only``: with ``block_io``, the model
+    alone in blocks, the rest entry by entry (:attr:`KernelConfig.model_blocks_only`).
     """
     refs = _model_refs(refs, model, block_io, padded)
     if model_only:
@@ -133,8 +132,8 @@ def _kernel(N, nx, nu, lanes, with_rhs, factorise, block_io, padded, model, mode
 def _forward_sweep(dims, zero, M_ref, L_ref, P_ref, g_ref, r_ref, p_ref, out, add=False):
     """The forward sweep of one right-hand side, whose input gradient g_u, affine term p and
     dynamics residual r are stored a stage each (each stage solved again,
-    :func:`_forward_solved`): (du, dx, nu) written to the refs ``out``, or (``add``) added to
-    the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
+    :func:`~rvdjax.solver.lanes.stage._forward_solved`): (du, dx, nu) written to the refs ``out``,
+    or (``add``) added to the step they hold (a refinement's correction). ``dims``: (N, nx, nu)."""
     N, nx, nu = dims
 
     def stage(t, dx):
@@ -157,13 +156,15 @@ def _forward_sweep(dims, zero, M_ref, L_ref, P_ref, g_ref, r_ref, p_ref, out, ad
 
 
 def _refined_kernel(N, nx, nu, lanes, block_io, padded, model, *refs):
-    """One program of :func:`apply_refined`: the step of one right-hand side, then one step of
-    iterative refinement against the KKT matrix (:func:`rvdjax.solver.kkt.kkt_refine`), whose
-    residual is formed stage by stage inside the sweeps instead of in a pass of its own.
+    """One program of :func:`~rvdjax.solver.lanes.calls.apply_refined`: the step of one
+    right-hand side, then one step of iterative refinement against the KKT matrix
+    (:func:`rvdjax.solver.kkt.kkt_refine`), whose residual is formed stage by stage inside the
+    sweeps instead of in a pass of its own.
 
     refs: M, L, P, Phi_u, Phi_x, g_u, g_x, rp; outputs du, dx, nu (the first step,
     then the refined one), and g2, p2, rp2 (the correction's right-hand side g_u, its affine
-    term p and its dynamics residual, kept between its sweeps). ``model`` as :func:`_model_refs`.
+    term p and its dynamics residual, kept between its sweeps). ``model`` as
+    :func:`~rvdjax.solver.lanes.refs._model_refs`.
     """
     refs = _model_refs(refs, model, block_io, padded)
     M_ref, L_ref, P_ref, Phu_ref, Phx_ref, gu_ref, gx_ref, rp_ref = refs[:8]

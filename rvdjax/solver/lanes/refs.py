@@ -163,7 +163,8 @@ def _untri(flat, n):
 
 
 def _lower(L):
-    """The lower triangle of a :func:`chol` factor as a flat tuple, row by row."""
+    """The lower triangle of a :func:`~rvdjax.solver.lanes.algebra.chol` factor as a flat tuple, row
+    by row."""
     return tuple(L[i][j] for i in range(len(L)) for j in range(i + 1))
 
 
@@ -174,6 +175,6 @@ def _load_sym(ref, t, n):
 
 def _load_lower(ref, t, n):
     """Stage t of a lower factor stored as its lower triangle (:func:`_lower`); the upper
-    triangle None, as :func:`chol` leaves it."""
+    triangle None, as :func:`~rvdjax.solver.lanes.algebra.chol` leaves it."""
     flat = iter(_load(ref, t, tri_size(n)))
     return [[next(flat) if j <= i else None for j in range(n)] for i in range(n)]

@@ -77,9 +77,9 @@ def _model_M(axis_size, A, B, bA, bB, batched: bool):
 
 def _lane_model(impl, M, batched: bool, table):
     """(model, index) for the kernels: the batch-last [B, A] of each problem (or the shared
-    one) and None, or the shared ``table`` (:class:`ModelTable`, its index batched) and the
-    problems' indices where the model is per problem and the kernels read tables (every
-    "pallas*" form; the "unrolled" loops take the copy)."""
+    one) and None, or the shared ``table`` (:class:`~rvdjax.solver.riccati.recursion.ModelTable`,
+    its index batched) and the problems' indices where the model is per problem and the kernels read
+    tables (every "pallas*" form; the "unrolled" loops take the copy)."""
     if table is not None and batched and impl != "unrolled":
         return table.M, table.index
     return (_to_last(M) if batched else M), None
@@ -140,16 +140,16 @@ def _lane_factor_mats(impl, axis_size, f: RiccatiFactor, fb: RiccatiFactor):
 
 def _lane_blocks(impl, axis_size, *blocks):
     """The batch-last Hessian blocks a kernel reads, each given as (block, batched): the
-    lower triangles for the Pallas kernels (:class:`SymStored`'s, or packed from the
-    matrices), the matrices for the unrolled loops."""
+    lower triangles for the Pallas kernels (:class:`~rvdjax.solver.riccati.recursion.SymStored`'s,
+    or packed from the matrices), the matrices for the unrolled loops."""
     if impl == "unrolled":
         return [_to_last(_full(axis_size, whole(a), whole(b))) for a, b in blocks]
     return [_to_last(_full(axis_size, _lower(a, -2), _lower_flag(b))) for a, b in blocks]
 
 
 def _lower_flag(b):
-    """The batch flag of :func:`_lower`'s triangles (a custom_vmap rule's flags come in the
-    arguments' structure)."""
+    """The batch flag of :func:`~rvdjax.solver.riccati.recursion._lower`'s triangles (a
+    custom_vmap rule's flags come in the arguments' structure)."""
     return b.lower if isinstance(b, SymStored) else b
 
 

@@ -113,8 +113,8 @@ def _batched(op: str, kernel: str, tabled: bool = False):
     """The recursion ``op`` as a custom_vmap function dispatching on ``kernel``: unbatched,
     the kernels run a batch of one; under vmap, the rules above (the batch dimension of each
     output is the same whichever form runs). ``tabled``: the last argument is a
-    :class:`ModelTable`, which the kernels' rules read where it is shared and its index
-    batched, and everything else ignores."""
+    :class:`~rvdjax.solver.riccati.recursion.ModelTable`, which the kernels' rules read where it is
+    shared and its index batched, and everything else ignores."""
     xla_fn, xla_rule, pallas_rule = _OPS[op]
 
     def flags(in_batched):
@@ -161,8 +161,9 @@ def _batched(op: str, kernel: str, tabled: bool = False):
 
 def _dot_derivative(fn, op: str = ""):
     """A custom_jvp rule: the derivative of ``fn``'s dot form (``kernel`` is not
-    differentiated, and a :class:`ModelTable`, the last primal, only repeats A and B), the
-    factor of ``op`` with the kernels' storage where ``kernel``'s has it."""
+    differentiated, and a :class:`~rvdjax.solver.riccati.recursion.ModelTable`, the last primal,
+    only repeats A and B), the factor of ``op`` with the kernels' storage where ``kernel``'s has
+    it."""
 
     def jvp(kernel, primals, tangents):
         primals, tangents = primals[:-1], tangents[:-1]
@@ -204,8 +205,9 @@ def riccati_factor(A, B, Phi_u, Phi_x, kernel: str = "auto", table=None) -> Ricc
             (XLA's loops), a form of :data:`rvdjax.solver.types.PALLAS_FORMS` (the kernels of
             :mod:`rvdjax.solver.lanes`; compiled on a CUDA GPU, interpreted elsewhere) or
             "unrolled" (their algebra as XLA loops, :mod:`rvdjax.solver.unrolled`).
-        table: a :class:`ModelTable` whose entry is [B, A], or None: under ``vmap`` with the
-            table shared and its index batched, the kernels read the model from it.
+        table: a :class:`~rvdjax.solver.riccati.recursion.ModelTable` whose entry is [B, A],
+            or None: under ``vmap`` with the table shared and its index batched, the kernels
+            read the model from it.
     """
     _check_kernel(kernel)
     return _run("factor", kernel, (A, B, Phi_u, Phi_x), table)
@@ -260,9 +262,10 @@ def riccati_apply_refined(
     f: RiccatiFactor, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "pallas-block-fused", table=None
 ) -> NewtonStep:
     """:func:`riccati_apply` and one step of iterative refinement against the KKT matrix of
-    ``f`` and the Hessian blocks Phi_u, Phi_x (:func:`newton_residual`, then one more solve):
-    with a kernel of :data:`REFINED_IN_KERNEL`, one kernel that forms the residual inside its
-    sweeps. ``kernel`` and ``table`` as :func:`riccati_factor`."""
+    ``f`` and the Hessian blocks Phi_u, Phi_x
+    (:func:`~rvdjax.solver.riccati.recursion.newton_residual`, then one more solve): with a kernel
+    of :data:`REFINED_IN_KERNEL`, one kernel that forms the residual inside its sweeps. ``kernel``
+    and ``table`` as :func:`riccati_factor`."""
     _check_kernel(kernel)
     return _run("apply_refined", kernel, (f, Phi_u, Phi_x, g_u, g_x, rp), table)
 
@@ -281,6 +284,7 @@ def riccati_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel: str = "auto") -> New
         kernel: as :func:`riccati_factor`.
 
     Returns:
-        The :class:`NewtonStep`. Non-finite entries signal a failed factorisation.
+        The :class:`~rvdjax.solver.riccati.recursion.NewtonStep`. Non-finite entries signal a failed
+        factorisation.
     """
     return riccati_factor_solve(A, B, Phi_u, Phi_x, g_u, g_x, rp, kernel)[1]

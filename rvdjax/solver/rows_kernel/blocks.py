@@ -21,16 +21,17 @@ from rvdjax.solver.rows_kernel.stage import (
 
 
 def _blocks_kernel(dims, N, *refs):
-    """One program of :func:`pd_blocks`: the sweep for a tile of problems.
+    """One program of :func:`~rvdjax.solver.rows_kernel.calls.pd_blocks`: the sweep for a tile of
+    problems.
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the iterate's u, x, the cost blocks Q,
     R, the model [B, A], the linear costs q, r, the reference x_ref and the dynamics' offset c
-    (these four per problem or :class:`_Shared`), the initial state x0 (1, nx); outputs
-    Phi_u (N, tri(nu)), Phi_x (N, tri(nx)) (lower triangles, :func:`lanes.tri_pack`'s order),
-    g_x (N, nx), the cost's gradient base_u (N, nu), base_x (N, nx) and the dynamics'
-    residual rp (N, nx). The residual at stage t needs the
-    previous stage's state: a second sweep forms it, carrying the state (it reads u, x and the
-    model again, 3 KB a thesis-vbar problem)."""
+    (these four per problem or :class:`~rvdjax.solver.rows_kernel.stage._Shared`), the initial state
+    x0 (1, nx); outputs Phi_u (N, tri(nu)), Phi_x (N, tri(nx)) (lower triangles,
+    :func:`lanes.tri_pack`'s order), g_x (N, nx), the cost's gradient base_u (N, nu), base_x (N, nx)
+    and the dynamics' residual rp (N, nx). The residual at stage t needs the previous stage's state:
+    a second sweep forms it, carrying the state (it reads u, x and the model again, 3 KB a
+    thesis-vbar problem)."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     u_r, x_r, Q_r, R_r, M_r, q_r, r_r, xref_r, c_r, x0_r = refs[11:21]
@@ -63,11 +64,11 @@ def _blocks_kernel(dims, N, *refs):
 
     def stage_by_row(t, carry):
         """:func:`stage` with the soft rows one at a time in a loop (refs read entry by
-        entry), as the step's kernel does (:func:`_step_kernel`): F^T diag(d) F (its lower
-        triangle) and F^T v summed row by row in the order of
-        :func:`rvdjax.solver.lanes.algebra._mtm`. The input rows stay unrolled: in a loop of
-        their own they took the kernel from 168 to 204 registers with 65 536 QPs of a model
-        each (the cost block R then lives through the loop; ptxas for sm_90a)."""
+        entry), as the step's kernel does (:func:`~rvdjax.solver.rows_kernel.step._step_kernel`):
+        F^T diag(d) F (its lower triangle) and F^T v summed row by row in the order of
+        :func:`rvdjax.solver.lanes.algebra._mtm`. The input rows stay unrolled: in a loop of their
+        own they took the kernel from 168 to 204 registers with 65 536 QPs of a model each (the cost
+        block R then lives through the loop; ptxas for sm_90a)."""
         inputs = StageRows(dims, row_refs, t, "inputs")
         Q, R = _load(Q_r, t, nx, nx), _load(R_r, t, nu, nu)
         _store(Pu_out, t, list(_tri(_hessian_block(R, inputs.Fu, inputs.Du))))

@@ -30,9 +30,9 @@ def _launch(body, name, ins, outs, interpret, tables=None, aliases=None, shared=
     ``aliases``: {input position: output position} written in the input's buffer (the kernel
     reads each stage of such an input before it writes that stage of the output).
     ``shared``: positions of inputs that may come without the problem axis, shared by the
-    batch (:class:`_Shared`): those given with one dimension less than the problem's (N, e).
-    ``block_io``: the per-problem arrays and the tables read and written a stage's block at
-    a time (:class:`rvdjax.solver.lanes.refs._Block`), else entry by entry
+    batch (:class:`~rvdjax.solver.rows_kernel.stage._Shared`): those given with one dimension less
+    than the problem's (N, e). ``block_io``: the per-problem arrays and the tables read and written
+    a stage's block at a time (:class:`rvdjax.solver.lanes.refs._Block`), else entry by entry
     (:class:`rvdjax.solver.lanes.refs._Entries`)."""
     from jax.experimental import pallas as pl
 
@@ -111,7 +111,8 @@ def pd_rows(
     (N, mx, b), the input rows' slack su = fu - Fu u, multiplier lam and mask wu (N, mu, b));
     the predictor's step dx (N, nx, b), du (N, nu, b); the cost gradients base_x (N, nx, b),
     base_u (N, nu, b); scalars: three (b,) arrays, the complementarity gap, the relative
-    dual residual and the number of barrier terms; ``rule`` the :class:`SigmaRule`.
+    dual residual and the number of barrier terms; ``rule`` the
+    :class:`~rvdjax.solver.rows_kernel.stage.SigmaRule`.
 
     Returns:
         g_u (N, nu, b), g_x (N, nx, b) the corrector's right-hand side, Fdu (N, mu, b) and
@@ -153,9 +154,9 @@ _TABLE_POSITIONS = {
 _SHAREABLE = {"rows": (), "blocks": (13, 14, 15), "step": (19, 20, 21)}
 _SHAREABLE["step_system"] = _SHAREABLE["step"]
 
-#: The inputs read as :class:`_Shared` when a batch shares them, with tables or without:
-#: the linear costs q, r, the reference x_ref and the dynamics' offset c (the batch engine's
-#: zero linear costs and offsets).
+#: The inputs read as :class:`~rvdjax.solver.rows_kernel.stage._Shared` when a batch shares
+#: them, with tables or without: the linear costs q, r, the reference x_ref and the dynamics'
+#: offset c (the batch engine's zero linear costs and offsets).
 _SHARED = {"rows": (), "blocks": (16, 17, 18, 19), "step": (22, 23, 24)}
 _SHARED["step_system"] = (22, 23, 24, 25)  # and the dynamics' offset c
 

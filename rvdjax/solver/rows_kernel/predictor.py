@@ -21,7 +21,7 @@ from rvdjax.solver.rows_kernel.stage import (
 
 
 def _rows_kernel(dims, N, rule: SigmaRule, *refs):
-    """One program: the sweeps for a tile of problems (module docstring).
+    """One program: the sweeps for a tile of problems (:mod:`rvdjax.solver.rows_kernel`).
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, dx, du, base_x, base_u, the scalars
     gap, res, m_eff (1, 1) each; outputs G_u (N, 3, nu), G_x (N, 3, nx), Fdu, Fdx,
@@ -59,7 +59,8 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
 
     def stage_by_row(t, carry):
         """:func:`stage` with the input rows and the soft rows one at a time in loops (refs
-        read entry by entry), as the step's kernel does (:func:`_step_kernel`)."""
+        read entry by entry), as the step's kernel does
+        (:func:`~rvdjax.solver.rows_kernel.step._step_kernel`)."""
         alpha, c0, c1, c2 = carry
         dx, du = _load(row_refs[11], t, nx), _load(row_refs[12], t, nu)
 

@@ -27,16 +27,18 @@ from rvdjax.solver.rows_kernel.stage import (
 
 
 def _step_kernel(dims, N, system, *refs):
-    """One program of :func:`pd_step_rows`: two sweeps for a tile of problems.
+    """One program of :func:`~rvdjax.solver.rows_kernel.calls.pd_step_rows`: two sweeps for a tile
+    of problems.
 
     refs: Fx, Fu, s, g, mu, pi, wx, rho, su, lam, wu, the corrector's step dx, du, nu, the
     predictor's row products Fdx_a, Fdu_a, the iterate's u, x, nu, the cost blocks Q, R, the
     model [B, A], the linear costs q, r, the reference x_ref (these three per problem or
-    :class:`_Shared`), with ``system`` the dynamics' offset c (the same) and the initial
-    state x0 (1, nx), the scalars alpha_a, kappa, fraction (1, 1) each; outputs U (N, 2, nu),
-    X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g, with ``system`` the
-    next iteration's Newton system at the new point (:func:`pd_blocks`'s six outputs), and
-    (alpha, gap, relative dual residual, objective, finite).
+    :class:`~rvdjax.solver.rows_kernel.stage._Shared`), with ``system`` the dynamics' offset c (the
+    same) and the initial state x0 (1, nx), the scalars alpha_a, kappa, fraction (1, 1) each;
+    outputs U (N, 2, nu), X (N, 2, nx), Fdu, Fdx, the new u, x, nu, s, lam, mu, pi, su, g, with
+    ``system`` the next iteration's Newton system at the new point
+    (:func:`~rvdjax.solver.rows_kernel.calls.pd_blocks`'s six outputs), and (alpha, gap, relative
+    dual residual, objective, finite).
 
     The first sweep forms the row products and the ratio test; the step length is known only
     after it, so it writes the dual residual's row terms F^T w (y + alpha dy) as two vectors a
@@ -53,15 +55,15 @@ def _step_kernel(dims, N, system, *refs):
     (docs/benchmark.md).
 
     With ``system`` the second sweep also forms the Newton system of the next iteration at
-    the new point, as :func:`_blocks_kernel` would from the stored iterate (the same
-    arithmetic; the dynamics' residual carries the previous stage's new state): the next
-    iteration starts with the factorisation, without the blocks' kernel and its reads of the
-    rows and the iterate. That sweep reads every row's constraint matrix anyway, so it also
-    forms the corrector's row products Fu du, Fx dx again (the first sweep's operations, the
-    same numbers) and the rows' terms of the dual residual at the new point, Fu^T wu lam and
-    Fx^T wx mu (as primal_dual._stopping_terms forms them), instead of the first sweep writing
-    the products and the terms' two parts (U, X) for it to read back (docs/benchmark.md);
-    U, X, Fdu and Fdx are then (1, 1) placeholders."""
+    the new point, as :func:`~rvdjax.solver.rows_kernel.blocks._blocks_kernel` would from the stored
+    iterate (the same arithmetic; the dynamics' residual carries the previous stage's new state):
+    the next iteration starts with the factorisation, without the blocks' kernel and its reads of
+    the rows and the iterate. That sweep reads every row's constraint matrix anyway, so it also
+    forms the corrector's row products Fu du, Fx dx again (the first sweep's operations, the same
+    numbers) and the rows' terms of the dual residual at the new point, Fu^T wu lam and Fx^T wx mu
+    (as primal_dual._stopping_terms forms them), instead of the first sweep writing the products and
+    the terms' two parts (U, X) for it to read back (docs/benchmark.md); U, X, Fdu and Fdx are then
+    (1, 1) placeholders."""
     mx, mu, nx, nu = dims
     row_refs = refs[:11]
     dx_r, du_r, nun_r, Fdxa_r, Fdua_r, u_r, x_r, nu_r = refs[11:19]
@@ -259,7 +261,7 @@ def _step_kernel(dims, N, system, *refs):
         """:func:`update` with the input rows and the soft rows one at a time in loops (as
         :func:`stage_by_row`; the same operations, and the penalty sum in the same order).
         With ``system``, the next Newton system's sums over the rows run in those loops, in
-        the order of :func:`_blocks_kernel`'s."""
+        the order of :func:`~rvdjax.solver.rows_kernel.blocks._blocks_kernel`'s."""
         rs, js, wr, ru, rx, gm, J, p_prev, *x_prev = carry
         dx, du = _load(dx_r, t, nx), _load(du_r, t, nu)
         nu_old = _load(nu_r, t, nx)
