@@ -17,6 +17,13 @@ batching rules for XLA's loops and for the kernels) and :mod:`~rvdjax.solver.ric
 
 from __future__ import annotations
 
+from rvdjax.solver.platform import (  # noqa: F401  (their home until 2026-12-07: still found here)
+    AUTO_ON_CUDA,
+    cuda_or_default,
+    kernel_on,
+    traces_cuda,
+    tracing_for_cuda,
+)
 from rvdjax.solver.riccati.ops import (
     REFINED_IN_KERNEL,
     ROWS_BLOCK_IO,
@@ -28,12 +35,13 @@ from rvdjax.solver.riccati.ops import (
     riccati_factor_solve,
     riccati_solve,
 )
-from rvdjax.solver.riccati.recursion import (
+from rvdjax.solver.riccati.recursion import (  # noqa: F401  (whole: as before)
     ModelTable,
     NewtonStep,
     RiccatiFactor,
     SymStored,
     newton_residual,
+    whole,
 )
 from rvdjax.solver.riccati.xla_rules import BATCH_LAST_MAX
 from rvdjax.solver.types import KERNELS

@@ -65,6 +65,6 @@ from __future__ import annotations
 
 from rvdjax.solver.rows_kernel.calls import batched, pd_blocks, pd_rows, pd_step_rows
 from rvdjax.solver.rows_kernel.drift import drift_batched
-from rvdjax.solver.rows_kernel.stage import SigmaRule
+from rvdjax.solver.rows_kernel.stage import SigmaRule, StageRows, Steps  # noqa: F401  (as before)
 
 __all__ = ["SigmaRule", "pd_rows", "pd_step_rows", "pd_blocks", "batched", "drift_batched"]
