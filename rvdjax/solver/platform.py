@@ -8,7 +8,6 @@ import contextlib
 import functools
 
 import jax
-import jax.scipy.linalg
 from jax import lax
 
 AUTO_ON_CUDA = "pallas-carried"  # what "auto" runs on a CUDA GPU (XLA's loops elsewhere)

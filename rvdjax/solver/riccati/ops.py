@@ -7,7 +7,6 @@ from __future__ import annotations
 import functools
 
 import jax
-import jax.scipy.linalg
 
 from rvdjax.solver import lanes
 from rvdjax.solver.platform import AUTO_ON_CUDA, cuda_or_default, traces_cuda

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg
 
 from rvdjax.solver.riccati.recursion import (
     _ELEMENTWISE,
