@@ -1,6 +1,6 @@
 """A dual warm start for the accurate mode, measured (not adopted): iterations per MPC step
 when the primal-dual solve starts from the previous step's multipliers, shifted one stage,
-instead of the central point at kappa0 (rvdjax.solver.primal_dual.pd_start).
+instead of the central point at kappa0 (rvdjax.solver.pd_algebra.pd_start).
 
 Each MPC step of one maneuver (the published x0, accurate mode) is solved twice from the same
 primal warm start: as rvdjax does, and with the multipliers lam, mu, pi of the previous

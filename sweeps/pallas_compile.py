@@ -16,7 +16,7 @@ no unrolled form of it). The default GPU form (``"pallas-block-rows"``) is ``fac
 and ``apply_refined`` with ``--block-io``, and the row work of an accurate iteration,
 ``pd_blocks``, ``pd_rows`` and ``pd_step_rows`` (:mod:`rvdjax.solver.rows_kernel`, always
 with block loads and stores), compared with XLA's form of the same work
-(``primal_dual._newton_blocks``, ``_corrector_rhs`` and ``_step_xla`` under ``vmap``; the
+(``pd_algebra._newton_blocks``, ``_corrector_rhs`` and ``_step_xla`` under ``vmap``; the
 cost shared by the batch in ``pd_blocks``) on random interior iterates of thesis-vbar's shapes
 (12 soft rows and 6 input rows a stage). With ``--tabled`` the Riccati kernels read each problem's
 model from a table of three, at the problem's index (as they read thesis-vbar's phase models
@@ -156,12 +156,12 @@ def _plain_fns(part: str, cfg):
 
 
 def _row_inputs(b: int):
-    """Batch-first inputs of the row kernels' wrappers in rvdjax.solver.primal_dual: random
+    """Batch-first inputs of the row kernels' wrappers in rvdjax.solver.pd_kernels: random
     interior iterates of thesis-vbar's shapes (N = 30, 12 soft rows and 6 input rows a stage),
     rows with a fifth of their entries masked, a random step, the predictor's row products."""
     from rvdjax.ocp import OCP
     from rvdjax.solver.barrier import Rows
-    from rvdjax.solver.primal_dual import PDState, _row_steps, _soft_h, _targets
+    from rvdjax.solver.pd_algebra import PDState, _row_steps, _soft_h, _targets
 
     mx, mu = 12, 6
     rng = np.random.default_rng(0)
@@ -206,7 +206,8 @@ def _row_inputs(b: int):
 
 def _row_fns(part: str):
     """(kernel, XLA) forms of a row kernel's work, vmapped over batch-first inputs."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
 
     if part == "pd_blocks":  # one cost for the batch (closed over: unbatched)
         from rvdjax.ocp import OCP
@@ -220,16 +221,16 @@ def _row_fns(part: str):
         def blocks(fn, **kw):
             return jax.vmap(lambda r, st, su, sx: fn(cost, r, st, su, sx, **kw))
 
-        return blocks(pd._blocks_in_kernel, interpret=False), blocks(pd._newton_blocks)
+        return blocks(pk._blocks_in_kernel, interpret=False), blocks(pa._newton_blocks)
 
     if part == "pd_rows":
-        kernel = functools.partial(pd._rows_in_kernel, interpret=False)
-        return jax.vmap(kernel), jax.vmap(pd._corrector_rhs)
+        kernel = functools.partial(pk._rows_in_kernel, interpret=False)
+        return jax.vmap(kernel), jax.vmap(pa._corrector_rhs)
 
     def kernel(*a):
-        return pd._step_in_kernel(*a[:-1], aff=a[-1], interpret=False)
+        return pk._step_in_kernel(*a[:-1], aff=a[-1], interpret=False)
 
-    return jax.vmap(kernel), jax.vmap(lambda *a: pd._step_xla(*a[:-1]))
+    return jax.vmap(kernel), jax.vmap(lambda *a: pa._step_xla(*a[:-1]))
 
 
 def _best(fn, args, repeats=5):

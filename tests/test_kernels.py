@@ -128,7 +128,7 @@ def test_kernels_give_the_xla_iterates(case, kernel):
 
 
 def _random_rows_inputs(key, rows=None, N=5, mx=3, mu=4, nx=6, nu=3):
-    """Inputs of primal_dual._corrector_rhs for one problem: rows with masked entries (or
+    """Inputs of pd_algebra._corrector_rhs for one problem: rows with masked entries (or
     ``rows``), a strictly interior iterate (s > 0, s > g, su > 0, positive multipliers), a
     random step."""
     from rvdjax.solver.barrier import Rows
@@ -172,17 +172,18 @@ ROW_IO = pytest.mark.parametrize(
 @ROW_IO
 def test_the_rows_kernel_forms_the_xla_corrector_rhs(block_io):
     """The accurate mode's row work between its two solves as one kernel
-    (rvdjax.solver.rows_kernel, interpreted), against XLA's form (primal_dual._corrector_rhs)
+    (rvdjax.solver.rows_kernel, interpreted), against XLA's form (pd_algebra._corrector_rhs)
     on random interior iterates with masked rows: one problem and a vmapped batch whose rows
     are shared (unbatched under vmap). The predictor's row products and step length agree to
     rounding, the corrector's barrier weight and right-hand side to 1e-12 relative: the kernel
     sums the complementarity after the step and the right-hand side as polynomials in the step
     length and the weight, then evaluates them (module docstring)."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
 
     def both(args):
-        want = pd._corrector_rhs(*args)
-        got = pd._rows_in_kernel(*args, interpret=True, block_io=block_io)
+        want = pa._corrector_rhs(*args)
+        got = pk._rows_in_kernel(*args, interpret=True, block_io=block_io)
         return want, got
 
     def check(want, got):
@@ -231,14 +232,14 @@ def _random_cost(key, N=5, nx=6, nu=3, model=None, cost=None):
 
 
 def _step_case(key, nan, stop, emphasis, shared=None):
-    """Arguments of primal_dual._step_xla (ocp, rows, st, su, sx, step, taus, h, fraction) and
+    """Arguments of pd_algebra._step_xla (ocp, rows, st, su, sx, step, taus, h, fraction) and
     the predictor's (Fdu_a, Fdx_a, alpha_a, kappa) the step's kernel takes too: a random
     interior iterate, the predictor's row products and a random corrector step, a NaN in the
     step's multipliers (``nan``), a random step fraction in [0.99, 0.9999], 0 where ``stop``
     (a stopped solve's); ``emphasis`` 0-3 scales one stage's model or
     multipliers by 1e3 (test_the_step_kernel_takes_the_xla_step); ``shared`` the cost and
     model instead of a random one."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
     from rvdjax.solver import stagewise as sw
 
     rows, st, _, _, su, sx, step, h_pred, _ = _random_rows_inputs(key)
@@ -257,9 +258,9 @@ def _step_case(key, nan, stop, emphasis, shared=None):
     Fdx_a = sw.mv(rows.Fx, pred)
     alpha_a, kappa = jnp.asarray(0.7), jnp.asarray(0.05)
     zu, zx = jnp.zeros_like(su), jnp.zeros_like(sx)
-    aff = pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
-    taus = pd._targets(aff, alpha_a, kappa)
-    h = pd._soft_h(rows, st, sx, taus[1], taus[2])
+    aff = pa._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, zu, zx, zx, h_pred)
+    taus = pa._targets(aff, alpha_a, kappa)
+    h = pa._soft_h(rows, st, sx, taus[1], taus[2])
     step = step._replace(nu=jnp.where(nan, step.nu.at[2, 1].set(jnp.nan), step.nu))
     fraction = jnp.where(stop, 0.0, jax.random.uniform(k4, (), jnp.float64, 0.99, 0.9999))
     return (ocp, rows, st, su, sx, step, taus, h, fraction), (Fdu_a, Fdx_a, alpha_a, kappa)
@@ -268,7 +269,7 @@ def _step_case(key, nan, stop, emphasis, shared=None):
 @ROW_IO
 def test_the_step_kernel_takes_the_xla_step(block_io):
     """The corrector's row work as one kernel (rows_kernel.pd_step_rows, interpreted):
-    primal_dual._step_in_kernel against XLA's primal_dual._step_xla from random interior
+    pd_kernels._step_in_kernel against XLA's pd_algebra._step_xla from random interior
     iterates, the predictor's row products and a random corrector step, eight problems of a
     batch: the new iterate, the complementarity there and the stopping test's relative dual
     residual and objective there to 1e-12 relative (the kernel sums the complementarity as a
@@ -280,12 +281,13 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
     reads: the kernel tests the step itself) is refused by both (the iterate kept), and so is
     a stopped solve's. A batch that shares its cost and model (the batch engine's) gives the
     same as XLA too."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
 
     def case(key, nan, stop, emphasis, shared=None):
         args, rows_a = _step_case(key, nan, stop, emphasis, shared)
-        want = pd._step_xla(*args)
-        got = pd._step_in_kernel(*args, aff=rows_a, interpret=True, block_io=block_io)
+        want = pa._step_xla(*args)
+        got = pk._step_in_kernel(*args, aff=rows_a, interpret=True, block_io=block_io)
         return args[2], want, got
 
     # eight problems of one batch: steps taken, one with a NaN, one stopped, four emphases
@@ -328,28 +330,29 @@ def test_the_step_kernel_takes_the_xla_step(block_io):
 @ROW_IO
 def test_the_step_kernel_forms_the_next_newton_system(block_io):
     """The step's kernel that carries the Newton system ("pallas-carried";
-    primal_dual._step_in_kernel with ``system``, interpreted): the same step, complementarity,
+    pd_kernels._step_in_kernel with ``system``, interpreted): the same step, complementarity,
     stopping test and finiteness as the kernel without it, and the Newton system at the new
     iterate that the blocks' kernel forms from it (rows_kernel.pd_blocks), both to 1e-15
     relative (the same arithmetic; the compiler contracts a product and a sum into one
     rounding in some places and not in others: Phi_x differed in the last bit in 17 of 105
-    entries), and XLA's (primal_dual._system_xla) to 1e-12 relative: steps taken, one with a
+    entries), and XLA's (pd_algebra._system_xla) to 1e-12 relative: steps taken, one with a
     NaN and one stopped
     (both keep the iterate), and a batch sharing its cost and model (the dynamics' offset c
     read as scalars). The carried kernel forms the corrector's row products and the rows'
     dual-residual terms again in its second sweep instead of storing them in its first."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
 
     def case(key, nan, stop, shared=None):
         args, rows_a = _step_case(key, nan, stop, -1, shared)
         ocp, rows, st = args[:3]
-        kernel = functools.partial(pd._step_in_kernel, aff=rows_a, interpret=True)
+        kernel = functools.partial(pk._step_in_kernel, aff=rows_a, interpret=True)
         plain = kernel(*args, block_io=block_io)
         *carried, system = kernel(*args, block_io=block_io, system=True)
         u, x, nu, s, lam, mu, pi, su, g = carried[0]
         at = st._replace(u=u, x=x, nu=nu, s=s, lam=lam, mu=mu, pi=pi, su=su, g=g)
-        blocks = pd._system_in_kernel(ocp, rows, at, su, s - g, True, block_io=block_io)
-        return plain, carried, system, blocks, pd._system_xla(ocp, rows, at, su, s - g), st.s
+        blocks = pk._system_in_kernel(ocp, rows, at, su, s - g, True, block_io=block_io)
+        return plain, carried, system, blocks, pa._system_xla(ocp, rows, at, su, s - g), st.s
 
     def check(plain, carried, system, blocks, xla, _):
         for p, c in zip(jax.tree.leaves(plain), jax.tree.leaves(carried), strict=True):
@@ -382,12 +385,13 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
     """The predictor's Newton blocks as one kernel (rows_kernel.pd_blocks, interpreted):
     Phi_u, Phi_x (the lower triangles it writes, and the matrices mirrored from them), the
     right-hand side, the cost's gradient and the dynamics' residual against XLA's
-    primal_dual._newton_blocks to 1e-12 relative, from random interior iterates with masked
+    pd_algebra._newton_blocks to 1e-12 relative, from random interior iterates with masked
     rows: one problem; a vmapped batch whose cost is shared (the blocks read as a table of
     one, the linear costs, the reference and the dynamics' offset as scalars); and a batch
     reading its input rows, soft rows' mask and penalty, cost blocks and model from tables of
     K = 3 at each problem's index (the batch engine's phase tables)."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
     from rvdjax.solver.lanes import tri_pack
     from rvdjax.solver.riccati import ModelTable, SymStored
 
@@ -407,8 +411,8 @@ def test_the_blocks_kernel_forms_the_xla_newton_blocks(block_io):
             assert _rel(w, g) <= 1e-12
 
     def both(a, table=None):
-        got = pd._blocks_in_kernel(*a, interpret=True, table=table, block_io=block_io)
-        return pd._newton_blocks(*a), got
+        got = pk._blocks_in_kernel(*a, interpret=True, table=table, block_io=block_io)
+        return pa._newton_blocks(*a), got
 
     one = args_of(jax.random.key(41))
     check(*jax.jit(both)(one))
@@ -455,7 +459,8 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for(block_
     (the batch engine's phase tables; the input rows before the problem's own mask zeroes
     some of them), both row kernels (interpreted, under vmap) compute, bit for bit, what they
     compute from each problem's rows."""
-    from rvdjax.solver import primal_dual as pd
+    from rvdjax.solver import pd_algebra as pa
+    from rvdjax.solver import pd_kernels as pk
     from rvdjax.solver.riccati import ModelTable
 
     N, mx, mu, K, b = 5, 3, 4, 3, 3
@@ -484,20 +489,20 @@ def test_the_row_kernels_read_the_phase_tables_as_the_rows_they_stand_for(block_
     cost = jax.tree.map(lambda *a: jnp.stack(a), *costs)
 
     def both(table, cost, *args):
-        plain = pd._rows_in_kernel(*args, interpret=True, block_io=block_io)
-        tabled = pd._rows_in_kernel(*args, interpret=True, table=table, block_io=block_io)
+        plain = pk._rows_in_kernel(*args, interpret=True, block_io=block_io)
+        tabled = pk._rows_in_kernel(*args, interpret=True, table=table, block_io=block_io)
         rows, st, _, _, su, sx, step, h, _ = args
         Fdu_a, Fdx_a, alpha_a, kappa = plain[2:]
-        taus = pd._targets(
-            pd._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, 0 * su, 0 * sx, 0 * sx, h),
+        taus = pa._targets(
+            pa._row_steps(rows, st, Fdu_a, Fdx_a, su, sx, 0 * su, 0 * sx, 0 * sx, h),
             alpha_a,
             kappa,
         )
-        h_c = pd._soft_h(rows, st, sx, taus[1], taus[2])
+        h_c = pa._soft_h(rows, st, sx, taus[1], taus[2])
         step_args = (cost, rows, st, su, sx, step, taus, h_c, jnp.asarray(False))
         aff = (Fdu_a, Fdx_a, alpha_a, kappa)
         steps = [
-            pd._step_in_kernel(*step_args, aff=aff, interpret=True, table=t, block_io=block_io)
+            pk._step_in_kernel(*step_args, aff=aff, interpret=True, table=t, block_io=block_io)
             for t in (None, table)
         ]
         return (plain, *steps[:1]), (tabled, *steps[1:])
@@ -816,7 +821,7 @@ def test_the_drift_is_a_loop_on_the_cpu_and_unrolled_for_a_gpu():
 
 
 def test_the_drift_kernel_gives_the_recursion():
-    """The start's drift as one kernel (primal_dual.pd_drift with a form whose rows run in
+    """The start's drift as one kernel (pd_kernels.pd_drift with a form whose rows run in
     kernels, interpreted here): the states of x_{t+1} = A_t x_t + B_t u_t + c_t written out
     in NumPy, to 1e-12 relative, for one problem, a batch with a model each and a batch
     sharing its model and offset (read as a table of one and as scalars: no copy for every

@@ -21,9 +21,10 @@ Three modes (DESIGN §3):
 Modules: :mod:`.types` (settings, traced parameters, results), :mod:`.barrier` (cost, barrier
 and residuals), :mod:`.kkt` (the Newton step: its interface and the dense solve),
 :mod:`.riccati` (the structured Newton step and its batching rules), :mod:`.start` (starting
-points and warm starts), :mod:`.newton` and :mod:`.primal_dual` (iterations), :mod:`.driver`
-(start / iterate / finish and :func:`solve`), :mod:`.implicit` (the implicit derivative),
-:mod:`.clarabel` (the Clarabel backend).
+points and warm starts), :mod:`.newton` and :mod:`.primal_dual` (iterations; the latter's
+state and row algebra in :mod:`.pd_algebra`, the same row work on the GPU kernels in
+:mod:`.pd_kernels`), :mod:`.driver` (start / iterate / finish and :func:`solve`),
+:mod:`.implicit` (the implicit derivative), :mod:`.clarabel` (the Clarabel backend).
 
 One argument order for every public function: the problem, the static settings, the traced
 parameters, then the warm start or the solve's state — ``solve(ocp, settings, params, init)``,
@@ -52,8 +53,8 @@ from rvdjax.solver.driver import (
     with_objective,
     with_system,
 )
+from rvdjax.solver.pd_kernels import carries_system
 from rvdjax.solver.platform import tracing_for_cuda
-from rvdjax.solver.primal_dual import carries_system
 from rvdjax.solver.start import drift_plan, shift_solution, warm_start
 from rvdjax.solver.types import Plan, Solution, SolverParams, SolverSettings, Status
 

@@ -72,7 +72,7 @@ class SolveState(NamedTuple):
 
     Attributes:
         core: the iterate: :class:`~rvdjax.solver.newton.NewtonState` (paper, barrier mode) or
-            :class:`~rvdjax.solver.primal_dual.PDState` (accurate mode).
+            :class:`~rvdjax.solver.pd_algebra.PDState` (accurate mode).
         x_scale: () 1 + the largest state entry at the start (scale of the primal residual).
         n_barrier: () the number of barrier terms (:func:`~rvdjax.solver.barrier.m_eff`:
             one per input row, two per soft state row), fixed by the rows for the whole solve
@@ -110,7 +110,7 @@ def start(
 
     ``in_kernels`` (static): where the Newton step's form runs the rows in kernels, the start
     runs in them too: the drift of the first inputs as one kernel, and the first Newton
-    system where the form carries it (:func:`~rvdjax.solver.primal_dual.carries_system`).
+    system where the form carries it (:func:`~rvdjax.solver.pd_kernels.carries_system`).
     Without it the start is XLA's and the state has no system; :func:`with_system` adds it
     later. The batch engine starts so: its slots are stored batch first, and the kernels'
     batch-last arrays cost it transposes (docs/benchmark.md); each tick forms the system
@@ -221,7 +221,7 @@ def iterate(
 
 def with_system(ocp: OCP, settings: SolverSettings, state: SolveState, table=None):
     """``state`` with the Newton system at its iterate, where the Newton step's form carries
-    it (:func:`~rvdjax.solver.primal_dual.carries_system`) and ``state`` has none (a
+    it (:func:`~rvdjax.solver.pd_kernels.carries_system`) and ``state`` has none (a
     :func:`start` without ``in_kernels``); else ``state`` itself. ``table`` as :func:`iterate`.
     The batch engine's ticks start so, and drop the system after their iterations, so that
     the slots hold none between ticks (on a GPU the refresh would form and move it, the

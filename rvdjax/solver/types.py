@@ -43,7 +43,7 @@ class KernelForm(NamedTuple):
             in blocks, every other operand and its outputs entry by entry.
         carried: with ``rows``, the corrector's step kernel also forms the next iteration's
             Newton system at the new point, which the solve's state carries
-            (:attr:`rvdjax.solver.primal_dual.PDState.system`): an iteration is four kernels,
+            (:attr:`rvdjax.solver.pd_algebra.PDState.system`): an iteration is four kernels,
             without the blocks' kernel (the start forms the first system).
     """
 

@@ -252,7 +252,7 @@ REFINED_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.fused)
 ROWS_IN_KERNEL = tuple(k for k, form in PALLAS_FORMS.items() if form.rows)
 ROWS_BLOCK_IO = tuple(k for k, form in PALLAS_FORMS.items() if form.rows_block_io)
 # the forms whose solves carry the next Newton system from one iteration to the next
-# (rvdjax.solver.primal_dual.PDState.system)
+# (rvdjax.solver.pd_algebra.PDState.system)
 SYSTEM_CARRIED = tuple(k for k, form in PALLAS_FORMS.items() if form.rows and form.carried)
 
 

@@ -35,9 +35,9 @@ rows but not Fx (the row products it wrote in the first sweep), and writes the n
 into the old one's buffers. Where the solve carries the Newton system
 (``kernel="pallas-carried"``, the default on a CUDA GPU), that second sweep also forms the
 next iteration's blocks and right-hand side at the new iterate, reading Fx again, and the next
-iteration starts without :func:`pd_blocks` (:attr:`rvdjax.solver.primal_dual.PDState.system`).
+iteration starts without :func:`pd_blocks` (:attr:`rvdjax.solver.pd_algebra.PDState.system`).
 Otherwise the kernels compute the expressions of
-:mod:`rvdjax.solver.primal_dual`; the results agree with XLA's form to rounding (tests).
+:mod:`rvdjax.solver.pd_algebra`; the results agree with XLA's form to rounding (tests).
 
 Inputs are batch-last and flattened a stage, ``[stage][entry][problem]``; see :func:`pd_rows`.
 The kernels read and write them entry by entry, the input rows and then the soft rows one at a

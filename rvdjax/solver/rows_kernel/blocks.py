@@ -40,7 +40,7 @@ def _blocks_kernel(dims, N, *refs):
     def soft_parts(rows):  # the soft rows' weights: d of Phi_x, v of g_x = base_x + Fx^T v
         return _soft_parts(rows.wx, rows.rho, rows.s, rows.g, rows.mu, rows.pi)
 
-    def cost(t, Q, R):  # the cost's gradient (primal_dual._cost_gradient)
+    def cost(t, Q, R):  # the cost's gradient (pd_algebra._cost_gradient)
         x, u = _load(x_r, t, nx), _load(u_r, t, nu)
         e = [a - b for a, b in zip(x, _load_any(xref_r, t, nx), strict=True)]
         base_u = [2.0 * a + b for a, b in zip(_mv(R, u), _load_any(r_r, t, nu), strict=True)]

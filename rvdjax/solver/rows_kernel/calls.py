@@ -201,14 +201,14 @@ def pd_step_rows(
     batch shares them; scalars: three (b,) arrays, the predictor's step length alpha_a, the
     corrector's barrier weight kappa (its targets are kappa - alpha_a dv dy of the predictor's
     steps) and the fraction of the way to the boundary that the step goes
-    (primal_dual.step_fraction; 0 where the solve is stopped).
+    (pd_algebra.step_fraction; 0 where the solve is stopped).
 
     Returns:
         new: the new u, x, nu, s, lam, mu, pi, su, g (as the inputs);
         sc (4, b): the step length taken alpha (``fraction`` of the way to the boundary, at most 1;
         NaN in no case: whether the step was finite is ``finite``), the complementarity at the
         new point, the relative dual residual and the objective there
-        (primal_dual._stopping_terms);
+        (pd_algebra._stopping_terms);
         finite (b,) bool: whether every entry of the step and of the rows' steps is finite.
 
     ``tables``: None, or (index (b,), Fu, wx, rho, Q, R, [B, A]), each table (K, N, ...) or

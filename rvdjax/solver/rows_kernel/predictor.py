@@ -30,7 +30,7 @@ def _rows_kernel(dims, N, rule: SigmaRule, *refs):
     The step length and the barrier weight are known only after the first sweep, so it forms
     what needs them as polynomials in them: the complementarity after the step,
     c0 + alpha c1 + alpha^2 c2, and the right-hand side, G0 + kappa G1 + alpha G2 (the
-    corrector's targets kappa - alpha dv dy are affine in both; primal_dual._pd_rhs). A
+    corrector's targets kappa - alpha dv dy are affine in both; pd_algebra._pd_rhs). A
     second sweep evaluates the right-hand side from the parts the first one wrote (on a GPU,
     two launches of XLA's an iteration less)."""
     mx, mu, nx, nu = dims

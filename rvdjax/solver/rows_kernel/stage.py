@@ -87,7 +87,7 @@ class StageRows:
         self.Du = [w * lm / v for w, lm, v in zip(self.wu, self.lam, self.su, strict=True)]
 
     def h(self, tau_x, tau_s):
-        """h = tau_x / sx + tau_s / s - rho (primal_dual._soft_h)."""
+        """h = tau_x / sx + tau_s / s - rho (pd_algebra._soft_h)."""
         return [
             tx / x + ts / s - r
             for tx, x, ts, s, r in zip(tau_x, self.sx, tau_s, self.s, self.rho, strict=True)
@@ -105,7 +105,7 @@ def _row_entries(ref, t, i, n):
 
 class Steps:
     """The rows' steps from the row products Fu du, Fx dx and the targets
-    (primal_dual._row_steps)."""
+    (pd_algebra._row_steps)."""
 
     def __init__(self, r: StageRows, Fdu, Fdx, tau_u, tau_x, tau_s, h):
         self.Fdu, self.Fdx = Fdu, Fdx
@@ -153,7 +153,7 @@ def _affine(dims, r: StageRows, Fdu, Fdx):
 
 
 def _corrector(dims, r: StageRows, aff: Steps, Fdu, Fdx, alpha_a, kappa):
-    """The corrector's steps: targets kappa - alpha_a dv dy (primal_dual._targets)."""
+    """The corrector's steps: targets kappa - alpha_a dv dy (pd_algebra._targets)."""
     tau_u = [kappa - alpha_a * a * b for a, b in zip(aff.dsu, aff.dlam, strict=True)]
     tau_x = [kappa - alpha_a * a * b for a, b in zip(aff.dsx, aff.dmu, strict=True)]
     tau_s = [kappa - alpha_a * a * b for a, b in zip(aff.ds, aff.dpi, strict=True)]
@@ -172,7 +172,7 @@ def _sum_products(products, c0, c1, c2):
 
 def _min_ratio(pairs, alpha, nan_if_not_finite=False):
     """``alpha`` lowered to every ratio -v / dv of an active row whose step shrinks it, NaN
-    where a step is not finite with ``nan_if_not_finite`` (primal_dual._max_step)."""
+    where a step is not finite with ``nan_if_not_finite`` (pd_algebra._max_step)."""
     for v, dv, w in pairs:
         shrink = (w > 0) & (dv < 0)
         ratio = jnp.where(shrink, -v / jnp.where(shrink, dv, -1.0), jnp.inf)
@@ -183,7 +183,7 @@ def _min_ratio(pairs, alpha, nan_if_not_finite=False):
 
 
 def _input_terms(rows: StageRows, r: Steps):
-    """The input rows' parts of the corrector's right-hand side (primal_dual._pd_rhs):
+    """The input rows' parts of the corrector's right-hand side (pd_algebra._pd_rhs):
     w tau_u / su = kappa u1 + alpha u2, u1 = w / su, u2 = -w P_u / su, P_u = dsu dlam."""
     u1 = [w / v for w, v in zip(rows.wu, rows.su, strict=True)]
     u2 = [-(w * (a * b)) / v for w, a, b, v in zip(rows.wu, r.dsu, r.dlam, rows.su, strict=True)]
@@ -192,7 +192,7 @@ def _input_terms(rows: StageRows, r: Steps):
 
 def _soft_terms(rows: StageRows, r: Steps):
     """The soft rows' parts x0 + kappa x1 + alpha x2 of w (tau_x / sx - q h),
-    q = a / (a + c), h = tau_x / sx + tau_s / s - rho (primal_dual._pd_rhs)."""
+    q = a / (a + c), h = tau_x / sx + tau_s / s - rho (pd_algebra._pd_rhs)."""
     x0, x1, x2 = [], [], []
     for w, sx, s, a, c, rho, dsx, dmu, ds, dpi in zip(
         rows.wx,
@@ -216,14 +216,14 @@ def _soft_terms(rows: StageRows, r: Steps):
 
 
 def _hessian_block(W, F, d):
-    """2 W + F^T diag(d) F (primal_dual._newton_blocks), F's rows summed in order."""
+    """2 W + F^T diag(d) F (pd_algebra._newton_blocks), F's rows summed in order."""
     scaled = [[dk * f for f in row] for dk, row in zip(d, F, strict=True)]
     return _add([[2.0 * w for w in row] for row in W], _mtm(F, scaled))
 
 
 def _soft_parts(wx, rho, s, g, mu, pi):
     """The soft rows' weights in the predictor's Newton system at (s, g, mu, pi): d of
-    Phi_x = 2 Q + Fx^T diag(d) Fx and v of g_x = base_x + Fx^T v (primal_dual._pd_rhs with
+    Phi_x = 2 Q + Fx^T diag(d) Fx and v of g_x = base_x + Fx^T v (pd_algebra._pd_rhs with
     zero targets, h = 0 / sx + 0 / s - rho), formed as :class:`StageRows` forms a, c, h."""
     d, v = [], []
     for w, r, si, gi, m, p in zip(wx, rho, s, g, mu, pi, strict=True):

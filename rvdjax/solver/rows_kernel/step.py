@@ -45,9 +45,9 @@ def _step_kernel(dims, N, system, *refs):
     stage (U, X) and sums the complementarity as c0 + alpha c1 + alpha^2 c2. The step length
     is NaN where any entry of the step (du, dx, nu) or of the rows' steps is not finite: the
     one test of the step that the update needs. The second sweep takes the step
-    (primal_dual._updated): from the row products the first one wrote, it forms the rows'
+    (pd_algebra._updated): from the row products the first one wrote, it forms the rows'
     steps again and writes the new iterate, and forms the stopping test there
-    (primal_dual._stopping_terms): the cost gradient, the dual residual with the row terms
+    (pd_algebra._stopping_terms): the cost gradient, the dual residual with the row terms
     U0 + alpha U1, X0 + alpha X1, the soft rows' largest |wx (rho - mu - pi)| and the
     objective. The state rows' residual r_x,t = ... - A_{t+1}^T nu_{t+1} needs the next
     stage's multipliers: the sweep carries it one stage and ends it there. On a GPU that
@@ -61,7 +61,7 @@ def _step_kernel(dims, N, system, *refs):
     the rows and the iterate. That sweep reads every row's constraint matrix anyway, so it also
     forms the corrector's row products Fu du, Fx dx again (the first sweep's operations, the same
     numbers) and the rows' terms of the dual residual at the new point, Fu^T wu lam and Fx^T wx mu
-    (as primal_dual._stopping_terms forms them), instead of the first sweep writing the products and
+    (as pd_algebra._stopping_terms forms them), instead of the first sweep writing the products and
     the terms' two parts (U, X) for it to read back (docs/benchmark.md); U, X, Fdu and Fdx are then
     (1, 1) placeholders."""
     mx, mu, nx, nu = dims
@@ -165,7 +165,7 @@ def _step_kernel(dims, N, system, *refs):
 
     zero = 0.0 * kappa
     alpha, c0, c1, c2 = jax.lax.fori_loop(0, N, stage, (zero + jnp.inf, zero, zero, zero))
-    # primal_dual._updated: ``fraction`` of the way to the boundary, at most 1; zero where the
+    # pd_algebra._updated: ``fraction`` of the way to the boundary, at most 1; zero where the
     # step is not finite (alpha NaN) or the solve is stopped (fraction 0)
     finite = ~jnp.isnan(alpha)
     take = finite & (fraction > 0.0)
@@ -229,7 +229,7 @@ def _step_kernel(dims, N, system, *refs):
         return rs, js, wr, *carry, x_n
 
     def stopping(t, u_n, x_n, nu_n, carry, terms=None):
-        """The stopping test (primal_dual._stopping_terms) at the new point u_n, x_n, nu_n
+        """The stopping test (pd_algebra._stopping_terms) at the new point u_n, x_n, nu_n
         of stage t: the dual residual's maxima, the gradient's, the objective and the state
         residual's part carried to the next stage; and the cost's gradient there (the next
         Newton system's base_u, base_x) and the stage's model. ``terms``: the rows' terms
