@@ -100,7 +100,32 @@ def test_bench_rejects_bad_batches(bad, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["bench", "--batch", bad])
     assert exc.value.code == 2
-    assert "--batch" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--batch" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "argv, needles",
+    [
+        (["run", "--mode", "fast"], ["rvdjax run: error:", "--mode", "'accurate', 'paper'"]),
+        (["run", "--device", "tpu"], ["--device", "'cpu', 'gpu'"]),
+        (["run", "--n-steps", "abc"], ["--n-steps", "expected an integer, got 'abc'"]),
+        (["tune", "fastmpc-3d", "--lr", "x"], ["--lr", "expected a number, got 'x'"]),
+        (["study", "montecarlo", "thesis-vbar"], ["rvdjax study montecarlo: error:", "--out"]),
+        (["verify"], ["rvdjax verify: error:", "{worst,probability}"]),
+        (["fly"], ["invalid choice: 'fly'", "'run'"]),
+    ],
+)
+def test_argument_errors_are_one_line(argv, needles, capsys):
+    """argparse's own refusals (a choice, a number, a missing argument) are one line naming
+    the parameter and what it allows, status 2, as the commands' later checks are."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    for needle in needles:
+        assert needle in err, (needle, err)
 
 
 def test_closed_loop_bench_json(tmp_path, capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 
 from rvdjax.cli import bench, compare, demo, run, scenarios, study, tune, verify
@@ -19,8 +20,23 @@ COMMANDS = (scenarios, run, tune, compare, demo, bench, study, verify)
 COMMAND_WORK = {"study": "batch", "verify": "batch"}
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors are one line (argparse prints its usage block first):
+    the command, the parameter, what it allows, as every other refusal of bad input. The
+    subcommands' parsers are of this class too (``add_subparsers`` makes its parent's)."""
+
+    def error(self, message: str):
+        for kind, wanted in (("int", "an integer"), ("float", "a number")):
+            message = message.replace(f"invalid {kind} value: ", f"expected {wanted}, got ")
+        for action in self._actions:  # a missing subcommand by its choices, not its dest
+            if isinstance(action, argparse._SubParsersAction) and action.dest in message:
+                choices = "{" + ",".join(action.choices) + "}"
+                message = re.sub(rf"\b{action.dest}\b", choices, message)
+        self.exit(2, f"{self.prog}: error: {message} (`{self.prog} -h` lists the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="rvdjax",
         description="MPC guidance for spacecraft rendezvous and docking (Fast MPC in JAX).",
     )
