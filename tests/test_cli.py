@@ -112,8 +112,9 @@ def test_bench_rejects_bad_batches(bad, capsys):
         (["run", "--n-steps", "abc"], ["--n-steps", "expected an integer, got 'abc'"]),
         (["tune", "fastmpc-3d", "--lr", "x"], ["--lr", "expected a number, got 'x'"]),
         (["study", "montecarlo", "thesis-vbar"], ["rvdjax study montecarlo: error:", "--out"]),
-        (["verify"], ["rvdjax verify: error:", "{worst,probability}"]),
-        (["fly"], ["invalid choice: 'fly'", "'run'"]),
+        (["verify"], ["rvdjax verify: error:", "required: command {worst,probability}"]),
+        (["fly"], ["rvdjax: error: command: invalid choice: 'fly'", "'run'"]),
+        (["verify", "worstt"], ["command: invalid choice: 'worstt'", "'probability'"]),
     ],
 )
 def test_argument_errors_are_one_line(argv, needles, capsys):

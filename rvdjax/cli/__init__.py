@@ -28,10 +28,12 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         for kind, wanted in (("int", "an integer"), ("float", "a number")):
             message = message.replace(f"invalid {kind} value: ", f"expected {wanted}, got ")
-        for action in self._actions:  # a missing subcommand by its choices, not its dest
-            if isinstance(action, argparse._SubParsersAction) and action.dest in message:
-                choices = "{" + ",".join(action.choices) + "}"
-                message = re.sub(rf"\b{action.dest}\b", choices, message)
+        for action in self._actions:  # a subcommand is "command", not its dest
+            if isinstance(action, argparse._SubParsersAction):
+                message = message.replace(f"argument {action.dest}: ", "command: ")
+                if message.startswith("the following arguments are required:"):
+                    choices = "command {" + ",".join(action.choices) + "}"
+                    message = re.sub(rf"\b{action.dest}\b", choices, message)
         self.exit(2, f"{self.prog}: error: {message} (`{self.prog} -h` lists the options)\n")
 
 
