@@ -26,6 +26,10 @@ Solvers (``PEERS`` registry; :func:`available_peers` lists the importable ones):
   ``setup_ms`` is the condensing.
 - ``osqp`` (optional): ADMM, sparse, ``l <= A z <= u`` with ``l = u`` on the equality rows,
   solution polishing on, ``eps_abs = eps_rel = 1e-5``. Only accurate to ~1e-5.
+- ``hpipm`` (optional, :mod:`rvdjax.peers_hpipm`): HPIPM's interior point on the OCP structure
+  (Riccati recursion, BLASFEO's kernels), the solver acados runs; its library is found from
+  ``RVDJAX_HPIPM_LIB`` or an importable ``acados`` package, where this CPU has what it was
+  built for. Solved from its own cold start, in its ``balance`` mode, to 1e-8.
 - ``qpax`` (optional): interior point in JAX, dense. Its stopping test is an *absolute*
   ``||KKT residual||_inf < solver_tol`` and its iteration cap is small (30), so the raw RVD
   problems (slack costs rho ~ 1e6 next to P ~ 1) do not converge: :func:`solve_qpax` rescales
@@ -34,7 +38,7 @@ Solvers (``PEERS`` registry; :func:`available_peers` lists the importable ones):
   jitted, vmapped solver over a batch of same-shape problems for batch timing.
 
 Thread pinning: Clarabel (``max_threads = 1``) and PIQP (``num_threads = 1``) are pinned to one
-thread; OSQP and DAQP are single-threaded; qpax runs on XLA, whose CPU thread pool is set at
+thread; OSQP, DAQP and HPIPM are single-threaded; qpax runs on XLA, whose CPU thread pool is set at
 process start (``XLA_FLAGS``), not per call.
 
 The wrappers are in :mod:`rvdjax.peers_host` (:class:`PeerResult`, Clarabel, PIQP, DAQP, OSQP)
@@ -56,6 +60,7 @@ from rvdjax.peers_host import (
     solve_osqp,
     solve_piqp,
 )
+from rvdjax.peers_hpipm import hpipm_library, hpipm_unavailable, solve_hpipm
 from rvdjax.peers_qpax import (
     QpaxBatch,  # noqa: F401  (re-exported)
     QpaxScaling,
@@ -74,6 +79,9 @@ __all__ = [
     "solve_daqp_condensed",
     "daqp_condensed_data",
     "solve_osqp",
+    "solve_hpipm",
+    "hpipm_library",
+    "hpipm_unavailable",
     "solve_qpax",
     "qpax_batch_solver",
     "QpaxScaling",
@@ -90,6 +98,7 @@ PEERS: dict[str, Callable[..., PeerResult]] = {
     "daqp": solve_daqp,
     "daqp-condensed": solve_daqp_condensed,
     "osqp": solve_osqp,
+    "hpipm": solve_hpipm,
     "qpax": solve_qpax,
 }
 
@@ -97,6 +106,13 @@ PEERS: dict[str, Callable[..., PeerResult]] = {
 _MODULE = {"daqp-condensed": "daqp"}  # peer name -> the package it needs, where they differ
 
 
+def _available(name: str) -> bool:
+    if name == "hpipm":  # a shared library, not a package (rvdjax.peers_hpipm)
+        return hpipm_library() is not None
+    return importlib.util.find_spec(_MODULE.get(name, name)) is not None
+
+
 def available_peers() -> list[str]:
-    """Names in :data:`PEERS` whose solver package is importable."""
-    return [name for name in PEERS if importlib.util.find_spec(_MODULE.get(name, name)) is not None]
+    """Names in :data:`PEERS` whose solver is usable here (its package importable; HPIPM's
+    library found and built for this CPU)."""
+    return [name for name in PEERS if _available(name)]

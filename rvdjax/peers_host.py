@@ -26,8 +26,8 @@ __all__ = [
 # Tolerances of Clarabel's "reference" mode.
 REFERENCE_TOL = 1e-10
 
-# A solved QP's status as each peer spells it (Clarabel, PIQP, DAQP, OSQP, qpax).
-SOLVED = ("Solved", "PIQP_SOLVED", "EXIT_OPTIMAL", "solved", "converged")
+# A solved QP's status as each peer spells it (Clarabel, PIQP, DAQP, OSQP, qpax, HPIPM).
+SOLVED = ("Solved", "PIQP_SOLVED", "EXIT_OPTIMAL", "solved", "converged", "SUCCESS")
 
 
 class PeerResult(NamedTuple):

@@ -104,6 +104,15 @@ def test_bench_rejects_bad_batches(bad, capsys):
     assert "--batch" in err and len(err.splitlines()) == 1
 
 
+def test_bench_rejects_an_unknown_peer(capsys):
+    """A peer's name is checked before any QP is built: one line naming --peers and the
+    choices, status 2."""
+    assert main(["bench", "--peers", "clarabel,hpipmm"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert "--peers: 'hpipmm' is not a peer" in err and "hpipm" in err.split("choose from")[1]
+
+
 @pytest.mark.parametrize(
     "argv, needles",
     [

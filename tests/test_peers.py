@@ -59,7 +59,9 @@ def reference(problems) -> dict[str, peers.PeerResult]:
 
 
 def test_registry():
-    assert set(peers.PEERS) == {"clarabel", "piqp", "daqp", "daqp-condensed", "osqp", "qpax"}
+    assert set(peers.PEERS) == {
+        "clarabel", "piqp", "daqp", "daqp-condensed", "osqp", "hpipm", "qpax"
+    }  # fmt: skip
     avail = peers.available_peers()
     assert "clarabel" in avail
     assert set(avail) <= set(peers.PEERS)
@@ -116,14 +118,23 @@ PEER_CASES = [
     ("daqp", "EXIT_OPTIMAL", 1e-7),
     ("daqp-condensed", "EXIT_OPTIMAL", 1e-7),
     ("osqp", "solved", 1e-3),
+    ("hpipm", "SUCCESS", 1e-7),
     ("qpax", "converged", 1e-5),
 ]
+
+
+def _skip_unless_usable(peer: str):
+    if peer == "hpipm":
+        if not peers.hpipm_library():
+            pytest.skip(f"HPIPM: {peers.hpipm_unavailable()}")
+    else:
+        pytest.importorskip(peers._MODULE.get(peer, peer))
 
 
 @pytest.mark.parametrize("name", ["hard", "soft", "soft_violated"])
 @pytest.mark.parametrize(("peer", "status", "rtol"), PEER_CASES)
 def test_peer_agrees_with_clarabel(problems, reference, peer, status, rtol, name):
-    pytest.importorskip(peers._MODULE.get(peer, peer))
+    _skip_unless_usable(peer)
     qp, ref = problems[name], reference[name]
     res = peers.PEERS[peer](qp)
     assert res.status == status
@@ -176,3 +187,118 @@ def test_peer_backend_reports_a_solved_qp_as_converged(backend):
     assert int(sol.status) == Status.CONVERGED, Status.name(int(sol.status))
     assert int(sol.iterations) > 0
     assert float(sol.objective) == pytest.approx(float(ref.objective), rel=1e-6)
+
+
+@pytest.mark.parametrize("name", ["hard", "soft", "soft_violated"])
+def test_hpipm_stages_rebuild_the_standard_form(problems, name):
+    """HPIPM's stages of a standard-form QP (peers_hpipm.ocp_stages, no library needed): the
+    sparse QP assembled again from them, as HPIPM's OCP QP reads them (stage 0 without a
+    state, stage N without an input, the state rows' slacks as softened rows), is the QP."""
+    from rvdjax.peers_hpipm import ocp_stages
+
+    qp = problems[name]
+    st = ocp_stages(qp)
+    N = len(st.nx) - 1
+    assert st.nx == [0] + [NX] * N and st.nu == [NU] * N + [0]
+    nz = qp.P.shape[0]
+    P = np.zeros((nz, nz))
+    q = np.zeros(nz)
+    A_eq = np.zeros((N * NX, nz))
+    G_rows, h = [], []
+    for k in range(N + 1):
+        u, x = st.u_cols[k], st.x_cols[k]
+        P[np.ix_(u, u)] = st.R[k]
+        P[np.ix_(x, x)] = st.Q[k]
+        P[np.ix_(u, x)] = st.S[k]
+        P[np.ix_(x, u)] = st.S[k].T
+        q[u], q[x] = st.r[k], st.q[k]
+        q[st.s_cols[k]] = st.z[k]
+        if k < N:
+            rows = np.arange(k * NX, (k + 1) * NX)
+            A_eq[np.ix_(rows, st.x_cols[k + 1])] = np.eye(NX)
+            A_eq[np.ix_(rows, u)] = -st.B[k]
+            A_eq[np.ix_(rows, x)] = -st.A[k]
+            np.testing.assert_array_equal(st.b[k], qp.b_eq[rows])
+        for j in range(len(st.ug[k])):
+            row = np.zeros(nz)
+            row[x], row[u] = st.C[k][j], st.D[k][j]
+            if j in st.soft[k]:
+                row[st.s_cols[k][list(st.soft[k]).index(j)]] = -1.0
+            G_rows.append(row)
+            h.append(st.ug[k][j])
+    np.testing.assert_array_equal(P, qp.P.toarray())
+    np.testing.assert_array_equal(q, qp.q)
+    np.testing.assert_array_equal(A_eq, qp.A_eq.toarray())
+    # the standard form's rows: every stage row, then each slack's -s <= 0 (HPIPM's own bound)
+    G = qp.G.toarray()
+    plan_rows = np.any(G[:, : qp.n_plan] != 0, axis=1)
+    np.testing.assert_array_equal(np.array(G_rows).reshape(-1, nz), G[plan_rows])
+    np.testing.assert_array_equal(np.array(h), qp.h[plan_rows])
+    n_slack = nz - qp.n_plan
+    assert sum(len(s) for s in st.soft) == n_slack == int(np.sum(~plan_rows))
+    assert (n_slack > 0) == (name != "hard")
+
+
+def test_hpipm_refuses_what_it_cannot_read(problems, monkeypatch, tmp_path):
+    """A QP whose cost couples two stages is not an OCP QP; HPIPM's library missing, the
+    peer is unavailable with the reason and ``solve_hpipm`` says so."""
+    import scipy.sparse as sp
+
+    from rvdjax import peers_hpipm
+    from rvdjax.peers_hpipm import ocp_stages
+
+    qp = problems["hard"]
+    P = qp.P.tolil()
+    P[0, qp.n_plan - 1] = P[qp.n_plan - 1, 0] = 0.1  # u_0 with x_N
+    with pytest.raises(ValueError, match="couples two stages"):
+        ocp_stages(qp._replace(P=sp.csc_matrix(P)))
+    with pytest.raises(ValueError, match="to_qp"):
+        ocp_stages(qp._replace(nu=0))
+    monkeypatch.setenv(peers_hpipm.HPIPM_ENV, str(tmp_path))
+    monkeypatch.setattr(peers_hpipm, "_candidates", lambda: [tmp_path])
+    peers_hpipm._load.cache_clear()
+    try:
+        assert peers_hpipm.hpipm_library() is None
+        assert "no libhpipm.so found" in peers_hpipm.hpipm_unavailable()
+        assert "hpipm" not in peers.available_peers()
+        with pytest.raises(RuntimeError, match="HPIPM is not available"):
+            peers.solve_hpipm(qp)
+    finally:
+        monkeypatch.undo()
+        peers_hpipm._load.cache_clear()
+
+
+def test_hpipm_starts(problems, reference):
+    """HPIPM from its own cold start and from the drift of x0 (the default) lands on
+    Clarabel's optimum; a bad start or mode is refused."""
+    _skip_unless_usable("hpipm")
+    for name in ("hard", "soft_violated"):
+        for start in ("cold", "drift"):
+            res = peers.solve_hpipm(problems[name], start=start)
+            assert res.status == "SUCCESS" and res.iterations > 0
+            assert res.objective == pytest.approx(reference[name].objective, rel=1e-7)
+    with pytest.raises(ValueError, match="start"):
+        peers.solve_hpipm(problems["hard"], start="warm")
+    with pytest.raises(ValueError, match="mode"):
+        peers.solve_hpipm(problems["hard"], mode="fast")
+
+
+def test_hpipm_needs_what_its_blasfeo_was_built_for(tmp_path):
+    """The instruction sets BLASFEO's build asks for (its target header) are checked against
+    the CPU's flags before any of its code runs."""
+    from rvdjax.peers_hpipm import _missing_cpu_flags
+
+    lib = tmp_path / "install" / "lib"
+    header = tmp_path / "install" / "include" / "blasfeo" / "include" / "blasfeo_target.h"
+    header.parent.mkdir(parents=True)
+    lib.mkdir(parents=True)
+    header.write_text(
+        "#define TARGET_X64_INTEL_HASWELL\n#define TARGET_NEED_FEATURE_AVX2 1\n"
+        "#define TARGET_NEED_FEATURE_FMA 1\n/* #undef TARGET_NEED_FEATURE_AVX */\n"
+    )
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor : 0\nflags : fpu sse2 avx fma\n")
+    assert _missing_cpu_flags(lib, cpuinfo) == ["AVX2"]
+    cpuinfo.write_text("processor : 0\nflags : fpu sse2 avx avx2 fma\n")
+    assert _missing_cpu_flags(lib, cpuinfo) == []
+    assert _missing_cpu_flags(tmp_path / "elsewhere", cpuinfo) == []  # no header: BLASFEO's test

@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
-from rvdjax.peers import PEERS, available_peers, qpax_batch_solver
+from rvdjax.peers import PEERS, available_peers, hpipm_unavailable, qpax_batch_solver
 from rvdjax.peers_host import SOLVED
 from rvdjax.problems import fastmpc3d_first_step_batch, perturbed_x0
 from rvdjax.qp import to_qp
@@ -264,7 +264,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), progress=print) -> list[d
     names = list(config.peers) if config.peers is not None else available_peers()
     missing = [p for p in names if p not in available_peers()]
     for p in missing:
-        progress(f"note: peer {p!r} is not installed; skipped (pip install 'rvdjax[peers]')")
+        why = hpipm_unavailable() if p == "hpipm" else "pip install 'rvdjax[peers]'"
+        progress(f"note: peer {p!r} is not installed; skipped ({why})")
     names = [p for p in names if p not in missing]
     if "clarabel" not in names:
         names.insert(0, "clarabel")

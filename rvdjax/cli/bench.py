@@ -66,6 +66,12 @@ def cmd(args) -> int:
     from rvdjax.outputs import check_file
 
     check_file(args.out, "--out", (".json",))
+    if args.peers is not None and not args.closed_loop:
+        from rvdjax.peers import PEERS
+
+        for name in args.peers.split(","):
+            if name and name not in PEERS:
+                raise ValueError(f"--peers: {name!r} is not a peer; choose from {', '.join(PEERS)}")
 
     def progress(msg):
         print(msg, file=sys.stderr, flush=True)
