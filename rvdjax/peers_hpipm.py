@@ -1,4 +1,4 @@
-"""HPIPM (Frison & Diehl 2020), the structure-exploiting interior-point solver of acados, as a
+"""HPIPM (Frison & Diehl, IFAC 2020), the structure-exploiting interior-point solver of acados, as a
 peer: its OCP QP interface called through ``ctypes`` on a standard-form QP whose stages it
 recovers (:func:`ocp_stages`).
 
@@ -14,7 +14,7 @@ for ``X64_INTEL_HASWELL`` (AVX2 and FMA); on a CPU without them the peer is unav
 (:func:`hpipm_unavailable` says why) instead of stopping the process on an illegal
 instruction.
 
-The OCP QP HPIPM solves (stages k = 0 .. N; Frison & Diehl 2020 Eq. 1)::
+The OCP QP HPIPM solves (stages k = 0 .. N; HPIPM's documentation of its OCP QP)::
 
     min sum_k 1/2 [u;x]' [R S; S' Q] [u;x] + [r;q]' [u;x] + zl' sl + zu' su
     s.t. x_{k+1} = A_k x_k + B_k u_k + b_k,   lg - sl <= C_k x_k + D_k u_k <= ug + su,
@@ -49,7 +49,7 @@ __all__ = ["HPIPM_ENV", "hpipm_library", "hpipm_unavailable", "ocp_stages", "sol
 HPIPM_ENV = "RVDJAX_HPIPM_LIB"
 
 # HPIPM's settings, chosen in its favour on the benchmark's QPs (8 fastmpc-3d first steps,
-# hard form, 2026-12-08; mean iterations): from its own cold start (zero states, the
+# hard form, 2026-12-07; mean iterations): from its own cold start (zero states, the
 # dynamics unmet) it took 47.6 / 50.1 / 67.9 / 73.0 at mu0 = 10 / 1e3 / 1e5 / 1e7 in its
 # "balance" mode; from the drift of x0 (the start rvdjax's solver takes cold) 33.0 / 15.8 /
 # 14.0 / 13.9. Its "speed" mode (Riccati by Cholesky, no LQ fallback) reached
@@ -254,8 +254,8 @@ def _buffer(size: int):
     return ctypes.create_string_buffer(int(size) + 64)  # HPIPM aligns its memory itself
 
 
-def _f(a) -> ctypes.c_void_p:
-    """A float64 column-major copy's address (kept alive by the caller's list)."""
+def _f(a) -> np.ndarray:
+    """A float64 column-major copy of ``a``, the layout HPIPM's setters read."""
     return np.asfortranarray(a, dtype=np.float64)
 
 
