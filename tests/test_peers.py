@@ -172,12 +172,12 @@ def test_qpax_batch(problems):
         peers.qpax_batch_solver([problems["hard"], problems["soft"]])
 
 
-@pytest.mark.parametrize("backend", ["clarabel", "piqp", "daqp", "daqp-condensed"])
+@pytest.mark.parametrize("backend", ["clarabel", "piqp", "daqp", "daqp-condensed", "hpipm"])
 def test_peer_backend_reports_a_solved_qp_as_converged(backend):
     """SolverSettings(backend=...) solves the OCP with a host peer inside the jitted solve; a
     QP the peer solved is reported as converged, at rvdjax's optimum (PIQP's "PIQP_SOLVED"
     was reported as max_iter until 2026-12-06)."""
-    pytest.importorskip(peers._MODULE.get(backend, backend))
+    _skip_unless_usable(backend)
     from rvdjax.problems import fastmpc3d_first_step
     from rvdjax.solver import SolverSettings, Status, solve
 

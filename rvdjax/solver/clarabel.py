@@ -1,11 +1,13 @@
-"""Host backends: the same OCP solved by Clarabel (or a peer: PIQP, DAQP) on the host,
+"""Host backends: the same OCP solved by Clarabel (or a peer: PIQP, DAQP, HPIPM) on the host,
 inside a jitted program.
 
 ``SolverSettings(backend="clarabel")`` routes every solve through ``jax.pure_callback``: the
 reference "Clarabel in the loop" for any jitted closed loop (QP assembly in SciPy included).
 ``backend="piqp"`` (sparse interior point), ``backend="daqp"`` (dense active set on the
 sparse-form QP) and ``backend="daqp-condensed"`` (the same on the condensed QP) are the peers
-of the study benchmarks. Not differentiable; a vmapped batch is solved one problem at a time.
+of the study benchmarks; ``backend="hpipm"`` flies HPIPM's OCP solver in the loop where its
+library is installed (:mod:`rvdjax.peers_hpipm`). Not differentiable; a vmapped batch is
+solved one problem at a time.
 """
 
 from __future__ import annotations
@@ -52,7 +54,8 @@ def _clarabel_host(*leaves, solver: str = "clarabel"):
 
 
 def solve_clarabel_backend(ocp: OCP, solver: str = "clarabel") -> Solution:
-    """Solve ``ocp`` with Clarabel (or a peer ``solver``: "piqp", "daqp", "daqp-condensed")
+    """Solve ``ocp`` with Clarabel (or a peer ``solver``: "piqp", "daqp", "daqp-condensed",
+    "hpipm")
     through a host callback (objective filled in by the caller)."""
     dtype = ocp.B.dtype
     shapes = (

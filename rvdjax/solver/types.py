@@ -19,7 +19,7 @@ __all__ = ["Status", "SolverSettings", "SolverParams", "Solution", "Plan"]
 
 MODES = ("paper", "accurate", "barrier", "dual")
 METHODS = ("riccati", "dense")
-BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed")
+BACKENDS = ("rvdjax", "clarabel", "piqp", "daqp", "daqp-condensed", "hpipm")
 PAPER_STARTS = ("feasible", "warm", "track")
 STEP_FRACTIONS = ("adaptive", "fixed")
 
@@ -127,7 +127,8 @@ class SolverSettings:
             host through ``jax.pure_callback`` — the reference "Clarabel in the loop" for any
             jitted closed loop (not differentiable; batches are solved one by one); "piqp",
             "daqp", "daqp-condensed": the same with a peer solver (the ``peers`` extra;
-            :mod:`rvdjax.peers`).
+            :mod:`rvdjax.peers`); "hpipm": with HPIPM, where its library is installed
+            (:mod:`rvdjax.peers_hpipm`).
         paper_start: paper mode's starting states. "feasible" (default): the states the
             warm-start inputs produce through the dynamics, so the equality residual is zero
             from the first iterate and an iterate cut at ``max_iter`` is a flyable plan.
