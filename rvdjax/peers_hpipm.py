@@ -119,7 +119,12 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
                 f"this CPU lacks what {lib / 'libblasfeo.so'} was built for "
                 f"({need.value.decode(errors='replace').strip()})"
             )
-        return ctypes.CDLL(str(lib / "libhpipm.so"), mode=ctypes.RTLD_GLOBAL), ""
+        hpipm = ctypes.CDLL(str(lib / "libhpipm.so"), mode=ctypes.RTLD_GLOBAL)
+        for part in ("dim", "", "sol", "ipm_arg", "ipm_ws"):  # the sizes are size_t, not int
+            for size in ("strsize", "memsize"):
+                name = "_".join(w for w in ("d_ocp_qp", part, size) if w)
+                getattr(hpipm, name).restype = ctypes.c_size_t
+        return hpipm, ""
     except OSError as err:
         return None, f"cannot load HPIPM from {lib}: {err}"
 
@@ -309,8 +314,6 @@ def solve_hpipm(
     ng = [len(u) for u in st.ug]
     ns = [len(s) for s in st.soft]
     zeros = [0] * (N + 1)
-    lib.d_ocp_qp_dim_strsize.restype = ctypes.c_size_t
-    lib.d_ocp_qp_dim_memsize.restype = ctypes.c_size_t
     dim = _buffer(lib.d_ocp_qp_dim_strsize())
     dim_mem = _buffer(lib.d_ocp_qp_dim_memsize(N))
     lib.d_ocp_qp_dim_create(N, dim, dim_mem)
@@ -319,8 +322,6 @@ def solve_hpipm(
         ints(ns), dim,
     )  # fmt: skip
 
-    lib.d_ocp_qp_strsize.restype = ctypes.c_size_t
-    lib.d_ocp_qp_memsize.restype = ctypes.c_size_t
     qp_h = _buffer(lib.d_ocp_qp_strsize())
     qp_mem = _buffer(lib.d_ocp_qp_memsize(dim))
     lib.d_ocp_qp_create(dim, qp_h, qp_mem)
@@ -347,14 +348,10 @@ def solve_hpipm(
             lib.d_ocp_qp_set_zl(k, ptr(st.z[k]), qp_h)
             lib.d_ocp_qp_set_zu(k, ptr(st.z[k]), qp_h)
 
-    lib.d_ocp_qp_sol_strsize.restype = ctypes.c_size_t
-    lib.d_ocp_qp_sol_memsize.restype = ctypes.c_size_t
     sol = _buffer(lib.d_ocp_qp_sol_strsize())
     sol_mem = _buffer(lib.d_ocp_qp_sol_memsize(dim))
     lib.d_ocp_qp_sol_create(dim, sol, sol_mem)
 
-    lib.d_ocp_qp_ipm_arg_strsize.restype = ctypes.c_size_t
-    lib.d_ocp_qp_ipm_arg_memsize.restype = ctypes.c_size_t
     arg = _buffer(lib.d_ocp_qp_ipm_arg_strsize())
     arg_mem = _buffer(lib.d_ocp_qp_ipm_arg_memsize(dim))
     lib.d_ocp_qp_ipm_arg_create(dim, arg, arg_mem)
@@ -370,8 +367,6 @@ def solve_hpipm(
         mu = ctypes.c_double(mu0)
         lib.d_ocp_qp_ipm_arg_set_mu0(ctypes.byref(mu), arg)
 
-    lib.d_ocp_qp_ipm_ws_strsize.restype = ctypes.c_size_t
-    lib.d_ocp_qp_ipm_ws_memsize.restype = ctypes.c_size_t
     ws = _buffer(lib.d_ocp_qp_ipm_ws_strsize())
     ws_mem = _buffer(lib.d_ocp_qp_ipm_ws_memsize(dim, arg))
     lib.d_ocp_qp_ipm_ws_create(dim, arg, ws, ws_mem)
