@@ -2,8 +2,9 @@
 
 For a named scenario: rvdjax Fast MPC (paper mode, Riccati step), the dense ISNM variant
 (paper mode, dense KKT solve), rvdjax accurate mode, Clarabel in the same jitted loop
-(``SolverSettings(backend="clarabel")``: a host callback per step, any scenario), and — when
-CasADi is installed (``pip install 'rvdjax[nmpc]'``) — a
+(``SolverSettings(backend="clarabel")``: a host callback per step, any scenario), HPIPM in
+the same loop where its library is installed (``backend="hpipm"``, :mod:`rvdjax.peers_hpipm`),
+and — when CasADi is installed (``pip install 'rvdjax[nmpc]'``) — a
 nonlinear MPC solved by IPOPT with the ellipsoidal keep-out constraints kept nonlinear (paper
 000 Eq. 6) for the rendezvous scenarios, and the inverse-dynamics guidance of paper 001
 (:mod:`rvdjax.idvd`) for the POSEIDYN scenarios. Each row: the scenario's figures (total impulse /
@@ -19,6 +20,7 @@ import jax
 import numpy as np
 
 from rvdjax.loop import fly
+from rvdjax.peers_hpipm import hpipm_unavailable
 from rvdjax.scenarios import FlightOptions, get_scenario
 from rvdjax.solver import SolverSettings
 
@@ -34,9 +36,11 @@ VARIANTS = {
     ),
     "rvdjax accurate": (lambda sc: sc.settings("accurate"), "accurate", None),
     "Clarabel in the loop": (lambda sc: SolverSettings(backend="clarabel"), "accurate", None),
+    "HPIPM in the loop": (lambda sc: SolverSettings(backend="hpipm"), "accurate", None),
 }
 _NOTES = {
     "Clarabel in the loop": "host callback per step incl. QP assembly, wall time / step",
+    "HPIPM in the loop": "host callback per step incl. QP assembly, wall time / step",
 }
 
 
@@ -67,8 +71,8 @@ def compare_solvers(
 ) -> list[dict]:
     """Fly scenario ``name`` with every solver; return one row per solver. ``options``: the
     flight (:class:`~rvdjax.scenarios.flight.FlightOptions`; its mode is each variant's own;
-    default: ideal forces, or the thruster set with ``thrusters``): the rvdjax and Clarabel
-    loops fly it, the NMPC and IDVD baselines keep their own ideal-force plants and fly only a
+    default: ideal forces, or the thruster set with ``thrusters``): the rvdjax, Clarabel and
+    HPIPM loops fly it, the NMPC and IDVD baselines keep their own ideal-force plants and fly only a
     noiseless linear truth. ``warmup``: fly each compiled loop once before the timed flight
     (False: the one flight is timed, first-call costs included)."""
     sc = get_scenario(name)
@@ -76,6 +80,9 @@ def compare_solvers(
     thrusters = options.thrusters is not False
     rows = []
     for label, (settings_of, mode, paper_name) in VARIANTS.items():
+        if label == "HPIPM in the loop" and (why := hpipm_unavailable()):
+            progress(f"note: HPIPM skipped ({why})")
+            continue
         flight = sc.flight(options.replace(mode=mode), settings=settings_of(sc))
         loop, params, x0, sp = flight.loop, flight.params, flight.x0, flight.solver_params
         key = flight.key if options.disturbed else None

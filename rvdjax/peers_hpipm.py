@@ -177,77 +177,83 @@ def ocp_stages(qp: QP) -> Stages:
     nz = qp.P.shape[0]
     iu = [np.arange(t * ns, t * ns + nu) for t in range(N)]
     ix = [None] + [np.arange(t * ns + nu, (t + 1) * ns) for t in range(N)]  # x_k, k >= 1
+
+    def su(k):  # the columns of u_k, k < N
+        return slice(k * ns, k * ns + nu)
+
+    def sx(k):  # ... of x_k, k >= 1
+        return slice((k - 1) * ns + nu, k * ns)
+
     P = qp.P.toarray()
     Aeq = qp.A_eq.toarray()
-    stage_of = np.empty(nz, int)  # the HPIPM stage of each column (slacks: -1)
-    stage_of[qp.n_plan :] = -1
-    for k in range(N):
-        stage_of[iu[k]] = k
-        stage_of[ix[k + 1]] = k + 1
-    plan = slice(0, qp.n_plan)
-    coupled = stage_of[plan, None] != stage_of[None, plan]
-    if np.any(P[plan, plan][coupled] != 0) or np.any(P[qp.n_plan :] != 0):
+    col = np.arange(qp.n_plan)
+    stage_of = np.full(nz, -1)  # the HPIPM stage of each column (slacks: -1)
+    stage_of[: qp.n_plan] = col // ns + (col % ns >= nu)
+    Pc = sp.coo_matrix(qp.P)
+    Pc = Pc.row[Pc.data != 0], Pc.col[Pc.data != 0]
+    if np.any(stage_of[Pc[0]] != stage_of[Pc[1]]) or np.any(stage_of[Pc[0]] < 0):
         raise ValueError("P couples two stages or weighs a slack: not an OCP QP of to_qp")
 
     empty = np.zeros(0)
     nxs = [0] + [nx] * N
     nus = [nu] * N + [0]
-    Ab, Bb, bb = [], [], []
-    for k in range(N):
-        rows = np.arange(k * nx, (k + 1) * nx)
-        if not np.allclose(Aeq[np.ix_(rows, ix[k + 1])], np.eye(nx)):
-            raise ValueError("a dynamics row is not x_{t+1} - A x_t - B u_t = b")
-        Bb.append(-Aeq[np.ix_(rows, iu[k])])
-        Ab.append(np.zeros((nx, 0)) if k == 0 else -Aeq[np.ix_(rows, ix[k])])
-        bb.append(np.asarray(qp.b_eq[rows], float))
-    Qs = [np.zeros((0, 0))] + [P[np.ix_(ix[k], ix[k])] for k in range(1, N + 1)]
-    Rs = [P[np.ix_(iu[k], iu[k])] for k in range(N)] + [np.zeros((0, 0))]
-    Ss = [np.zeros((nu, 0))] + [P[np.ix_(iu[k], ix[k])] for k in range(1, N)] + [np.zeros((0, nx))]
+    dyn = [slice(k * nx, (k + 1) * nx) for k in range(N)]  # the rows of x_{k+1}'s dynamics
+    if not np.allclose(np.stack([Aeq[dyn[k], sx(k + 1)] for k in range(N)]), np.eye(nx)):
+        raise ValueError("a dynamics row is not x_{t+1} - A x_t - B u_t = b")
+    Bb = [-Aeq[dyn[k], su(k)] for k in range(N)]
+    Ab = [np.zeros((nx, 0))] + [-Aeq[dyn[k], sx(k)] for k in range(1, N)]
+    bb = [np.asarray(qp.b_eq[dyn[k]], float) for k in range(N)]
+    Qs = [np.zeros((0, 0))] + [P[sx(k), sx(k)] for k in range(1, N + 1)]
+    Rs = [P[su(k), su(k)] for k in range(N)] + [np.zeros((0, 0))]
+    Ss = [np.zeros((nu, 0))] + [P[su(k), sx(k)] for k in range(1, N)] + [np.zeros((0, nx))]
     qv = np.asarray(qp.q, float)
-    qs = [empty] + [qv[ix[k]] for k in range(1, N + 1)]
-    rs = [qv[iu[k]] for k in range(N)] + [empty]
+    qs = [empty] + [qv[sx(k)] for k in range(1, N + 1)]
+    rs = [qv[su(k)] for k in range(N)] + [empty]
 
-    G = sp.csr_matrix(qp.G)
+    Gsp = sp.coo_matrix(qp.G)
+    G = Gsp.toarray()
     h = np.asarray(qp.h, float)
-    rows_of = [[] for _ in range(N + 1)]  # (C row, D row, ug, slack column or -1)
-    slack_row: dict[int, int] = {}
-    for i in range(G.shape[0]):
-        cols = G.indices[G.indptr[i] : G.indptr[i + 1]]
-        vals = G.data[G.indptr[i] : G.indptr[i + 1]]
-        slack = cols[cols >= qp.n_plan]
-        plan_cols = cols[cols < qp.n_plan]
-        if plan_cols.size == 0:  # -s <= 0: HPIPM's own bound on its slacks
-            if slack.size != 1 or h[i] != 0 or vals[0] >= 0:
-                raise ValueError(f"row {i} of G is neither a stage's row nor a slack's bound")
-            continue
-        stages = np.unique(stage_of[plan_cols])
-        if stages.size != 1 or slack.size > 1:
-            raise ValueError(f"row {i} of G spans two stages or two slacks")
-        k = int(stages[0])
-        c_row = np.zeros(nxs[k])
-        d_row = np.zeros(nus[k])
-        for c, v in zip(cols, vals, strict=True):
-            if c >= qp.n_plan:
-                if v != -1.0 or int(c) in slack_row:
-                    raise ValueError(f"slack column {c} is not one row's -s")
-                slack_row[int(c)] = i
-            elif k < N and c in iu[k]:
-                d_row[c - iu[k][0]] = v
-            else:
-                c_row[c - ix[k][0]] = v
-        rows_of[k].append((c_row, d_row, h[i], int(slack[0]) if slack.size else -1))
+    Gp, Gs = G[:, : qp.n_plan], G[:, qp.n_plan :]
+    on_slack = Gs != 0
+    n_slack = on_slack.sum(axis=1)
+    # each row's first and last stage, over its nonzero plan entries
+    nzr = (Gsp.data != 0) & (Gsp.col < qp.n_plan)
+    r_of, s_of = Gsp.row[nzr], stage_of[Gsp.col[nzr]]
+    first = np.full(G.shape[0], N + 1)
+    last = np.full(G.shape[0], -1)
+    np.minimum.at(first, r_of, s_of)
+    np.maximum.at(last, r_of, s_of)
+    plan_row = last >= 0
+    # a row without plan columns must be -s <= 0: HPIPM's own bound on its slacks
+    bound = ~plan_row & ((n_slack != 1) | (h != 0) | (Gs.sum(axis=1) >= 0))
+    if bound.any():
+        i = np.argmax(bound)
+        raise ValueError(f"row {i} of G is neither a stage's row nor a slack's bound")
+    spans = plan_row & ((first != last) | (n_slack > 1))
+    if spans.any():
+        raise ValueError(f"row {np.argmax(spans)} of G spans two stages or two slacks")
+    softened = plan_row & (n_slack == 1)
+    # the slack of a softened row (the hard form has no slack columns)
+    s_of_row = np.argmax(on_slack, axis=1) if Gs.shape[1] else np.zeros(G.shape[0], int)
+    taken = s_of_row[softened]
+    bad = (Gs[softened, taken] != -1.0) | (np.bincount(taken, minlength=Gs.shape[1])[taken] > 1)
+    if bad.any():
+        raise ValueError(f"slack column {qp.n_plan + taken[np.argmax(bad)]} is not one row's -s")
 
     C, D, ug, soft, zs, s_cols = [], [], [], [], [], []
+    in_plan = np.flatnonzero(plan_row)
+    by_stage = in_plan[np.argsort(first[in_plan], kind="stable")]  # G's order within a stage
+    ends = np.cumsum(np.bincount(first[in_plan], minlength=N + 1))
+    starts = ends - np.bincount(first[in_plan], minlength=N + 1)
     for k in range(N + 1):
-        r = rows_of[k]
-        C.append(np.array([c for c, _, _, _ in r]).reshape(len(r), nxs[k]))
-        D.append(np.array([d for _, d, _, _ in r]).reshape(len(r), nus[k]))
-        ug.append(np.array([g for _, _, g, _ in r], float))
-        idx = np.array([j for j, (_, _, _, s) in enumerate(r) if s >= 0], np.int32)
-        cols = np.array([s for _, _, _, s in r if s >= 0], int)
-        soft.append(idx)
+        rows = by_stage[starts[k] : ends[k]]
+        C.append(Gp[rows, sx(k)] if k else np.zeros((rows.size, 0)))
+        D.append(Gp[rows, su(k)] if k < N else np.zeros((rows.size, 0)))
+        ug.append(h[rows])
+        soft.append(np.flatnonzero(softened[rows]).astype(np.int32))
+        cols = qp.n_plan + s_of_row[rows[softened[rows]]]
         s_cols.append(cols)
-        zs.append(qv[cols] if cols.size else empty)
+        zs.append(qv[cols])
     x_cols = [np.zeros(0, int)] + [ix[k] for k in range(1, N + 1)]
     return Stages(
         nxs, nus, Ab, Bb, bb, Qs, Ss, Rs, qs, rs, C, D, ug, soft, zs, iu + [np.zeros(0, int)],
@@ -264,6 +270,60 @@ def _f(a) -> np.ndarray:
     return np.asfortranarray(a, dtype=np.float64)
 
 
+def _workspace(lib, nx, nu, ng, ns, mode, tol, max_iter, mu0, warm):
+    """HPIPM's dimensions, QP, solution, IPM arguments and workspace for one OCP shape and one
+    setting (``warm``: start from the primal variables in the solution), with the QP's values
+    that :func:`solve_hpipm` leaves alone: the lower bounds ``lg`` masked (one-sided rows),
+    they and the slacks' quadratic weights at the zeros ``d_ocp_qp_create`` writes. Returns
+    the five structs and, to keep alive with them, the memory they point into. (Kept for
+    every solve of one shape, as an MPC loop would keep them, they saved 0.2 of 4.4 ms a
+    fastmpc-3d step, and the solution had to be zeroed again between solves: not kept.)"""
+    N = len(nx) - 1
+    keep = []
+
+    def ints(values):
+        a = np.ascontiguousarray(values, dtype=np.int32)
+        keep.append(a)
+        return ctypes.c_void_p(a.ctypes.data)
+
+    zeros = [0] * (N + 1)
+    dim = _buffer(lib.d_ocp_qp_dim_strsize())
+    dim_mem = _buffer(lib.d_ocp_qp_dim_memsize(N))
+    lib.d_ocp_qp_dim_create(N, dim, dim_mem)
+    lib.d_ocp_qp_dim_set_all(
+        ints(nx), ints(nu), ints(zeros), ints(zeros), ints(ng), ints(zeros), ints(zeros),
+        ints(ns), dim,
+    )  # fmt: skip
+    qp_h = _buffer(lib.d_ocp_qp_strsize())
+    qp_mem = _buffer(lib.d_ocp_qp_memsize(dim))
+    lib.d_ocp_qp_create(dim, qp_h, qp_mem)
+    for k in range(N + 1):
+        if ng[k]:
+            mask = np.zeros(ng[k])
+            lib.d_ocp_qp_set_lg_mask(k, ctypes.c_void_p(mask.ctypes.data), qp_h)
+
+    sol = _buffer(lib.d_ocp_qp_sol_strsize())
+    sol_mem = _buffer(lib.d_ocp_qp_sol_memsize(dim))
+    lib.d_ocp_qp_sol_create(dim, sol, sol_mem)
+
+    arg = _buffer(lib.d_ocp_qp_ipm_arg_strsize())
+    arg_mem = _buffer(lib.d_ocp_qp_ipm_arg_memsize(dim))
+    lib.d_ocp_qp_ipm_arg_create(dim, arg, arg_mem)
+    lib.d_ocp_qp_ipm_arg_set_default(_MODES[mode], arg)
+    lib.d_ocp_qp_ipm_arg_set_iter_max(ctypes.byref(ctypes.c_int(max_iter)), arg)
+    for field in ("stat", "eq", "ineq", "comp"):
+        getattr(lib, f"d_ocp_qp_ipm_arg_set_tol_{field}")(ctypes.byref(ctypes.c_double(tol)), arg)
+    if mu0 is not None:
+        lib.d_ocp_qp_ipm_arg_set_mu0(ctypes.byref(ctypes.c_double(mu0)), arg)
+    if warm:  # HPIPM starts from the primal variables in ``sol``
+        lib.d_ocp_qp_ipm_arg_set_warm_start(ctypes.byref(ctypes.c_int(1)), arg)
+
+    ws = _buffer(lib.d_ocp_qp_ipm_ws_strsize())
+    ws_mem = _buffer(lib.d_ocp_qp_ipm_ws_memsize(dim, arg))
+    lib.d_ocp_qp_ipm_ws_create(dim, arg, ws, ws_mem)
+    return dim, qp_h, sol, arg, ws, (dim_mem, qp_mem, sol_mem, arg_mem, ws_mem)
+
+
 def solve_hpipm(
     qp: QP,
     tol: float = 1e-8,
@@ -271,6 +331,7 @@ def solve_hpipm(
     mode: str = "balance",
     mu0: float | None = DEFAULT_MU0,
     start: str = "drift",
+    resolve: bool = True,
 ) -> PeerResult:
     """Solve with HPIPM's OCP QP interior-point method (``d_ocp_qp_ipm_solve``) from its own
     cold start.
@@ -284,6 +345,9 @@ def solve_hpipm(
         start: "drift" (HPIPM's primal warm start at zero inputs and the states they give,
             the start rvdjax's solver takes cold) or "cold" (HPIPM's own: zero inputs and
             states, which leave the dynamics unmet).
+        resolve: solve twice in the same memory and time the second solve (``solve_ms``), as
+            an MPC loop that keeps HPIPM's workspace re-solves; False: one solve, timed (the
+            closed-loop backend, which builds the workspace anew every step).
 
     Raises:
         RuntimeError: HPIPM is not usable here (:func:`hpipm_unavailable` says why).
@@ -301,30 +365,24 @@ def solve_hpipm(
     N = len(st.nx) - 1
     keep = []  # every array HPIPM reads, alive until the solve returns
 
+    # c_void_p of the address: ctypes' cast in ``ndarray.ctypes.data_as`` cost more than
+    # HPIPM's solve when a QP's ~600 arrays were passed that way (an MPC step in the loop)
     def ints(values):
         a = np.ascontiguousarray(values, dtype=np.int32)
         keep.append(a)
-        return a.ctypes.data_as(ctypes.POINTER(ctypes.c_int))
+        return ctypes.c_void_p(a.ctypes.data)
 
     def ptr(a):
         a = _f(a)
         keep.append(a)
-        return a.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
+        return ctypes.c_void_p(a.ctypes.data)
 
     ng = [len(u) for u in st.ug]
     ns = [len(s) for s in st.soft]
-    zeros = [0] * (N + 1)
-    dim = _buffer(lib.d_ocp_qp_dim_strsize())
-    dim_mem = _buffer(lib.d_ocp_qp_dim_memsize(N))
-    lib.d_ocp_qp_dim_create(N, dim, dim_mem)
-    lib.d_ocp_qp_dim_set_all(
-        ints(st.nx), ints(st.nu), ints(zeros), ints(zeros), ints(ng), ints(zeros), ints(zeros),
-        ints(ns), dim,
+    dim, qp_h, sol, arg, ws, _memory = _workspace(
+        lib, tuple(st.nx), tuple(st.nu), tuple(ng), tuple(ns), mode, tol, max_iter, mu0,
+        start == "drift",
     )  # fmt: skip
-
-    qp_h = _buffer(lib.d_ocp_qp_strsize())
-    qp_mem = _buffer(lib.d_ocp_qp_memsize(dim))
-    lib.d_ocp_qp_create(dim, qp_h, qp_mem)
     for k in range(N + 1):
         if k < N:
             lib.d_ocp_qp_set_A(k, ptr(st.A[k]), qp_h)
@@ -339,37 +397,10 @@ def solve_hpipm(
             lib.d_ocp_qp_set_C(k, ptr(st.C[k]), qp_h)
             lib.d_ocp_qp_set_D(k, ptr(st.D[k]), qp_h)
             lib.d_ocp_qp_set_ug(k, ptr(st.ug[k]), qp_h)
-            lib.d_ocp_qp_set_lg(k, ptr(np.zeros(ng[k])), qp_h)
-            lib.d_ocp_qp_set_lg_mask(k, ptr(np.zeros(ng[k])), qp_h)  # one-sided rows
         if ns[k]:
             lib.d_ocp_qp_set_idxs(k, ints(st.soft[k]), qp_h)
-            lib.d_ocp_qp_set_Zl(k, ptr(np.zeros(ns[k])), qp_h)
-            lib.d_ocp_qp_set_Zu(k, ptr(np.zeros(ns[k])), qp_h)
             lib.d_ocp_qp_set_zl(k, ptr(st.z[k]), qp_h)
             lib.d_ocp_qp_set_zu(k, ptr(st.z[k]), qp_h)
-
-    sol = _buffer(lib.d_ocp_qp_sol_strsize())
-    sol_mem = _buffer(lib.d_ocp_qp_sol_memsize(dim))
-    lib.d_ocp_qp_sol_create(dim, sol, sol_mem)
-
-    arg = _buffer(lib.d_ocp_qp_ipm_arg_strsize())
-    arg_mem = _buffer(lib.d_ocp_qp_ipm_arg_memsize(dim))
-    lib.d_ocp_qp_ipm_arg_create(dim, arg, arg_mem)
-    lib.d_ocp_qp_ipm_arg_set_default(_MODES[mode], arg)
-    it_max = ctypes.c_int(max_iter)
-    lib.d_ocp_qp_ipm_arg_set_iter_max(ctypes.byref(it_max), arg)
-    tols = [ctypes.c_double(tol) for _ in range(4)]
-    lib.d_ocp_qp_ipm_arg_set_tol_stat(ctypes.byref(tols[0]), arg)
-    lib.d_ocp_qp_ipm_arg_set_tol_eq(ctypes.byref(tols[1]), arg)
-    lib.d_ocp_qp_ipm_arg_set_tol_ineq(ctypes.byref(tols[2]), arg)
-    lib.d_ocp_qp_ipm_arg_set_tol_comp(ctypes.byref(tols[3]), arg)
-    if mu0 is not None:
-        mu = ctypes.c_double(mu0)
-        lib.d_ocp_qp_ipm_arg_set_mu0(ctypes.byref(mu), arg)
-
-    ws = _buffer(lib.d_ocp_qp_ipm_ws_strsize())
-    ws_mem = _buffer(lib.d_ocp_qp_ipm_ws_memsize(dim, arg))
-    lib.d_ocp_qp_ipm_ws_create(dim, arg, ws, ws_mem)
 
     def from_drift():
         x = np.zeros(0)
@@ -379,13 +410,12 @@ def solve_hpipm(
             lib.d_ocp_qp_sol_set_x(k + 1, ptr(x), sol)
 
     if start == "drift":
-        warm = ctypes.c_int(1)  # HPIPM starts from the primal variables in ``sol``
-        lib.d_ocp_qp_ipm_arg_set_warm_start(ctypes.byref(warm), arg)
         from_drift()
 
-    lib.d_ocp_qp_ipm_solve(qp_h, sol, arg, ws)  # HPIPM's fresh memory touched
-    if start == "drift":
-        from_drift()
+    if resolve:
+        lib.d_ocp_qp_ipm_solve(qp_h, sol, arg, ws)  # HPIPM's fresh memory touched
+        if start == "drift":
+            from_drift()
     setup_ms = _ms(t0)
     t0 = time.perf_counter()
     lib.d_ocp_qp_ipm_solve(qp_h, sol, arg, ws)  # the same solve, as an MPC loop runs it
@@ -398,15 +428,15 @@ def solve_hpipm(
     for k in range(N + 1):
         if st.nu[k]:
             u = np.zeros(st.nu[k])
-            lib.d_ocp_qp_sol_get_u(k, sol, u.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+            lib.d_ocp_qp_sol_get_u(k, sol, ctypes.c_void_p(u.ctypes.data))
             z[st.u_cols[k]] = u
         if st.nx[k]:
             x = np.zeros(st.nx[k])
-            lib.d_ocp_qp_sol_get_x(k, sol, x.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+            lib.d_ocp_qp_sol_get_x(k, sol, ctypes.c_void_p(x.ctypes.data))
             z[st.x_cols[k]] = x
         if ns[k]:
             su = np.zeros(ns[k])
-            lib.d_ocp_qp_sol_get_su(k, sol, su.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+            lib.d_ocp_qp_sol_get_su(k, sol, ctypes.c_void_p(su.ctypes.data))
             z[st.s_cols[k]] = su
     name = _STATUS.get(status.value, f"STATUS_{status.value}")
     return PeerResult(z, qp_objective(qp, z), int(iters.value), name, solve_ms, setup_ms)

@@ -1,9 +1,10 @@
 """Study benchmark: the batch engine against the same maneuvers flown one by one from a Python
-loop with Clarabel, PIQP or DAQP (sparse and condensed) solving every MPC step; and the memory
-of a study against its number of runs.
+loop with Clarabel, PIQP, DAQP (sparse and condensed) or HPIPM (where its library is
+installed: rvdjax.peers_hpipm) solving every MPC step; and the memory of a study against its
+number of runs.
 
     python sweeps/study_benchmark.py throughput [--scenario thesis-vbar] [--batch-runs 256]
-        [--slots 64] [--single-runs 8] [--json FILE]
+        [--slots 64] [--single-runs 8] [--peers clarabel,piqp,...] [--json FILE]
     python sweeps/study_benchmark.py memory [--runs 1000,100000] [--json FILE]
     python sweeps/study_benchmark.py refresh [--scenarios thesis-vbar,poseidyn-lqmpc,fastmpc-3d]
         [--slots 64] [--batch-runs 128] [--repeats 2] [--json FILE]
@@ -40,6 +41,10 @@ from rvdjax.xla_options import one_thread
 one_thread()
 
 import numpy as np  # noqa: E402
+
+from rvdjax.peers_hpipm import hpipm_unavailable  # noqa: E402
+
+DEFAULT_PEERS = ("clarabel", "piqp", "daqp", "daqp-condensed")
 
 
 def throughput(args) -> list[dict]:
@@ -83,7 +88,8 @@ def throughput(args) -> list[dict]:
         }
     )
     subset = np.unique(np.linspace(0, args.batch_runs - 1, args.single_runs).round().astype(int))
-    for backend in args.peers.split(","):
+    peers = args.peers or ",".join(DEFAULT_PEERS + (() if hpipm_unavailable() else ("hpipm",)))
+    for backend in peers.split(","):
         # compile the step (the loop itself: its step length is static, a shorter loop would
         # compile another step) by flying the first run once untimed, then time whole maneuvers
         reference_loop(loop, params, rs.x0[subset[0]], rs.keys[subset[0]], backend=backend)
@@ -233,7 +239,9 @@ def main() -> None:
     ap.add_argument("--batch-runs", type=int, default=256)
     ap.add_argument("--slots", type=int, default=64)
     ap.add_argument("--single-runs", type=int, default=8)
-    ap.add_argument("--peers", default="clarabel,piqp,daqp,daqp-condensed")
+    ap.add_argument(
+        "--peers", default=None, help=f"default: {','.join(DEFAULT_PEERS)}, and hpipm if installed"
+    )
     ap.add_argument("--time-limit-s", type=float, default=12000.0)
     ap.add_argument("--n-steps", type=int, default=2600)
     ap.add_argument("--runs", type=lambda t: [int(v) for v in t.split(",")], default=[1000, 100000])

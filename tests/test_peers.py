@@ -254,6 +254,17 @@ def test_hpipm_refuses_what_it_cannot_read(problems, monkeypatch, tmp_path):
         ocp_stages(qp._replace(P=sp.csc_matrix(P)))
     with pytest.raises(ValueError, match="to_qp"):
         ocp_stages(qp._replace(nu=0))
+    G = qp.G.tolil()
+    G[0, qp.n_plan - 1] = 1.0  # a stage-0 row reaching x_N
+    with pytest.raises(ValueError, match="row 0 of G spans two stages"):
+        ocp_stages(qp._replace(G=sp.csc_matrix(G)))
+    soft = problems["soft"]
+    G = soft.G.toarray()
+    s0 = soft.n_plan  # the first slack column, in one row: put it in a second row too
+    other = next(i for i in range(G.shape[0]) if G[i, s0] == 0 and G[i, : soft.n_plan].any())
+    G[other, s0] = -1.0
+    with pytest.raises(ValueError, match=f"slack column {s0} is not one row's -s"):
+        ocp_stages(soft._replace(G=sp.csc_matrix(G)))
     monkeypatch.setenv(peers_hpipm.HPIPM_ENV, str(tmp_path))
     monkeypatch.setattr(peers_hpipm, "_candidates", lambda: [tmp_path])
     peers_hpipm._load.cache_clear()

@@ -17,8 +17,8 @@ def add_parser(sub) -> None:
         p,
         fixed=("mode",),  # every solver variant flies its own mode
         help={
-            "thrusters": "the rvdjax and Clarabel loops fly the vehicle's thrusters (the NMPC "
-            "and IDVD baselines keep ideal forces)"
+            "thrusters": "the rvdjax, Clarabel and HPIPM loops fly the vehicle's thrusters (the "
+            "NMPC and IDVD baselines keep ideal forces)"
         },
     )
     add_json(p)
@@ -45,8 +45,8 @@ def cmd(args) -> int:
         print(format_comparison(sc.name, rows, sc.published))
         print(f"device: {args.device_used}")
         print(
-            "ms/step: wall time of the closed loop per MPC step (Clarabel: host callback with "
-            "the QP assembly); NMPC row: IPOPT calls only; IDVD row: per IPOPT (re-)plan, "
-            "incl. the simulation"
+            "ms/step: wall time of the closed loop per MPC step (Clarabel, HPIPM: host "
+            "callback with the QP assembly); NMPC row: IPOPT calls only; IDVD row: per IPOPT "
+            "(re-)plan, incl. the simulation"
         )
     return 0

@@ -25,10 +25,15 @@ from rvdjax.solver.types import Solution, Status
 __all__ = ["solve_clarabel_backend"]
 
 
+# a peer's options for one solve per MPC step (HPIPM's bench default solves twice and times
+# the second: rvdjax.peers_hpipm.solve_hpipm)
+_LOOP_OPTIONS = {"hpipm": {"resolve": False}}
+
+
 def _host_solve(name: str, qp):
     from rvdjax import peers
 
-    return peers.PEERS[name](qp)
+    return peers.PEERS[name](qp, **_LOOP_OPTIONS.get(name, {}))
 
 
 def _clarabel_host(*leaves, solver: str = "clarabel"):
