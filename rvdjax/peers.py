@@ -30,7 +30,8 @@ Solvers (``PEERS`` registry; :func:`available_peers` lists the importable ones):
   (Riccati recursion, BLASFEO's kernels), the solver acados runs; its library is found from
   ``RVDJAX_HPIPM_LIB`` or an importable ``acados`` package, where this CPU has what it was
   built for. Solved from the drift of x0 (zero inputs and the states they give: the start of
-  rvdjax's own cold solve), in its ``balance`` mode with mu0 = 1e5, to 1e-8.
+  rvdjax's own cold solve), in its ``balance`` mode with mu0 the largest of 1e5 and the
+  soft rows' penalties, to 1e-8.
 - ``qpax`` (optional): interior point in JAX, dense. Its stopping test is an *absolute*
   ``||KKT residual||_inf < solver_tol`` and its iteration cap is small (30), so the raw RVD
   problems (slack costs rho ~ 1e6 next to P ~ 1) do not converge: :func:`solve_qpax` rescales

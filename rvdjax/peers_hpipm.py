@@ -55,6 +55,11 @@ HPIPM_ENV = "RVDJAX_HPIPM_LIB"
 # 14.0 / 13.9. Its "speed" mode (Riccati by Cholesky, no LQ fallback) reached
 # the 1e-8 tolerance on few of them in 200 iterations (and 1e-6 on few more), "robust" took
 # as many as "balance", "speed_abs" stopped at its minimum step.
+# Under the soft rows' exact penalties, mu0 is raised to the largest penalty rho (the
+# multiplier an active soft row's slack takes): on QPs taken along each maneuver (every few
+# MPC steps, 2026-12-08; mean iterations at mu0 = 1e5 / rho) poseidyn-lqmpc (rho = 1e8, 16
+# QPs) 50.9 / 17.9, thesis-vbar (1e6, 3) 21.3 / 19.7, fastmpc-3d (5e6, 8) 11.1 / 10.0;
+# spot-2d-a and rotating-target-a have rho = 1e5 (lower mu0 took more iterations there).
 DEFAULT_MU0 = 1e5
 
 # hpipm_common.h: enum hpipm_mode, enum hpipm_status
@@ -329,7 +334,7 @@ def solve_hpipm(
     tol: float = 1e-8,
     max_iter: int = 200,
     mode: str = "balance",
-    mu0: float | None = DEFAULT_MU0,
+    mu0: float | str | None = "auto",
     start: str = "drift",
     resolve: bool = True,
 ) -> PeerResult:
@@ -341,7 +346,8 @@ def solve_hpipm(
         tol: HPIPM's stationarity, equality, inequality and complementarity tolerances.
         max_iter: iteration cap.
         mode: HPIPM's ``speed_abs``, ``speed``, ``balance`` or ``robust`` default settings.
-        mu0: HPIPM's initial barrier parameter (None: the mode's default).
+        mu0: HPIPM's initial barrier parameter ("auto": the largest of 1e5 and the soft
+            rows' penalties; None: the mode's default).
         start: "drift" (HPIPM's primal warm start at zero inputs and the states they give,
             the start rvdjax's solver takes cold) or "cold" (HPIPM's own: zero inputs and
             states, which leave the dynamics unmet).
@@ -357,6 +363,8 @@ def solve_hpipm(
         raise ValueError(f"start must be 'drift' or 'cold', got {start!r}")
     if mode not in _MODES:
         raise ValueError(f"mode must be one of {', '.join(_MODES)}, got {mode!r}")
+    if isinstance(mu0, str) and mu0 != "auto":
+        raise ValueError(f"mu0 must be a number, 'auto' or None, got {mu0!r}")
     lib = hpipm_library()
     if lib is None:
         raise RuntimeError(f"HPIPM is not available: {hpipm_unavailable()}")
@@ -379,6 +387,8 @@ def solve_hpipm(
 
     ng = [len(u) for u in st.ug]
     ns = [len(s) for s in st.soft]
+    if mu0 == "auto":
+        mu0 = max([DEFAULT_MU0] + [float(np.max(z)) for z in st.z if z.size])
     dim, qp_h, sol, arg, ws, _memory = _workspace(
         lib, tuple(st.nx), tuple(st.nu), tuple(ng), tuple(ns), mode, tol, max_iter, mu0,
         start == "drift",

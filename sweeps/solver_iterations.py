@@ -148,7 +148,7 @@ def main(argv=None) -> None:
         "--peers",
         metavar="NAME,...",
         help="solve every MPC step's QP again with these peers, cold (those installed of "
-        "clarabel, piqp, daqp, daqp-condensed, osqp, qpax), and print their iterations per "
+        "clarabel, piqp, daqp, daqp-condensed, osqp, hpipm, qpax), and print their iterations per "
         "step beside rvdjax's",
     )
     args = ap.parse_args(argv)

@@ -292,6 +292,14 @@ def test_hpipm_starts(problems, reference):
         peers.solve_hpipm(problems["hard"], start="warm")
     with pytest.raises(ValueError, match="mode"):
         peers.solve_hpipm(problems["hard"], mode="fast")
+    # mu0 "auto" (the default): the largest of 1e5 and the soft rows' penalty (rho = 1e6 here)
+    auto, at_rho = (peers.solve_hpipm(problems["soft"], mu0=m) for m in ("auto", 1e6))
+    np.testing.assert_array_equal(auto.z, at_rho.z)
+    assert auto.iterations == at_rho.iterations
+    low = peers.solve_hpipm(problems["soft"], mu0=1e5)
+    assert low.iterations != auto.iterations or not np.array_equal(low.z, auto.z)
+    with pytest.raises(ValueError, match="mu0"):
+        peers.solve_hpipm(problems["hard"], mu0="large")
 
 
 def test_hpipm_needs_what_its_blasfeo_was_built_for(tmp_path):
