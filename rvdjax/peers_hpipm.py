@@ -275,21 +275,35 @@ def _f(a) -> np.ndarray:
     return np.asfortranarray(a, dtype=np.float64)
 
 
+# The address as c_void_p: ctypes' cast in ``ndarray.ctypes.data_as`` cost more than HPIPM's
+# solve when a QP's ~600 arrays were passed that way (an MPC step in the loop). ``keep`` holds
+# the array until HPIPM has read it.
+def _ints(values, keep: list) -> ctypes.c_void_p:
+    a = np.ascontiguousarray(values, dtype=np.int32)
+    keep.append(a)
+    return ctypes.c_void_p(a.ctypes.data)
+
+
+def _doubles(values, keep: list) -> ctypes.c_void_p:
+    a = _f(values)
+    keep.append(a)
+    return ctypes.c_void_p(a.ctypes.data)
+
+
 def _workspace(lib, nx, nu, ng, ns, mode, tol, max_iter, mu0, warm):
     """HPIPM's dimensions, QP, solution, IPM arguments and workspace for one OCP shape and one
     setting (``warm``: start from the primal variables in the solution), with the QP's values
     that :func:`solve_hpipm` leaves alone: the lower bounds ``lg`` masked (one-sided rows),
     they and the slacks' quadratic weights at the zeros ``d_ocp_qp_create`` writes. Returns
-    the five structs and, to keep alive with them, the memory they point into. (Kept for
-    every solve of one shape, as an MPC loop would keep them, they saved 0.2 of 4.4 ms a
-    fastmpc-3d step, and the solution had to be zeroed again between solves: not kept.)"""
+    the five structs and, to keep alive with them, the memory they point into. Created for
+    each solve: kept across the solves of one shape, as an MPC loop built on HPIPM keeps
+    them, they saved 0.2 of 4.4 ms a fastmpc-3d step, and the solution had to be zeroed
+    between solves (a previous solve's slacks moved the next one's bits)."""
     N = len(nx) - 1
     keep = []
 
     def ints(values):
-        a = np.ascontiguousarray(values, dtype=np.int32)
-        keep.append(a)
-        return ctypes.c_void_p(a.ctypes.data)
+        return _ints(values, keep)
 
     zeros = [0] * (N + 1)
     dim = _buffer(lib.d_ocp_qp_dim_strsize())
@@ -304,8 +318,7 @@ def _workspace(lib, nx, nu, ng, ns, mode, tol, max_iter, mu0, warm):
     lib.d_ocp_qp_create(dim, qp_h, qp_mem)
     for k in range(N + 1):
         if ng[k]:
-            mask = np.zeros(ng[k])
-            lib.d_ocp_qp_set_lg_mask(k, ctypes.c_void_p(mask.ctypes.data), qp_h)
+            lib.d_ocp_qp_set_lg_mask(k, _doubles(np.zeros(ng[k]), keep), qp_h)
 
     sol = _buffer(lib.d_ocp_qp_sol_strsize())
     sol_mem = _buffer(lib.d_ocp_qp_sol_memsize(dim))
@@ -373,17 +386,11 @@ def solve_hpipm(
     N = len(st.nx) - 1
     keep = []  # every array HPIPM reads, alive until the solve returns
 
-    # c_void_p of the address: ctypes' cast in ``ndarray.ctypes.data_as`` cost more than
-    # HPIPM's solve when a QP's ~600 arrays were passed that way (an MPC step in the loop)
     def ints(values):
-        a = np.ascontiguousarray(values, dtype=np.int32)
-        keep.append(a)
-        return ctypes.c_void_p(a.ctypes.data)
+        return _ints(values, keep)
 
-    def ptr(a):
-        a = _f(a)
-        keep.append(a)
-        return ctypes.c_void_p(a.ctypes.data)
+    def ptr(values):
+        return _doubles(values, keep)
 
     ng = [len(u) for u in st.ug]
     ns = [len(s) for s in st.soft]
