@@ -248,8 +248,9 @@ def ocp_stages(qp: QP) -> Stages:
     C, D, ug, soft, zs, s_cols = [], [], [], [], [], []
     in_plan = np.flatnonzero(plan_row)
     by_stage = in_plan[np.argsort(first[in_plan], kind="stable")]  # G's order within a stage
-    ends = np.cumsum(np.bincount(first[in_plan], minlength=N + 1))
-    starts = ends - np.bincount(first[in_plan], minlength=N + 1)
+    counts = np.bincount(first[in_plan], minlength=N + 1)
+    ends = np.cumsum(counts)
+    starts = ends - counts
     for k in range(N + 1):
         rows = by_stage[starts[k] : ends[k]]
         C.append(Gp[rows, sx(k)] if k else np.zeros((rows.size, 0)))
