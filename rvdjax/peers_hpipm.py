@@ -180,8 +180,6 @@ def ocp_stages(qp: QP) -> Stages:
     N = qp.n_plan // (nu + nx)
     ns = nu + nx
     nz = qp.P.shape[0]
-    iu = [np.arange(t * ns, t * ns + nu) for t in range(N)]
-    ix = [None] + [np.arange(t * ns + nu, (t + 1) * ns) for t in range(N)]  # x_k, k >= 1
 
     def su(k):  # the columns of u_k, k < N
         return slice(k * ns, k * ns + nu)
@@ -260,10 +258,11 @@ def ocp_stages(qp: QP) -> Stages:
         cols = qp.n_plan + s_of_row[rows[softened[rows]]]
         s_cols.append(cols)
         zs.append(qv[cols])
-    x_cols = [np.zeros(0, int)] + [ix[k] for k in range(1, N + 1)]
+    cols = np.arange(nz)
+    u_cols = [cols[su(k)] for k in range(N)] + [np.zeros(0, int)]
+    x_cols = [np.zeros(0, int)] + [cols[sx(k)] for k in range(1, N + 1)]
     return Stages(
-        nxs, nus, Ab, Bb, bb, Qs, Ss, Rs, qs, rs, C, D, ug, soft, zs, iu + [np.zeros(0, int)],
-        x_cols, s_cols,
+        nxs, nus, Ab, Bb, bb, Qs, Ss, Rs, qs, rs, C, D, ug, soft, zs, u_cols, x_cols, s_cols,
     )  # fmt: skip
 
 
